@@ -1,0 +1,62 @@
+"""Landmark visits: what a detector hands to the topology inference (thesis Ch. 1.2, 3.10).
+
+A :class:`Visit` is one passage of the robot through a landmark ("special place"). The topology
+inference only ever sees a sequence of visits; the sensors behind them are abstracted into the
+measurements each model needs:
+
+* odometry: the raw odometry pose of the visit plus the distance and absolute rotation travelled since
+  the previous visit (for the odometry noise model, :mod:`ptm_ros.odometry`);
+* appearance: a Fourier signature (:mod:`ptm_ros.appearance`) and/or a bag-of-words histogram;
+* laser: a local map patch, points in the visit's own frame (:mod:`ptm_ros.laser`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ptm_ros.errors import ModelError
+
+
+@dataclass(frozen=True)
+class Visit:
+    """One landmark visit.
+
+    Attributes:
+        index: position in the visit sequence (0-based).
+        stamp: time of the visit (s), from the message header stamps.
+        pose: raw odometry pose ``(x, y, yaw)`` of the visit in the odometry frame, unchanged.
+        travel: odometry path length since the previous visit (m); 0 for the first visit.
+        rotation: accumulated absolute heading change since the previous visit (rad); 0 for the first.
+        signature: Fourier signature of the panorama at the visit, shape ``(K,)``, or None.
+        words: bag-of-words counts of the panorama, shape ``(V,)`` integers, or None.
+        patch: local laser map around the visit, shape ``(P, 2)`` points in the visit's frame, or None.
+    """
+
+    index: int
+    stamp: float
+    pose: tuple[float, float, float]
+    travel: float = 0.0
+    rotation: float = 0.0
+    signature: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
+    words: NDArray[np.int64] | None = field(default=None, compare=False, repr=False)
+    patch: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not np.all(np.isfinite(self.pose)) or len(self.pose) != 3:
+            msg = f"visit {self.index}: pose must be 3 finite numbers, got {self.pose}"
+            raise ModelError(msg)
+        if not (np.isfinite(self.travel) and self.travel >= 0.0):
+            msg = f"visit {self.index}: travel must be finite and >= 0, got {self.travel}"
+            raise ModelError(msg)
+        if not (np.isfinite(self.rotation) and self.rotation >= 0.0):
+            msg = f"visit {self.index}: rotation must be finite and >= 0, got {self.rotation}"
+            raise ModelError(msg)
+
+
+def poses_array(visits: Sequence[Visit]) -> NDArray[np.float64]:
+    """The odometry poses of a visit sequence as an ``(N, 3)`` array."""
+    return np.array([v.pose for v in visits], dtype=float).reshape(-1, 3)

@@ -1,0 +1,40 @@
+"""ament_python package for ptm_ros (works with `pip install .` and with colcon)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "ptm_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    package_data={PACKAGE: ["py.typed"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml") + glob("config/*.xml"))),
+        (f"share/{PACKAGE}/bags", sorted(glob("bags/*.json"))),
+        *[
+            (f"share/{PACKAGE}/{d}", sorted(glob(f"{d}/*")))
+            for d in sorted(glob("bags/*/"))
+        ],
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "pyyaml"],
+    zip_safe=True,
+    maintainer="ptm_ros maintainers",
+    maintainer_email="maintainers@ptm-ros.dev",
+    description="Probabilistic Topological Maps for ROS 2 (RBPF / MCMC over set partitions)",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "ptm-convert = ptm_ros.tools.convert:main",
+            "ptm-sim = ptm_ros.tools.sim:main",
+            "ptm-run = ptm_ros.tools.run:main",
+            "ptm-eval = ptm_ros.tools.evaluate:main",
+        ],
+    },
+)
