@@ -1,0 +1,184 @@
+"""The PTM result and its JSON form (schema ``ptm_ros.ptm/1``, see CONTRACT.md and README).
+
+A probabilistic topological map is the list of the most probable topologies of the landmark visits with
+their posterior masses (thesis Ch. 0.3). This module holds the result type shared by every inference
+method (exact, MCMC, RBPF), the nodes and the evaluation, and its strict JSON round trip.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ptm_ros.errors import DataError
+from ptm_ros.partitions import Labels, canonical, is_canonical
+
+SCHEMA = "ptm_ros.ptm/1"
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """A landmark visit as written to ptm.json: order, header stamp (s) and odometry pose (x, y, yaw)."""
+
+    index: int
+    stamp: float
+    pose: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Topology:
+    """One topology of the PTM: canonical labels, posterior mass and optional per-place positions."""
+
+    labels: Labels
+    probability: float
+    log_posterior: float | None = None
+    positions: tuple[tuple[float, float], ...] | None = None  # (M, 2) place positions in frame_id
+
+
+@dataclass(frozen=True)
+class Ptm:
+    """A probabilistic topological map (most probable topology first)."""
+
+    landmarks: tuple[Landmark, ...]
+    topologies: tuple[Topology, ...]
+    frame_id: str = "odom"
+    inference: Mapping[str, Any] = field(default_factory=dict)
+    timing: Mapping[str, Any] = field(default_factory=dict)
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def map_topology(self) -> Topology:
+        """The most probable topology."""
+        if not self.topologies:
+            msg = "the PTM holds no topology"
+            raise DataError(msg)
+        return self.topologies[0]
+
+
+def make_ptm(
+    landmarks: Sequence[Landmark],
+    weighted: Mapping[Labels, float] | Sequence[tuple[Labels, float]],
+    *,
+    top: int | None = None,
+    positions: Mapping[Labels, Sequence[Sequence[float]]] | None = None,
+    log_posteriors: Mapping[Labels, float] | None = None,
+    **kwargs: Any,
+) -> Ptm:
+    """Build a :class:`Ptm` from topology masses (merging duplicates, sorting most probable first).
+
+    ``weighted`` may list one topology several times (e.g. particles); masses are summed per canonical
+    topology. ``top`` keeps only the most probable ones (the masses then sum to less than 1).
+    """
+    items = weighted.items() if isinstance(weighted, Mapping) else weighted
+    mass: dict[Labels, float] = {}
+    for labels, p in items:
+        key = canonical(labels)
+        mass[key] = mass.get(key, 0.0) + float(p)
+    ranked = sorted(mass.items(), key=lambda kv: (-kv[1], kv[0]))
+    if top is not None:
+        ranked = ranked[:top]
+    topologies = tuple(
+        Topology(
+            labels=lab,
+            probability=p,
+            log_posterior=None if log_posteriors is None else log_posteriors.get(lab),
+            positions=None
+            if positions is None or lab not in positions
+            else tuple((float(x), float(y)) for x, y in positions[lab]),
+        )
+        for lab, p in ranked
+    )
+    return Ptm(landmarks=tuple(landmarks), topologies=topologies, **kwargs)
+
+
+def to_json_dict(ptm: Ptm) -> dict[str, Any]:
+    """The ptm.json document of a PTM."""
+    tops = []
+    for t in ptm.topologies:
+        d: dict[str, Any] = {"labels": list(t.labels), "probability": t.probability}
+        if t.log_posterior is not None:
+            d["log_posterior"] = t.log_posterior
+        if t.positions is not None:
+            d["positions"] = [list(p) for p in t.positions]
+        tops.append(d)
+    doc: dict[str, Any] = {
+        "schema": SCHEMA,
+        "frame_id": ptm.frame_id,
+        "landmarks": [{"index": lm.index, "stamp": lm.stamp, "pose": list(lm.pose)} for lm in ptm.landmarks],
+        "topologies": tops,
+        "inference": dict(ptm.inference),
+        "timing": dict(ptm.timing),
+    }
+    doc.update(ptm.extra)
+    return doc
+
+
+def _fail(msg: str) -> DataError:
+    return DataError(f"invalid ptm.json: {msg}")
+
+
+def from_json_dict(doc: Mapping[str, Any]) -> Ptm:
+    """Parse and validate a ptm.json document (raises :class:`DataError` with the offending field)."""
+    if doc.get("schema") != SCHEMA:
+        raise _fail(f"schema is {doc.get('schema')!r}, expected {SCHEMA!r}")
+    try:
+        landmarks = tuple(
+            Landmark(int(d["index"]), float(d["stamp"]), tuple(float(v) for v in d["pose"]))  # type: ignore[arg-type]
+            for d in doc["landmarks"]
+        )
+        n = len(landmarks)
+        topologies = []
+        for k, d in enumerate(doc["topologies"]):
+            labels = tuple(int(v) for v in d["labels"])
+            if len(labels) != n or not is_canonical(labels):
+                raise _fail(f"topology {k}: labels {labels} are not a canonical sequence of {n} visits")
+            p = float(d["probability"])
+            if not (0.0 <= p <= 1.0 + 1e-9) or math.isnan(p):
+                raise _fail(f"topology {k}: probability {p} outside [0, 1]")
+            pos = d.get("positions")
+            topologies.append(
+                Topology(
+                    labels=labels,
+                    probability=p,
+                    log_posterior=None if d.get("log_posterior") is None else float(d["log_posterior"]),
+                    positions=None if pos is None else tuple((float(a), float(b)) for a, b in pos),
+                )
+            )
+    except (KeyError, TypeError, ValueError) as err:
+        raise _fail(f"{type(err).__name__}: {err}") from err
+    if any(lm.index != i for i, lm in enumerate(landmarks)):
+        raise _fail("landmark indices must be 0..N-1 in order")
+    if sum(t.probability for t in topologies) > 1.0 + 1e-6:
+        raise _fail("topology probabilities sum to more than 1")
+    known = {"schema", "frame_id", "landmarks", "topologies", "inference", "timing"}
+    return Ptm(
+        landmarks=landmarks,
+        topologies=tuple(topologies),
+        frame_id=str(doc.get("frame_id", "odom")),
+        inference=dict(doc.get("inference", {})),
+        timing=dict(doc.get("timing", {})),
+        extra={k: v for k, v in doc.items() if k not in known},
+    )
+
+
+def save_ptm(ptm: Ptm, path: str | Path) -> Path:
+    """Write ``ptm`` as JSON to ``path`` (parent directories created)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_json_dict(ptm), indent=1) + "\n")
+    return path
+
+
+def load_ptm(path: str | Path) -> Ptm:
+    """Read and validate a ptm.json file."""
+    path = Path(path)
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        msg = f"cannot read {path}: {err}"
+        raise DataError(msg) from err
+    return from_json_dict(doc)
