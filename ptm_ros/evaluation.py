@@ -1,0 +1,416 @@
+"""Scoring a PTM against ground truth (CONTRACT.md, "Scoring against ground truth").
+
+The thesis judges a PTM by the posterior mass it puts on the ground-truth topology (Ch. 5, Fig. 56–57).
+Real runs rarely come with hand-labelled places, so we score the *pairs* of landmark visits instead,
+using each visit's true position ``p_i`` (any frame: only distances matter):
+
+.. math::
+    \\text{same}(i, j) \\iff \\lVert p_i - p_j \\rVert < r_s, \\qquad
+    \\text{different}(i, j) \\iff \\lVert p_i - p_j \\rVert > r_d, \\qquad r_s = 1.5, \\; r_d = 4.0 \\text{ m}
+
+and pairs in between are *unscored* (ignored everywhere). A topology predicts ``i ~ j`` when both visits
+carry the same label. Over the scored pairs this gives the counts ``TP`` (same, predicted same),
+``FN`` (same, predicted different), ``FP`` (different, predicted same) and ``TN``, and
+
+.. math::
+    P = \\frac{TP}{TP + FP}, \\qquad R = \\frac{TP}{TP + FN}, \\qquad F_1 = \\frac{2\\,TP}{2\\,TP + FP + FN}.
+
+Conventions for empty denominators (all tested): ``P = 1`` when nothing scored is predicted same (no
+claim made, none wrong); ``R = 1`` when there is no true same pair (nothing to find); ``F1 = 1`` when
+``TP + FP + FN = 0``. With these conventions ``F1`` is still the harmonic mean of ``P`` and ``R`` (e.g. no
+true same pair but one predicted: ``P = 0, R = 1, F1 = 0``).
+
+Posterior weighting. The listed topologies' masses ``p_k`` are renormalised over the listed mass,
+``w_k = p_k / Σ_l p_l`` (a PTM truncated to its top topologies is scored as the posterior conditioned
+on the listed set; the unlisted remainder is unknown and cannot be scored). The *headline* figures are
+``P, R, F1`` of the expected counts ``E[TP] = Σ_k w_k TP_k`` (likewise FP, FN, TN). Since
+``E[TP] = Σ_{same pairs} P(i ~ j)``, they score the posterior's pairwise co-location marginals, do not
+hinge on the empty-denominator conventions of individual topologies, and do not change when mass is
+split between near-identical topologies. The mass-weighted mean ``Σ_k w_k F1_k`` (the expected F1 of
+one topology drawn from the PTM) is reported beside them.
+
+Two masses are *not* renormalised (they are lower bounds of the true posterior mass): the consistent
+mass, total probability of listed topologies with no scored pair wrong (``FP = FN = 0``), and, when
+true place ids are given, the mass of the exactly-true topology (thesis Ch. 5's figure of merit).
+The number of true places is the number of single-linkage clusters of the true positions at ``r_s``
+(or the number of distinct true place ids when given).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial.distance import pdist
+
+from ptm_ros.errors import ConfigError, DataError, ModelError
+from ptm_ros.partitions import canonical, num_places
+from ptm_ros.ptm import Ptm
+
+#: Schema tag of :meth:`Score.as_dict` (the JSON printed by ``ptm-eval``).
+SCORE_SCHEMA = "ptm_ros.eval/1"
+
+#: Upper bound on the number of booleans held at once when comparing topologies pairwise.
+_CHUNK_ELEMENTS = 1 << 22
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Thresholds of the pairwise ground-truth scoring.
+
+    Attributes:
+        same_radius: visits closer than this (m) are the same place.
+        different_radius: visits farther than this (m) are different places; in between: unscored.
+        max_extrapolation: a landmark stamp may lie at most this far (s) outside the ground-truth time
+            span; it then takes the nearest ground-truth position.
+    """
+
+    same_radius: float = 1.5
+    different_radius: float = 4.0
+    max_extrapolation: float = 0.5
+
+    def __post_init__(self) -> None:
+        values = (self.same_radius, self.different_radius, self.max_extrapolation)
+        if not all(math.isfinite(v) for v in values):
+            msg = f"EvalConfig values must be finite, got {values}"
+            raise ConfigError(msg)
+        if self.same_radius <= 0.0:
+            msg = f"same_radius must be > 0, got {self.same_radius}"
+            raise ConfigError(msg)
+        if self.different_radius < self.same_radius:
+            msg = f"different_radius ({self.different_radius}) must be >= same_radius ({self.same_radius})"
+            raise ConfigError(msg)
+        if self.max_extrapolation < 0.0:
+            msg = f"max_extrapolation must be >= 0, got {self.max_extrapolation}"
+            raise ConfigError(msg)
+
+
+@dataclass(frozen=True)
+class PairCounts:
+    """Confusion counts of "same place" over the scored pairs (floats: expectations allowed)."""
+
+    tp: float
+    fp: float
+    fn: float
+    tn: float
+
+    @property
+    def precision(self) -> float:
+        """``TP / (TP + FP)``; 1 when nothing scored is predicted same."""
+        den = self.tp + self.fp
+        return 1.0 if den <= 0.0 else self.tp / den
+
+    @property
+    def recall(self) -> float:
+        """``TP / (TP + FN)``; 1 when there is no true same pair."""
+        den = self.tp + self.fn
+        return 1.0 if den <= 0.0 else self.tp / den
+
+    @property
+    def f1(self) -> float:
+        """``2 TP / (2 TP + FP + FN)`` (harmonic mean of P and R); 1 when ``TP + FP + FN = 0``."""
+        den = 2.0 * self.tp + self.fp + self.fn
+        return 1.0 if den <= 0.0 else 2.0 * self.tp / den
+
+    @property
+    def errors(self) -> float:
+        """Number of scored pairs the topology gets wrong (``FP + FN``)."""
+        return self.fp + self.fn
+
+
+@dataclass(frozen=True)
+class TopologyScore:
+    """The score of one listed topology (rank 0 = the MAP topology)."""
+
+    rank: int
+    probability: float
+    num_places: int
+    counts: PairCounts
+
+    @property
+    def consistent(self) -> bool:
+        """No scored pair wrong."""
+        return self.counts.errors == 0
+
+
+@dataclass(frozen=True)
+class Score:
+    """A PTM scored against ground truth; see the module docstring for every definition."""
+
+    n_visits: int
+    n_true_places: int
+    true_places_from: str  # "single-linkage" or "place-ids"
+    n_scored_pairs: int
+    n_same_pairs: int
+    n_different_pairs: int
+    listed_mass: float
+    map: TopologyScore
+    expected: PairCounts
+    mean_f1: float
+    consistent_mass: float
+    true_topology_mass: float | None
+    topologies: tuple[TopologyScore, ...] = field(repr=False)
+    config: EvalConfig = field(default_factory=EvalConfig)
+
+    @property
+    def n_pairs(self) -> int:
+        """All visit pairs ``N (N - 1) / 2``, scored or not."""
+        return self.n_visits * (self.n_visits - 1) // 2
+
+    def as_dict(self, *, per_topology: bool = True) -> dict[str, Any]:
+        """Stable flat JSON form (schema :data:`SCORE_SCHEMA`), documented in ``ptm_ros.tools.evaluate``."""
+        m, e = self.map.counts, self.expected
+        doc: dict[str, Any] = {
+            "schema": SCORE_SCHEMA,
+            "same_radius_m": self.config.same_radius,
+            "different_radius_m": self.config.different_radius,
+            "n_visits": self.n_visits,
+            "n_topologies": len(self.topologies),
+            "listed_mass": self.listed_mass,
+            "n_true_places": self.n_true_places,
+            "true_places_from": self.true_places_from,
+            "n_pairs": self.n_pairs,
+            "n_scored_pairs": self.n_scored_pairs,
+            "n_same_pairs": self.n_same_pairs,
+            "n_different_pairs": self.n_different_pairs,
+            "map_probability": self.map.probability,
+            "map_num_places": self.map.num_places,
+            "map_tp": int(m.tp),
+            "map_fp": int(m.fp),
+            "map_fn": int(m.fn),
+            "map_tn": int(m.tn),
+            "map_precision": m.precision,
+            "map_recall": m.recall,
+            "map_f1": m.f1,
+            "posterior_tp": e.tp,
+            "posterior_fp": e.fp,
+            "posterior_fn": e.fn,
+            "posterior_tn": e.tn,
+            "posterior_precision": e.precision,
+            "posterior_recall": e.recall,
+            "posterior_f1": e.f1,
+            "posterior_mean_f1": self.mean_f1,
+            "consistent_mass": self.consistent_mass,
+            "true_topology_mass": self.true_topology_mass,
+        }
+        if per_topology:
+            doc["topologies"] = [
+                {
+                    "rank": t.rank,
+                    "probability": t.probability,
+                    "num_places": t.num_places,
+                    "tp": int(t.counts.tp),
+                    "fp": int(t.counts.fp),
+                    "fn": int(t.counts.fn),
+                    "tn": int(t.counts.tn),
+                    "precision": t.counts.precision,
+                    "recall": t.counts.recall,
+                    "f1": t.counts.f1,
+                    "consistent": t.consistent,
+                }
+                for t in self.topologies
+            ]
+        return doc
+
+
+class GroundTruthLike(Protocol):
+    """What :func:`true_positions_for` needs of a ground truth (e.g. ``ptm_ros.io.groundtruth``'s)."""
+
+    @property
+    def stamps(self) -> NDArray[np.float64]:
+        """``(T,)`` times (s), increasing."""
+        ...
+
+    @property
+    def poses_corrected(self) -> NDArray[np.float64]:
+        """``(T, 3)`` true poses (x, y, yaw) at ``stamps``."""
+        ...
+
+
+def _positions(true_xy: ArrayLike, n: int) -> NDArray[np.float64]:
+    xy = np.asarray(true_xy, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] != 2 or xy.shape[0] != n:
+        msg = f"true positions must have shape ({n}, 2) (one per landmark visit), got {xy.shape}"
+        raise ModelError(msg)
+    if not np.all(np.isfinite(xy)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(xy), axis=1))[0])
+        msg = f"true position of visit {bad} is not finite: {xy[bad].tolist()}"
+        raise ModelError(msg)
+    return xy
+
+
+def pair_truth(
+    true_xy: ArrayLike, config: EvalConfig | None = None
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
+    """The scored pairs ``(i, j, same)`` with ``i < j`` (row-major order); unscored pairs left out."""
+    config = config or EvalConfig()
+    xy = np.asarray(true_xy, dtype=float)
+    n = xy.shape[0]
+    d = pdist(xy) if n >= 2 else np.zeros(0)
+    i, j = np.triu_indices(n, k=1)  # same order as pdist's condensed form
+    same = d < config.same_radius
+    scored = same | (d > config.different_radius)
+    return i[scored], j[scored], same[scored]
+
+
+def single_linkage_places(true_xy: ArrayLike, radius: float) -> NDArray[np.intp]:
+    """Canonical labels of the single-linkage clusters: visits chained by gaps ``< radius`` share a place."""
+    xy = np.asarray(true_xy, dtype=float)
+    n = xy.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.intp)
+    i, j = np.triu_indices(n, k=1)
+    close = pdist(xy) < radius if n >= 2 else np.zeros(0, dtype=bool)
+    graph = coo_matrix((np.ones(int(close.sum())), (i[close], j[close])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return np.asarray(canonical(labels.tolist()), dtype=np.intp)
+
+
+def topology_counts(
+    labels: NDArray[np.integer], i: NDArray[np.intp], j: NDArray[np.intp], same: NDArray[np.bool_]
+) -> NDArray[np.int64]:
+    """``(K, 4)`` counts ``TP, FP, FN, TN`` of ``K`` label rows ``(K, N)`` over the scored pairs."""
+    labels = np.atleast_2d(labels)
+    out = np.zeros((labels.shape[0], 4), dtype=np.int64)
+    n_same = int(same.sum())
+    n_diff = same.size - n_same
+    step = max(1, _CHUNK_ELEMENTS // max(1, same.size))
+    for start in range(0, labels.shape[0], step):
+        rows = labels[start : start + step]
+        pred = rows[:, i] == rows[:, j]
+        tp = np.count_nonzero(pred & same, axis=1)
+        fp = np.count_nonzero(pred & ~same, axis=1)
+        out[start : start + step] = np.stack([tp, fp, n_same - tp, n_diff - fp], axis=1)
+    return out
+
+
+def score_ptm(
+    ptm: Ptm,
+    true_xy: ArrayLike,
+    *,
+    true_places: Sequence[int] | None = None,
+    config: EvalConfig | None = None,
+) -> Score:
+    """Score ``ptm`` given each visit's true position ``true_xy`` ``(N, 2)`` (any frame).
+
+    ``true_places`` (optional, ``(N,)`` ids of the physical place of each visit) sets the number of true
+    places and enables the mass of the exactly-true topology. Pairs are always classified by distance.
+    Raises :class:`ModelError` on mis-shaped inputs and :class:`DataError` on a PTM without mass.
+    """
+    config = config or EvalConfig()
+    n = len(ptm.landmarks)
+    xy = _positions(true_xy, n)
+    if not ptm.topologies:
+        msg = "the PTM holds no topology to score"
+        raise DataError(msg)
+    probs = np.array([t.probability for t in ptm.topologies], dtype=float)
+    listed = float(probs.sum())
+    if not listed > 0.0:
+        msg = "the PTM's listed topologies carry zero total probability"
+        raise DataError(msg)
+    for k, t in enumerate(ptm.topologies):
+        if len(t.labels) != n:
+            msg = f"topology {k} labels {len(t.labels)} visits, the PTM has {n} landmarks"
+            raise ModelError(msg)
+
+    i, j, same = pair_truth(xy, config)
+    labels = np.array([t.labels for t in ptm.topologies], dtype=np.intp).reshape(len(probs), n)
+    counts = topology_counts(labels, i, j, same)
+    scores = tuple(
+        TopologyScore(
+            rank=k,
+            probability=float(probs[k]),
+            num_places=num_places(t.labels),
+            counts=PairCounts(*(int(c) for c in counts[k])),
+        )
+        for k, t in enumerate(ptm.topologies)
+    )
+    w = probs / listed
+    expected = PairCounts(*(float(v) for v in w @ counts))
+    mean_f1 = float(sum(wk * s.counts.f1 for wk, s in zip(w, scores, strict=True)))
+    consistent_mass = float(sum(s.probability for s in scores if s.consistent))
+
+    true_mass: float | None = None
+    if true_places is None:
+        n_true = int(np.max(single_linkage_places(xy, config.same_radius), initial=-1)) + 1
+        source = "single-linkage"
+    else:
+        if len(true_places) != n:
+            msg = f"true place ids must have one entry per visit ({n}), got {len(true_places)}"
+            raise ModelError(msg)
+        truth = canonical([int(v) for v in true_places])
+        n_true = num_places(truth)
+        source = "place-ids"
+        true_mass = float(sum(t.probability for t in ptm.topologies if tuple(t.labels) == truth))
+
+    return Score(
+        n_visits=n,
+        n_true_places=n_true,
+        true_places_from=source,
+        n_scored_pairs=int(same.size),
+        n_same_pairs=int(same.sum()),
+        n_different_pairs=int(same.size - same.sum()),
+        listed_mass=listed,
+        map=scores[0],
+        expected=expected,
+        mean_f1=mean_f1,
+        consistent_mass=consistent_mass,
+        true_topology_mass=true_mass,
+        topologies=scores,
+        config=config,
+    )
+
+
+def interpolate_positions(
+    stamps: ArrayLike, xy: ArrayLike, query: ArrayLike, *, max_extrapolation: float = 0.5
+) -> NDArray[np.float64]:
+    """Linear interpolation of a trajectory's positions ``xy`` ``(T, 2)`` at ``stamps`` ``(T,)``.
+
+    ``stamps`` must be strictly increasing; queries up to ``max_extrapolation`` seconds outside the span
+    take the end position, farther ones raise :class:`DataError`.
+    """
+    t = np.asarray(stamps, dtype=float)
+    p = np.asarray(xy, dtype=float)
+    q = np.atleast_1d(np.asarray(query, dtype=float))
+    if t.ndim != 1 or t.size == 0 or p.shape != (t.size, 2):
+        msg = f"ground truth needs stamps (T,) and positions (T, 2) with T >= 1, got {t.shape} and {p.shape}"
+        raise DataError(msg)
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        msg = "ground-truth stamps, positions and query stamps must be finite"
+        raise DataError(msg)
+    if np.any(np.diff(t) <= 0.0):
+        k = int(np.flatnonzero(np.diff(t) <= 0.0)[0])
+        msg = f"ground-truth stamps must increase strictly (stamp {k + 1}: {t[k + 1]} after {t[k]})"
+        raise DataError(msg)
+    outside = (q < t[0] - max_extrapolation) | (q > t[-1] + max_extrapolation)
+    if np.any(outside):
+        k = int(np.flatnonzero(outside)[0])
+        msg = (
+            f"{int(outside.sum())} stamp(s) lie outside the ground-truth span [{t[0]:.3f}, {t[-1]:.3f}] s "
+            f"(+-{max_extrapolation} s), first: query {k} at {q[k]:.3f} s"
+        )
+        raise DataError(msg)
+    return np.stack([np.interp(q, t, p[:, 0]), np.interp(q, t, p[:, 1])], axis=1)
+
+
+def true_positions_for(
+    ptm: Ptm, ground_truth: GroundTruthLike, *, config: EvalConfig | None = None
+) -> NDArray[np.float64]:
+    """Each landmark's true position ``(N, 2)``: the ground-truth trajectory interpolated at its stamp."""
+    config = config or EvalConfig()
+    poses = np.asarray(ground_truth.poses_corrected, dtype=float)
+    if poses.ndim != 2 or poses.shape[1] < 2:
+        msg = f"ground-truth poses must have shape (T, 3), got {poses.shape}"
+        raise DataError(msg)
+    stamps = [lm.stamp for lm in ptm.landmarks]
+    if not stamps:
+        return np.zeros((0, 2))
+    return interpolate_positions(
+        ground_truth.stamps, poses[:, :2], stamps, max_extrapolation=config.max_extrapolation
+    )
