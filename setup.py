@@ -27,7 +27,6 @@ setup(
     maintainer_email="maintainers@ptm-ros.dev",
     description="Probabilistic Topological Maps for ROS 2 (RBPF / MCMC over set partitions)",
     license="Apache-2.0",
-    tests_require=["pytest"],
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [

@@ -1,0 +1,43 @@
+# ptm_ros — two commands on a fresh machine: `make demo` and `make test` (see README.md).
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(VENV)/bin/pip
+DEMO_BAG ?= bags/demo
+DEMO_OUT ?= out/demo
+
+# DDS for tests and the demo: localhost only, a per-run domain, fast discovery announcements.
+ROS_ENV = AMENT_PREFIX_PATH=$(abspath $(VENV)) \
+	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST \
+	ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-$$(( $$$$ % 200 + 20 ))} \
+	FASTDDS_DEFAULT_PROFILES_FILE=$(abspath config/fastdds.xml) \
+	RMW_IMPLEMENTATION=rmw_fastrtps_cpp
+
+.PHONY: demo test bench install lint clean
+
+$(VENV): requirements.txt
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q -r requirements.txt
+	touch $(VENV)
+
+# Reinstall the package itself (not its dependencies) so console scripts and share/ are current.
+install: $(VENV)
+	$(PIP) install -q --no-deps --no-build-isolation .
+
+test: install
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider test
+
+demo: install
+	$(ROS_ENV) $(VENV)/bin/ptm-run $(DEMO_BAG) --out $(DEMO_OUT)
+
+bench: install
+	$(ROS_ENV) $(PY) bench/run_all.py
+
+lint: $(VENV)
+	$(VENV)/bin/ruff check ptm_ros test bench
+	$(VENV)/bin/ruff format --check ptm_ros test bench
+
+clean:
+	rm -rf build *.egg-info out .pytest_cache

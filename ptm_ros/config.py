@@ -1,0 +1,108 @@
+"""The root configuration of ptm_ros: one frozen dataclass per concern under :class:`PtmConfig`.
+
+Defaults are inline in each concern's dataclass; ``config/ptm.yaml`` lists them for users; a YAML file
+given with ``--params`` overrides any subset (strictly: unknown keys and bad values are errors naming the
+field). The configuration actually used is saved beside every result (``DIR/config.yaml``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ptm_ros.configio import from_dict, load_yaml, to_dict
+from ptm_ros.detectors import EquidistantConfig
+from ptm_ros.errors import ConfigError
+from ptm_ros.laser import LaserConfig
+from ptm_ros.posterior import ModelConfig
+
+METHODS = ("exact", "rbpf", "mcmc")
+DETECTORS = ("equidistant", "laser-surprise", "appearance-surprise")
+
+
+@dataclass(frozen=True)
+class TopicsConfig:
+    """Topic names read from bags (and subscribed to by the nodes)."""
+
+    odom: str = "/odom"
+    scan: str = "/scan"
+    panorama: str = "/panorama"
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Which landmark detector to use; None = the default for the bag's sensors."""
+
+    kind: str | None = None
+    equidistant: EquidistantConfig = field(default_factory=EquidistantConfig)
+    image_max_dt: float = 1.0  # s: a visit takes the signature of the panorama nearest in time, within this
+
+    def __post_init__(self) -> None:
+        if self.kind is not None and self.kind not in DETECTORS:
+            msg = f"detector kind must be one of {DETECTORS}, got {self.kind!r}"
+            raise ConfigError(msg)
+        if not self.image_max_dt > 0:
+            msg = f"image_max_dt must be > 0, got {self.image_max_dt}"
+            raise ConfigError(msg)
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """Which estimator computes the PTM, and its budget."""
+
+    method: str = "exact"
+    particles: int = 100
+    seed: int = 0
+    top: int = 50  # topologies written to ptm.json
+    max_exact_visits: int = 10  # exact enumeration refuses larger N (B_10 = 115 975)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            msg = f"inference method must be one of {METHODS}, got {self.method!r}"
+            raise ConfigError(msg)
+        if self.particles < 1 or self.top < 1:
+            msg = f"particles and top must be >= 1, got {self.particles}, {self.top}"
+            raise ConfigError(msg)
+        if not 1 <= self.max_exact_visits <= 12:
+            msg = f"max_exact_visits must be in 1..12, got {self.max_exact_visits}"
+            raise ConfigError(msg)
+
+
+@dataclass(frozen=True)
+class PtmConfig:
+    """Everything ptm_ros can be told, one section per concern."""
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    laser: LaserConfig = field(default_factory=LaserConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    inference: InferenceConfig = field(default_factory=InferenceConfig)
+    topics: TopicsConfig = field(default_factory=TopicsConfig)
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:
+    """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (nested dicts) on top."""
+    data: dict[str, Any] = load_yaml(path) if path is not None else {}
+    if overrides:
+        data = _merge(data, overrides)
+    return from_dict(PtmConfig, data)
+
+
+def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def save_config(config: PtmConfig, path: str | Path) -> Path:
+    """Write the configuration used as YAML (loadable again with :func:`load_config`)."""
+    import yaml
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    return path

@@ -1,0 +1,133 @@
+"""Strict conversion between nested frozen config dataclasses and plain dicts / YAML.
+
+Every concern has its own frozen dataclass with inline defaults (``PriorConfig``, ``OdometryConfig``,
+…) under one root (:class:`ptm_ros.config.PtmConfig`). Loading is strict: an unknown key, a wrong type
+or a value its dataclass rejects raises :class:`ConfigError` naming the dotted path of the field, so a
+misspelt parameter never passes silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from ptm_ros.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _convert(value: Any, hint: Any, where: str) -> Any:
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, Mapping):
+            msg = f"{where}: expected a mapping, got {type(value).__name__}"
+            raise ConfigError(msg)
+        return from_dict(hint, value, where)  # type: ignore[arg-type]
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(value, arg, where)
+            except ConfigError as err:
+                errors.append(str(err))
+        raise ConfigError("; ".join(errors))
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            msg = f"{where}: expected a list, got {type(value).__name__}"
+            raise ConfigError(msg)
+        args = typing.get_args(hint)
+        inner = args[0] if args else Any
+        return tuple(_convert(v, inner, f"{where}[{i}]") for i, v in enumerate(value))
+    if hint is bool:
+        if not isinstance(value, bool):
+            msg = f"{where}: expected true/false, got {value!r}"
+            raise ConfigError(msg)
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            msg = f"{where}: expected an integer, got {value!r}"
+            raise ConfigError(msg)
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            msg = f"{where}: expected a number, got {value!r}"
+            raise ConfigError(msg)
+        if math.isnan(float(value)):
+            msg = f"{where}: NaN is not a valid value"
+            raise ConfigError(msg)
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            msg = f"{where}: expected a string, got {value!r}"
+            raise ConfigError(msg)
+        return value
+    return value
+
+
+def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "") -> T:
+    """Build the dataclass ``cls`` from ``data``; missing keys take their defaults, unknown keys fail."""
+    if not dataclasses.is_dataclass(cls):
+        msg = f"{cls!r} is not a dataclass"
+        raise TypeError(msg)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        msg = f"{where or 'config'}: unknown key(s) {unknown}; known keys: {sorted(fields)}"
+        raise ConfigError(msg)
+    kwargs = {
+        name: _convert(value, hints[name], f"{where}.{name}" if where else name)
+        for name, value in data.items()
+    }
+    try:
+        return cls(**kwargs)
+    except ConfigError as err:
+        msg = f"{where or 'config'}: {err}"
+        raise ConfigError(msg) from err
+    except (TypeError, ValueError) as err:
+        msg = f"{where or 'config'}: {err}"
+        raise ConfigError(msg) from err
+
+
+def to_dict(config: Any) -> dict[str, Any]:
+    """The plain-dict form of a config dataclass (tuples become lists), for saving beside results."""
+
+    def plain(v: Any) -> Any:
+        if isinstance(v, tuple):
+            return [plain(x) for x in v]
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        return v
+
+    return plain(dataclasses.asdict(config))
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping (empty file → {}); malformed YAML or a non-mapping raises ConfigError."""
+    import yaml
+
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as err:
+        msg = f"cannot read parameter file {path}: {err}"
+        raise ConfigError(msg) from err
+    except yaml.YAMLError as err:
+        msg = f"malformed YAML in {path}: {err}"
+        raise ConfigError(msg) from err
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        msg = f"{path}: the top level must be a mapping, got {type(doc).__name__}"
+        raise ConfigError(msg)
+    return doc

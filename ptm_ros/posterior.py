@@ -1,0 +1,210 @@
+"""The posterior over topologies, log P(T | Z) = log P(T) + log P(O, S | T) + log P(A | T) (eq. 1–4).
+
+:class:`PosteriorModel` binds a visit sequence to the models of a :class:`ModelConfig` and evaluates
+the unnormalised log posterior of any topology:
+
+* prior: :mod:`ptm_ros.priors` (Ch. 1.3);
+* metric likelihood of odometry and laser registrations: :mod:`ptm_ros.odometry` (eq. 14–18, 47–49);
+  laser registrations enter for pairs of visits placed at one place (each visit against the previous
+  visit of its place), computed lazily by a *registrar* and cached per pair;
+* appearance likelihood: :mod:`ptm_ros.appearance` (eq. 22–28, 54–57), a product over blocks cached
+  per block, because a topology's blocks recur across MCMC moves and particles.
+
+Whole-topology results are cached too. Importance sampling inside the metric likelihood draws from a
+generator seeded by ``(seed, labels)``, so a topology's value does not depend on evaluation order.
+
+:func:`exact_posterior` enumerates all ``B_N`` topologies (N ≤ 12): the yardstick for every sampler.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from itertools import pairwise
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import logsumexp
+
+from ptm_ros.appearance import (
+    AppearanceConfig,
+    AppearanceModel,
+    appearance_log_likelihood,
+    fit_appearance_model,
+)
+from ptm_ros.errors import ModelError
+from ptm_ros.geometry import RelativePose
+from ptm_ros.odometry import MetricResult, OdometryConfig, metric_log_likelihood
+from ptm_ros.partitions import MAX_ENUMERATION, Labels, blocks, enumerate_partitions, is_canonical
+from ptm_ros.priors import PriorConfig, make_prior
+from ptm_ros.visits import Visit
+
+#: A registrar returns the laser measurement of between(x_i, x_j) for visits i < j, or None when the
+#: registration failed its fitness check ("no information").
+Registrar = Callable[[int, int], RelativePose | None]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Which measurements enter the posterior, and their models' parameters."""
+
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    use_odometry: bool = True
+    use_appearance: bool = True  # only when every visit carries the configured appearance measurement
+    use_laser: bool = True  # only when a registrar is given
+
+
+@dataclass(frozen=True)
+class PosteriorTerms:
+    """The parts of log P(T | Z) for one topology (unnormalised)."""
+
+    prior: float
+    metric: float
+    appearance: float
+    metric_result: MetricResult | None = None
+
+    @property
+    def total(self) -> float:
+        return self.prior + self.metric + self.appearance
+
+
+def _has_appearance(visits: Sequence[Visit], config: AppearanceConfig) -> bool:
+    need_sig = "fourier" in config.models
+    need_words = "words" in config.models
+    return all(
+        (not need_sig or v.signature is not None) and (not need_words or v.words is not None) for v in visits
+    )
+
+
+class PosteriorModel:
+    """log P(T | Z) for topologies of a fixed visit sequence, with caching (see module docstring)."""
+
+    def __init__(
+        self,
+        visits: Sequence[Visit],
+        config: ModelConfig | None = None,
+        *,
+        registrar: Registrar | None = None,
+        seed: int = 0,
+    ) -> None:
+        if not visits:
+            msg = "the posterior needs at least one visit"
+            raise ModelError(msg)
+        self.visits = tuple(visits)
+        self.config = config or ModelConfig()
+        self.seed = int(seed)
+        self.prior = make_prior(self.config.prior)
+        self.appearance: AppearanceModel | None = None
+        if self.config.use_appearance and _has_appearance(self.visits, self.config.appearance):
+            self.appearance = fit_appearance_model(self.visits, self.config.appearance)
+        self.registrar = registrar if self.config.use_laser else None
+        self._block_cache: dict[tuple[int, ...], float] = {}
+        self._pair_cache: dict[tuple[int, int], RelativePose | None] = {}
+        self._terms_cache: dict[Labels, PosteriorTerms] = {}
+
+    @property
+    def n(self) -> int:
+        return len(self.visits)
+
+    def _check(self, labels: Sequence[int]) -> Labels:
+        lab = tuple(int(v) for v in labels)
+        if len(lab) != self.n or not is_canonical(lab):
+            msg = f"expected a canonical label sequence of {self.n} visits, got {lab}"
+            raise ModelError(msg)
+        return lab
+
+    def registration(self, i: int, j: int) -> RelativePose | None:
+        """The cached laser measurement between visits i < j (None: no registrar or no information)."""
+        if self.registrar is None:
+            return None
+        key = (i, j)
+        if key not in self._pair_cache:
+            self._pair_cache[key] = self.registrar(i, j)
+        return self._pair_cache[key]
+
+    def loops(self, labels: Labels) -> tuple[RelativePose, ...]:
+        """Laser measurements used by a topology: each visit against the previous visit of its place."""
+        out = []
+        for block in blocks(labels):
+            for a, b in pairwise(block):
+                meas = self.registration(a, b)
+                if meas is not None:
+                    out.append(meas)
+        return tuple(out)
+
+    def terms(self, labels: Sequence[int]) -> PosteriorTerms:
+        """All parts of the unnormalised log posterior of a topology (cached)."""
+        lab = self._check(labels)
+        cached = self._terms_cache.get(lab)
+        if cached is not None:
+            return cached
+        prior = self.prior.log_prob(lab)
+        metric, result = 0.0, None
+        if self.config.use_odometry and self.n > 1:
+            rng = np.random.default_rng([self.seed, *lab])
+            result = metric_log_likelihood(lab, self.visits, self.config.odometry, self.loops(lab), rng=rng)
+            metric = result.log_likelihood
+        app = 0.0
+        if self.appearance is not None:
+            app = appearance_log_likelihood(lab, self.visits, self.appearance, cache=self._block_cache)
+        out = PosteriorTerms(prior=prior, metric=metric, appearance=app, metric_result=result)
+        self._terms_cache[lab] = out
+        return out
+
+    def log_posterior(self, labels: Sequence[int]) -> float:
+        """Unnormalised log P(T | Z)."""
+        return self.terms(labels).total
+
+    def clear_cache(self) -> None:
+        """Forget cached topologies (block and pair caches stay valid and are kept)."""
+        self._terms_cache.clear()
+
+
+def normalize_log(weights: Mapping[Labels, float]) -> dict[Labels, float]:
+    """Probabilities from unnormalised log weights (log-sum-exp; −inf entries get 0)."""
+    keys = list(weights)
+    lw = np.array([weights[k] for k in keys], dtype=float)
+    if not np.any(np.isfinite(lw)):
+        msg = "every topology has zero posterior probability"
+        raise ModelError(msg)
+    p = np.exp(lw - logsumexp(lw))
+    return dict(zip(keys, p.tolist(), strict=True))
+
+
+def exact_posterior(
+    model: PosteriorModel, *, progress: Callable[[Iterable[Labels], int], Iterable[Labels]] | None = None
+) -> dict[Labels, float]:
+    """Unnormalised log posterior of every topology of the model's visits (N ≤ 12).
+
+    ``progress`` may wrap the enumeration (e.g. a tqdm bar); it receives the iterator and its length.
+    """
+    if model.n > MAX_ENUMERATION:
+        msg = f"exact enumeration needs N <= {MAX_ENUMERATION} visits, got {model.n}"
+        raise ModelError(msg)
+    from ptm_ros.partitions import bell
+
+    parts: Iterable[Labels] = enumerate_partitions(model.n)
+    if progress is not None:
+        parts = progress(parts, bell(model.n))
+    out = {lab: model.log_posterior(lab) for lab in parts}
+    model.clear_cache()  # B_N topologies: do not keep them all twice
+    return out
+
+
+def total_variation(p: Mapping[Labels, float], q: Mapping[Labels, float]) -> float:
+    """Total-variation distance ½ Σ |p − q| between two distributions over topologies."""
+    keys = set(p) | set(q)
+    return 0.5 * math.fsum(abs(p.get(k, 0.0) - q.get(k, 0.0)) for k in keys)
+
+
+def top_k(probabilities: Mapping[Labels, float], k: int) -> list[tuple[Labels, float]]:
+    """The k most probable topologies, most probable first (ties broken by labels)."""
+    return sorted(probabilities.items(), key=lambda kv: (-kv[1], kv[0]))[:k]
+
+
+def as_array(labels: Labels) -> NDArray[np.int64]:
+    """Labels as an integer array (for vectorised scoring)."""
+    return np.asarray(labels, dtype=np.int64)
