@@ -34,6 +34,10 @@ mass, total probability of listed topologies with no scored pair wrong (``FP = F
 true place ids are given, the mass of the exactly-true topology (thesis Ch. 5's figure of merit).
 The number of true places is the number of single-linkage clusters of the true positions at ``r_s``
 (or the number of distinct true place ids when given).
+
+Visits without ground truth (e.g. before the ground-truth trajectory starts) have a NaN row in
+``true_xy``: every pair involving them is unscored, they are left out of the true places, and the
+exactly-true topology is then undefined. They are counted in ``n_visits_without_truth``.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,16 +71,13 @@ class EvalConfig:
     Attributes:
         same_radius: visits closer than this (m) are the same place.
         different_radius: visits farther than this (m) are different places; in between: unscored.
-        max_extrapolation: a landmark stamp may lie at most this far (s) outside the ground-truth time
-            span; it then takes the nearest ground-truth position.
     """
 
     same_radius: float = 1.5
     different_radius: float = 4.0
-    max_extrapolation: float = 0.5
 
     def __post_init__(self) -> None:
-        values = (self.same_radius, self.different_radius, self.max_extrapolation)
+        values = (self.same_radius, self.different_radius)
         if not all(math.isfinite(v) for v in values):
             msg = f"EvalConfig values must be finite, got {values}"
             raise ConfigError(msg)
@@ -85,9 +86,6 @@ class EvalConfig:
             raise ConfigError(msg)
         if self.different_radius < self.same_radius:
             msg = f"different_radius ({self.different_radius}) must be >= same_radius ({self.same_radius})"
-            raise ConfigError(msg)
-        if self.max_extrapolation < 0.0:
-            msg = f"max_extrapolation must be >= 0, got {self.max_extrapolation}"
             raise ConfigError(msg)
 
 
@@ -144,6 +142,7 @@ class Score:
     """A PTM scored against ground truth; see the module docstring for every definition."""
 
     n_visits: int
+    n_visits_without_truth: int
     n_true_places: int
     true_places_from: str  # "single-linkage" or "place-ids"
     n_scored_pairs: int
@@ -171,6 +170,7 @@ class Score:
             "same_radius_m": self.config.same_radius,
             "different_radius_m": self.config.different_radius,
             "n_visits": self.n_visits,
+            "n_visits_without_truth": self.n_visits_without_truth,
             "n_topologies": len(self.topologies),
             "listed_mass": self.listed_mass,
             "n_true_places": self.n_true_places,
@@ -219,36 +219,28 @@ class Score:
         return doc
 
 
-class GroundTruthLike(Protocol):
-    """What :func:`true_positions_for` needs of a ground truth (e.g. ``ptm_ros.io.groundtruth``'s)."""
-
-    @property
-    def stamps(self) -> NDArray[np.float64]:
-        """``(T,)`` times (s), increasing."""
-        ...
-
-    @property
-    def poses_corrected(self) -> NDArray[np.float64]:
-        """``(T, 3)`` true poses (x, y, yaw) at ``stamps``."""
-        ...
-
-
-def _positions(true_xy: ArrayLike, n: int) -> NDArray[np.float64]:
+def _positions(true_xy: ArrayLike, n: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The ``(n, 2)`` positions and the mask of visits with ground truth (rows not all-NaN)."""
     xy = np.asarray(true_xy, dtype=float)
     if xy.ndim != 2 or xy.shape[1] != 2 or xy.shape[0] != n:
         msg = f"true positions must have shape ({n}, 2) (one per landmark visit), got {xy.shape}"
         raise ModelError(msg)
-    if not np.all(np.isfinite(xy)):
-        bad = int(np.flatnonzero(~np.all(np.isfinite(xy), axis=1))[0])
-        msg = f"true position of visit {bad} is not finite: {xy[bad].tolist()}"
+    known = ~np.all(np.isnan(xy), axis=1)
+    bad = known & ~np.all(np.isfinite(xy), axis=1)
+    if np.any(bad):
+        k = int(np.flatnonzero(bad)[0])
+        msg = f"true position of visit {k} is not finite: {xy[k].tolist()} (a whole NaN row = no truth)"
         raise ModelError(msg)
-    return xy
+    return xy, known
 
 
 def pair_truth(
     true_xy: ArrayLike, config: EvalConfig | None = None
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
-    """The scored pairs ``(i, j, same)`` with ``i < j`` (row-major order); unscored pairs left out."""
+    """The scored pairs ``(i, j, same)`` with ``i < j`` (row-major order); unscored pairs left out.
+
+    Pairs with a NaN position (a visit without ground truth) compare false both ways: unscored.
+    """
     config = config or EvalConfig()
     xy = np.asarray(true_xy, dtype=float)
     n = xy.shape[0]
@@ -260,7 +252,10 @@ def pair_truth(
 
 
 def single_linkage_places(true_xy: ArrayLike, radius: float) -> NDArray[np.intp]:
-    """Canonical labels of the single-linkage clusters: visits chained by gaps ``< radius`` share a place."""
+    """Canonical labels of the single-linkage clusters: visits chained by gaps ``< radius`` share a place.
+
+    (A visit with a NaN position is a cluster of its own.)
+    """
     xy = np.asarray(true_xy, dtype=float)
     n = xy.shape[0]
     if n == 0:
@@ -305,7 +300,7 @@ def score_ptm(
     """
     config = config or EvalConfig()
     n = len(ptm.landmarks)
-    xy = _positions(true_xy, n)
+    xy, known = _positions(true_xy, n)
     if not ptm.topologies:
         msg = "the PTM holds no topology to score"
         raise DataError(msg)
@@ -338,7 +333,7 @@ def score_ptm(
 
     true_mass: float | None = None
     if true_places is None:
-        n_true = int(np.max(single_linkage_places(xy, config.same_radius), initial=-1)) + 1
+        n_true = int(np.max(single_linkage_places(xy[known], config.same_radius), initial=-1)) + 1
         source = "single-linkage"
     else:
         if len(true_places) != n:
@@ -347,10 +342,11 @@ def score_ptm(
         truth = canonical([int(v) for v in true_places])
         n_true = num_places(truth)
         source = "place-ids"
-        true_mass = float(sum(t.probability for t in ptm.topologies if tuple(t.labels) == truth))
+        true_mass = float(sum(t.probability for t in ptm.topologies if canonical(t.labels) == truth))
 
     return Score(
         n_visits=n,
+        n_visits_without_truth=int(n - known.sum()),
         n_true_places=n_true,
         true_places_from=source,
         n_scored_pairs=int(same.size),
@@ -367,50 +363,22 @@ def score_ptm(
     )
 
 
-def interpolate_positions(
-    stamps: ArrayLike, xy: ArrayLike, query: ArrayLike, *, max_extrapolation: float = 0.5
-) -> NDArray[np.float64]:
-    """Linear interpolation of a trajectory's positions ``xy`` ``(T, 2)`` at ``stamps`` ``(T,)``.
+def place_ids_from_positions(
+    true_xy: ArrayLike, place_xy: ArrayLike, radius: float
+) -> NDArray[np.intp] | None:
+    """True place id of each visit: the index of the nearest known place, if within ``radius`` (m).
 
-    ``stamps`` must be strictly increasing; queries up to ``max_extrapolation`` seconds outside the span
-    take the end position, farther ones raise :class:`DataError`.
+    Returns None, the exactly-true topology being undefined, when a visit has no ground truth (NaN row),
+    no place lies within ``radius`` of some visit, or there are no places.
     """
-    t = np.asarray(stamps, dtype=float)
-    p = np.asarray(xy, dtype=float)
-    q = np.atleast_1d(np.asarray(query, dtype=float))
-    if t.ndim != 1 or t.size == 0 or p.shape != (t.size, 2):
-        msg = f"ground truth needs stamps (T,) and positions (T, 2) with T >= 1, got {t.shape} and {p.shape}"
-        raise DataError(msg)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
-        msg = "ground-truth stamps, positions and query stamps must be finite"
-        raise DataError(msg)
-    if np.any(np.diff(t) <= 0.0):
-        k = int(np.flatnonzero(np.diff(t) <= 0.0)[0])
-        msg = f"ground-truth stamps must increase strictly (stamp {k + 1}: {t[k + 1]} after {t[k]})"
-        raise DataError(msg)
-    outside = (q < t[0] - max_extrapolation) | (q > t[-1] + max_extrapolation)
-    if np.any(outside):
-        k = int(np.flatnonzero(outside)[0])
-        msg = (
-            f"{int(outside.sum())} stamp(s) lie outside the ground-truth span [{t[0]:.3f}, {t[-1]:.3f}] s "
-            f"(+-{max_extrapolation} s), first: query {k} at {q[k]:.3f} s"
-        )
-        raise DataError(msg)
-    return np.stack([np.interp(q, t, p[:, 0]), np.interp(q, t, p[:, 1])], axis=1)
-
-
-def true_positions_for(
-    ptm: Ptm, ground_truth: GroundTruthLike, *, config: EvalConfig | None = None
-) -> NDArray[np.float64]:
-    """Each landmark's true position ``(N, 2)``: the ground-truth trajectory interpolated at its stamp."""
-    config = config or EvalConfig()
-    poses = np.asarray(ground_truth.poses_corrected, dtype=float)
-    if poses.ndim != 2 or poses.shape[1] < 2:
-        msg = f"ground-truth poses must have shape (T, 3), got {poses.shape}"
-        raise DataError(msg)
-    stamps = [lm.stamp for lm in ptm.landmarks]
-    if not stamps:
-        return np.zeros((0, 2))
-    return interpolate_positions(
-        ground_truth.stamps, poses[:, :2], stamps, max_extrapolation=config.max_extrapolation
-    )
+    xy = np.asarray(true_xy, dtype=float).reshape(-1, 2)
+    places = np.asarray(place_xy, dtype=float).reshape(-1, 2)
+    if places.shape[0] == 0 or not np.all(np.isfinite(xy)):
+        return None
+    if xy.shape[0] == 0:
+        return np.zeros(0, dtype=np.intp)
+    d = np.hypot(xy[:, None, 0] - places[None, :, 0], xy[:, None, 1] - places[None, :, 1])
+    nearest = np.argmin(d, axis=1)
+    if np.any(d[np.arange(len(xy)), nearest] > radius):
+        return None
+    return nearest.astype(np.intp)

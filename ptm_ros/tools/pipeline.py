@@ -322,10 +322,6 @@ def run_offline(
 
 def score_against(ptm: Ptm, ground_truth: str | Path) -> Any:
     """Score a PTM against a ground-truth file (simulator JSON or CARMEN ``*-gt-*.txt``)."""
-    from ptm_ros.evaluation import score_ptm, true_positions_for
-    from ptm_ros.io.groundtruth import load_ground_truth, true_place_ids
+    from ptm_ros.tools.evaluate import score_against_ground_truth
 
-    truth = load_ground_truth(ground_truth)
-    xy = true_positions_for(ptm, truth)
-    places = true_place_ids(truth, [lm.stamp for lm in ptm.landmarks])
-    return score_ptm(ptm, xy, true_places=places)
+    return score_against_ground_truth(ptm, ground_truth)

@@ -1,0 +1,444 @@
+"""Figures and a one-page report of a PTM (after the thesis' Fig. 56–57).
+
+:func:`write_report` writes into ``out_dir``, always under the same file names:
+
+* ``ptm_histogram.png`` — the PTM as a histogram: one bar per topology (most probable first, at most
+  ``max_bars``), height = posterior mass, tick = the compact label string (:func:`label_string`). With a
+  score, consistent topologies (no scored pair wrong) are green, the others red.
+* ``ptm_topologies.png`` — the ``top_k`` most probable topologies drawn over the trajectory (Fig. 56c,
+  57b): visits at their odometry poses coloured by place, each place at its position
+  (``Topology.positions`` when present, else the mean of its visits' poses) joined to its visits by
+  faint spokes, and an edge between the places of consecutive visits.
+* ``ptm_scores.png`` (only with a score) — precision / recall / F1 of the MAP topology and of the
+  posterior, and the masses.
+* ``report.md`` and ``report.html`` — the summary, the score table, the figures (relative links, extra
+  figures copied beside them) and the top topologies as a table.
+
+Matplotlib is imported lazily and drawn through its Agg canvas (no display, no pyplot state); large
+PTMs stay quick because bars, tables and panels are capped and points/lines are drawn as collections.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ptm_ros.errors import ConfigError, DataError, ModelError
+from ptm_ros.evaluation import Score
+from ptm_ros.partitions import num_places
+from ptm_ros.ptm import Ptm, Topology
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+HISTOGRAM = "ptm_histogram.png"
+TOPOLOGIES = "ptm_topologies.png"
+SCORES = "ptm_scores.png"
+REPORT_MD = "report.md"
+REPORT_HTML = "report.html"
+
+_DIGITS = "0123456789abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
+_GOLDEN = 0.618033988749895
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """Sizes of the report.
+
+    Attributes:
+        top_k: topologies drawn over the trajectory.
+        max_bars: topologies in the histogram.
+        max_rows: topologies in the markdown/HTML table.
+        max_label_chars: longest label string shown before it is shortened with "…".
+        dpi: resolution of the PNGs.
+    """
+
+    top_k: int = 4
+    max_bars: int = 20
+    max_rows: int = 20
+    max_label_chars: int = 40
+    dpi: int = 100
+
+    def __post_init__(self) -> None:
+        for name in ("top_k", "max_bars", "max_rows", "dpi"):
+            if getattr(self, name) < 1:
+                msg = f"ReportConfig.{name} must be >= 1, got {getattr(self, name)}"
+                raise ConfigError(msg)
+        if self.max_label_chars < 4:
+            msg = f"ReportConfig.max_label_chars must be >= 4, got {self.max_label_chars}"
+            raise ConfigError(msg)
+
+
+def label_string(labels: Sequence[int], max_chars: int | None = None) -> str:
+    """Compact label string: one character per visit (``0-9a-zA-Z``) up to 62 places, else dotted.
+
+    ``(0, 1, 2, 0)`` → ``"0120"``; shortened to ``max_chars`` with a middle "…" when given.
+    """
+    if not labels:
+        text = "∅"
+    elif max(labels) < len(_DIGITS):
+        text = "".join(_DIGITS[v] for v in labels)
+    else:
+        text = ".".join(str(v) for v in labels)
+    if max_chars is not None and len(text) > max_chars:
+        head = (max_chars - 1) // 2
+        text = text[:head] + "…" + text[len(text) - (max_chars - 1 - head) :]
+    return text
+
+
+def place_colors(n: int) -> NDArray[np.float64]:
+    """``(n, 3)`` RGB colours of places 0..n-1: tab10 up to 10 places, golden-ratio hues beyond."""
+    from matplotlib import colormaps
+    from matplotlib.colors import hsv_to_rgb
+
+    if n <= 10:
+        return np.asarray(colormaps["tab10"](np.arange(n))[:, :3], dtype=float)
+    k = np.arange(n)
+    hsv = np.stack([(k * _GOLDEN) % 1.0, 0.55 + 0.4 * (k % 2), 0.95 - 0.25 * ((k // 2) % 2)], axis=1)
+    return np.asarray(hsv_to_rgb(hsv), dtype=float)
+
+
+def place_positions(topology: Topology, visit_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(M, 2)`` place positions: ``topology.positions`` when it has one per place, else visit means."""
+    m = num_places(topology.labels)
+    if topology.positions is not None and len(topology.positions) == m:
+        return np.asarray(topology.positions, dtype=float).reshape(m, 2)
+    labels = np.asarray(topology.labels, dtype=np.intp)
+    if m == 0:
+        return np.zeros((0, 2))
+    counts = np.bincount(labels, minlength=m).astype(float)
+    return np.stack([np.bincount(labels, visit_xy[:, c], minlength=m) / counts for c in (0, 1)], axis=1)
+
+
+def place_edges(labels: Sequence[int]) -> NDArray[np.intp]:
+    """``(E, 2)`` distinct undirected edges between the places of consecutive visits (sorted)."""
+    lab = np.asarray(labels, dtype=np.intp)
+    if lab.size < 2:
+        return np.zeros((0, 2), dtype=np.intp)
+    pairs = np.sort(np.stack([lab[:-1], lab[1:]], axis=1), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0).reshape(-1, 2)
+
+
+def _new_figure(width: float, height: float) -> Figure:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _visit_xy(ptm: Ptm) -> NDArray[np.float64]:
+    return np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
+
+
+def _tick(rank: int, topology: Topology, config: ReportConfig) -> str:
+    """The full label string when it fits, else the rank and number of places."""
+    text = label_string(topology.labels)
+    if len(text) <= min(config.max_label_chars, 24):
+        return text
+    return f"#{rank + 1}: {num_places(topology.labels)} places"
+
+
+def draw_histogram(ptm: Ptm, path: Path, *, score: Score | None, config: ReportConfig) -> Path:
+    """Write the PTM histogram (top ``config.max_bars`` topologies) to ``path``."""
+    tops = ptm.topologies[: config.max_bars]
+    probs = np.array([t.probability for t in tops], dtype=float)
+    fig = _new_figure(max(5.0, 0.45 * len(tops) + 2.0), 4.5)
+    ax = fig.add_subplot()
+    if score is None:
+        colors: Any = "tab:blue"
+    else:
+        colors = ["tab:green" if s.consistent else "tab:red" for s in score.topologies[: len(tops)]]
+    x = np.arange(len(tops))
+    ax.bar(x, probs, color=colors, edgecolor="black", linewidth=0.5)
+    ax.set_xticks(x, [_tick(k, t, config) for k, t in enumerate(tops)], rotation=60, ha="right")
+    ax.set_ylabel("posterior probability")
+    ax.set_ylim(0.0, 1.05 * max(1e-9, float(probs.max(initial=0.0))))
+    listed = sum(t.probability for t in ptm.topologies)
+    rest = len(ptm.topologies) - len(tops)
+    note = f"{len(ptm.landmarks)} visits, {len(ptm.topologies)} topologies, listed mass {listed:.3f}"
+    if rest > 0:
+        note += f" ({rest} not shown)"
+    if score is not None:
+        note += "\ngreen: no scored pair wrong; red: at least one"
+    ax.set_title(f"PTM histogram\n{note}", fontsize=9)
+    fig.savefig(path, dpi=config.dpi)
+    return path
+
+
+def _draw_topology(
+    ax: Axes,
+    topology: Topology,
+    visit_xy: NDArray[np.float64],
+    trajectory: NDArray[np.float64] | None,
+    title: str,
+) -> None:
+    from matplotlib.collections import LineCollection
+
+    labels = np.asarray(topology.labels, dtype=np.intp)
+    places = place_positions(topology, visit_xy)
+    colors = place_colors(len(places))
+    path_xy = trajectory[:, :2] if trajectory is not None else visit_xy
+    if len(path_xy) > 1:
+        ax.plot(path_xy[:, 0], path_xy[:, 1], color="0.75", linewidth=0.8, zorder=1)
+    if labels.size:
+        spokes = np.stack([visit_xy, places[labels]], axis=1)
+        ax.add_collection(LineCollection(spokes, colors=colors[labels], linewidths=0.6, alpha=0.5, zorder=2))
+        edges = place_edges(labels)
+        if len(edges):
+            ax.add_collection(LineCollection(places[edges], colors="black", linewidths=1.0, zorder=3))
+        size = 60.0 * min(1.0, 30.0 / len(places))  # shrink markers when there are many places
+        ax.scatter(visit_xy[:, 0], visit_xy[:, 1], s=size / 4, c=colors[labels], edgecolors="none", zorder=4)
+        ax.scatter(places[:, 0], places[:, 1], s=size, c=colors, edgecolors="black", linewidths=0.6, zorder=5)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.set_title(title, fontsize=9)
+    ax.tick_params(labelsize=7)
+
+
+def draw_topologies(
+    ptm: Ptm,
+    path: Path,
+    *,
+    trajectory: NDArray[np.float64] | None,
+    score: Score | None,
+    config: ReportConfig,
+) -> Path:
+    """Write the ``config.top_k`` most probable topologies drawn over the trajectory to ``path``."""
+    tops = ptm.topologies[: config.top_k]
+    ncols = min(2, max(1, len(tops)))
+    nrows = max(1, math.ceil(len(tops) / ncols))
+    fig = _new_figure(5.0 * ncols, 4.6 * nrows)
+    visit_xy = _visit_xy(ptm)
+    for k, t in enumerate(tops):
+        ax = fig.add_subplot(nrows, ncols, k + 1)
+        title = f"#{k + 1}  p = {t.probability:.3f}  {num_places(t.labels)} places"
+        if score is not None:
+            c = score.topologies[k].counts
+            title += f"\nP {c.precision:.2f}  R {c.recall:.2f}  F1 {c.f1:.2f}"
+        _draw_topology(ax, t, visit_xy, trajectory, title)
+        ax.set_xlabel(f"x [m] ({ptm.frame_id})", fontsize=8)
+        ax.set_ylabel("y [m]", fontsize=8)
+    fig.savefig(path, dpi=config.dpi)
+    return path
+
+
+def draw_scores(score: Score, path: Path, *, config: ReportConfig) -> Path:
+    """Write a bar chart of the MAP and posterior-weighted precision / recall / F1 to ``path``."""
+    fig = _new_figure(6.5, 3.8)
+    ax = fig.add_subplot()
+    names = ("precision", "recall", "F1")
+    m, e = score.map.counts, score.expected
+    x = np.arange(3)
+    for offset, vals, name in (
+        (-0.2, (m.precision, m.recall, m.f1), "MAP topology"),
+        (0.2, (e.precision, e.recall, e.f1), "posterior (expected counts)"),
+    ):
+        bars = ax.bar(x + offset, vals, width=0.4, label=name)
+        ax.bar_label(bars, fmt="%.3f", fontsize=8)
+    ax.set_xticks(x, names)
+    ax.set_ylim(0.0, 1.3)
+    ax.legend(loc="upper center", ncols=2, fontsize=8)
+    truth = "—" if score.true_topology_mass is None else f"{score.true_topology_mass:.3f}"
+    ax.set_title(
+        f"consistent mass {score.consistent_mass:.3f}   true-topology mass {truth}   "
+        f"mean F1 {score.mean_f1:.3f}\n{score.n_scored_pairs} scored pairs ({score.n_same_pairs} same), "
+        f"{score.n_true_places} true places, MAP {score.map.num_places} places",
+        fontsize=8,
+    )
+    fig.savefig(path, dpi=config.dpi)
+    return path
+
+
+def _fmt(v: float | None) -> str:
+    return "—" if v is None else f"{v:.3f}"
+
+
+def _summary(ptm: Ptm) -> list[str]:
+    inf = dict(ptm.inference)
+    method = str(inf.pop("method", "unknown"))
+    details = ", ".join(f"{k} {v}" for k, v in inf.items() if isinstance(v, (int, float, str, bool)))
+    top = ptm.topologies[0] if ptm.topologies else None
+    lines = [
+        f"method: {method}" + (f" ({details})" if details else ""),
+        f"visits: {len(ptm.landmarks)}; topologies listed: {len(ptm.topologies)}, "
+        f"listed mass {sum(t.probability for t in ptm.topologies):.3f}",
+    ]
+    if top is not None:
+        lines.append(f"most probable topology: p = {top.probability:.3f}, {num_places(top.labels)} places")
+    wall = ptm.timing.get("wall_s")
+    if isinstance(wall, (int, float)):
+        lines.append(f"wall time: {wall:.2f} s")
+    return lines
+
+
+def _score_rows(score: Score) -> list[tuple[str, str, str]]:
+    m, e = score.map.counts, score.expected
+    return [
+        ("precision", _fmt(m.precision), _fmt(e.precision)),
+        ("recall", _fmt(m.recall), _fmt(e.recall)),
+        ("F1", _fmt(m.f1), _fmt(e.f1)),
+        ("TP / FP / FN", f"{m.tp:.0f} / {m.fp:.0f} / {m.fn:.0f}", f"{e.tp:.2f} / {e.fp:.2f} / {e.fn:.2f}"),
+        ("places", str(score.map.num_places), f"true: {score.n_true_places} ({score.true_places_from})"),
+    ]
+
+
+def _score_notes(score: Score) -> list[str]:
+    return [
+        f"consistent mass (no scored pair wrong): {score.consistent_mass:.3f}",
+        f"mass of the exactly-true topology: {_fmt(score.true_topology_mass)}",
+        f"mass-weighted mean F1: {score.mean_f1:.3f}",
+        f"scored pairs: {score.n_scored_pairs} of {score.n_pairs} ({score.n_same_pairs} same, "
+        f"{score.n_different_pairs} different; same < {score.config.same_radius} m, "
+        f"different > {score.config.different_radius} m)",
+    ] + (
+        [f"visits without ground truth (unscored): {score.n_visits_without_truth}"]
+        if score.n_visits_without_truth
+        else []
+    )
+
+
+def _topology_rows(ptm: Ptm, score: Score | None, config: ReportConfig) -> list[tuple[str, ...]]:
+    rows = []
+    for k, t in enumerate(ptm.topologies[: config.max_rows]):
+        row = (str(k + 1), f"{t.probability:.4f}", str(num_places(t.labels)))
+        if score is not None:
+            row += (f"{score.topologies[k].counts.f1:.3f}", "yes" if score.topologies[k].consistent else "no")
+        rows.append((*row, label_string(t.labels, config.max_label_chars)))
+    return rows
+
+
+def _table_head(score: Score | None) -> list[str]:
+    scored = ["F1", "consistent"] if score is not None else []
+    return ["rank", "probability", "places", *scored, "labels"]
+
+
+def _table_title(ptm: Ptm, config: ReportConfig) -> str:
+    return f"Top topologies ({min(config.max_rows, len(ptm.topologies))} of {len(ptm.topologies)})"
+
+
+def _markdown(
+    title: str, ptm: Ptm, score: Score | None, figures: list[tuple[str, str]], config: ReportConfig
+) -> str:
+    out = [f"# {title}", ""]
+    out += [f"- {line}" for line in _summary(ptm)]
+    if score is not None:
+        out += ["", "## Ground truth", "", "| | MAP topology | posterior |", "|---|---|---|"]
+        out += [f"| {a} | {b} | {c} |" for a, b, c in _score_rows(score)]
+        out += [""] + [f"- {line}" for line in _score_notes(score)]
+    out += ["", "## Figures", ""]
+    out += [f"![{caption}]({name})" + "\n" for caption, name in figures]
+    head = _table_head(score)
+    out += [f"## {_table_title(ptm, config)}", ""]
+    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(r[:-1]) + f" | `{r[-1]}` |" for r in _topology_rows(ptm, score, config)]
+    return "\n".join(out) + "\n"
+
+
+def _html(
+    title: str, ptm: Ptm, score: Score | None, figures: list[tuple[str, str]], config: ReportConfig
+) -> str:
+    e = html.escape
+    out = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{e(title)}</title>",
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
+        "table{border-collapse:collapse}td,th{border:1px solid #999;padding:2px 8px}"
+        "img{max-width:100%}code{font-size:90%}</style></head><body>",
+        f"<h1>{e(title)}</h1>",
+        "<ul>" + "".join(f"<li>{e(line)}</li>" for line in _summary(ptm)) + "</ul>",
+    ]
+    if score is not None:
+        out.append("<h2>Ground truth</h2><table><tr><th></th><th>MAP topology</th><th>posterior</th></tr>")
+        out += [f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{e(c)}</td></tr>" for a, b, c in _score_rows(score)]
+        out.append("</table><ul>" + "".join(f"<li>{e(line)}</li>" for line in _score_notes(score)) + "</ul>")
+    out.append("<h2>Figures</h2>")
+    out += [
+        f'<p><a href="{e(name)}"><img src="{e(name)}" alt="{e(caption)}"></a><br>{e(caption)}</p>'
+        for caption, name in figures
+    ]
+    head = _table_head(score)
+    out.append(f"<h2>{e(_table_title(ptm, config))}</h2>")
+    out.append("<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>")
+    for r in _topology_rows(ptm, score, config):
+        cells = "".join(f"<td>{e(c)}</td>" for c in r[:-1])
+        out.append(f"<tr>{cells}<td><code>{e(r[-1])}</code></td></tr>")
+    out.append("</table></body></html>")
+    return "\n".join(out) + "\n"
+
+
+def _place_extra(src: str | Path, out_dir: Path, taken: set[str], k: int) -> str:
+    src = Path(src)
+    if not src.is_file():
+        msg = f"extra figure {src} does not exist"
+        raise DataError(msg)
+    name = src.name if src.name not in taken else f"extra{k}_{src.name}"
+    if src.resolve() != (out_dir / name).resolve():
+        shutil.copyfile(src, out_dir / name)
+    taken.add(name)
+    return name
+
+
+def write_report(
+    out_dir: str | Path,
+    ptm: Ptm,
+    *,
+    trajectory: ArrayLike | None = None,
+    score: Score | None = None,
+    extra_figures: Sequence[str | Path] = (),
+    title: str = "Probabilistic topological map",
+    config: ReportConfig | None = None,
+) -> Path:
+    """Write the figures, ``report.md`` and ``report.html`` into ``out_dir``; returns the HTML path.
+
+    ``trajectory`` ``(T, 3)`` (or ``(T, 2)``) odometry or smoothed poses drawn under the topologies;
+    ``score`` from :func:`ptm_ros.evaluation.score_ptm` on this PTM; ``extra_figures`` image files to
+    include (copied into ``out_dir`` unless already there).
+    """
+    config = config or ReportConfig()
+    if not ptm.topologies:
+        msg = "cannot report a PTM without topologies"
+        raise DataError(msg)
+    traj = None
+    if trajectory is not None:
+        traj = np.asarray(trajectory, dtype=float)
+        if traj.ndim != 2 or traj.shape[1] not in (2, 3) or not np.all(np.isfinite(traj)):
+            msg = f"trajectory must be finite (T, 3) or (T, 2) poses, got shape {traj.shape}"
+            raise ModelError(msg)
+    if score is not None and (
+        len(score.topologies) != len(ptm.topologies) or score.n_visits != len(ptm.landmarks)
+    ):
+        msg = (
+            f"the score is of another PTM ({score.n_visits} visits, {len(score.topologies)} topologies; "
+            f"this PTM has {len(ptm.landmarks)} and {len(ptm.topologies)})"
+        )
+        raise DataError(msg)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = [
+        ("PTM histogram", draw_histogram(ptm, out / HISTOGRAM, score=score, config=config).name),
+        (
+            f"Top {min(config.top_k, len(ptm.topologies))} topologies",
+            draw_topologies(ptm, out / TOPOLOGIES, trajectory=traj, score=score, config=config).name,
+        ),
+    ]
+    if score is not None:
+        figures.append(("Scores against ground truth", draw_scores(score, out / SCORES, config=config).name))
+    taken = {HISTOGRAM, TOPOLOGIES, SCORES, REPORT_MD, REPORT_HTML}
+    figures += [(Path(f).stem, _place_extra(f, out, taken, k)) for k, f in enumerate(extra_figures)]
+    (out / REPORT_MD).write_text(_markdown(title, ptm, score, figures, config), encoding="utf-8")
+    html_path = out / REPORT_HTML
+    html_path.write_text(_html(title, ptm, score, figures, config), encoding="utf-8")
+    return html_path

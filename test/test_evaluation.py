@@ -1,0 +1,375 @@
+"""Tests of ptm_ros.evaluation: pairwise scoring of a PTM against true positions."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.cluster.hierarchy import fcluster, linkage
+
+from ptm_ros import evaluation
+from ptm_ros.errors import ConfigError, DataError, ModelError
+from ptm_ros.evaluation import (
+    EvalConfig,
+    PairCounts,
+    place_ids_from_positions,
+    score_ptm,
+    single_linkage_places,
+)
+from ptm_ros.partitions import canonical
+from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
+from ptm_ros.tools.evaluate import main as eval_main
+from ptm_ros.tools.evaluate import score_against_ground_truth
+
+# Four visits: A, B, C, A again (0.5 m from the first).
+XY4 = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [0.5, 0.0]])
+
+
+def make(xy: np.ndarray, tops: list[tuple[tuple[int, ...], float]]) -> Ptm:
+    """A PTM over visits at ``xy`` (odometry = truth) listing ``tops`` in the given order."""
+    landmarks = tuple(Landmark(i, float(i), (float(x), float(y), 0.0)) for i, (x, y) in enumerate(xy))
+    return Ptm(landmarks=landmarks, topologies=tuple(Topology(lab, p) for lab, p in tops))
+
+
+def brute_counts(xy: np.ndarray, labels: tuple[int, ...], r_same: float, r_diff: float) -> PairCounts:
+    """TP/FP/FN/TN by a plain double loop over pairs."""
+    tp = fp = fn = tn = 0
+    for i, j in itertools.combinations(range(len(labels)), 2):
+        d = math.dist(xy[i], xy[j])
+        pred = labels[i] == labels[j]
+        if d < r_same:
+            tp, fn = tp + pred, fn + (not pred)
+        elif d > r_diff:
+            fp, tn = fp + pred, tn + (not pred)
+    return PairCounts(tp, fp, fn, tn)
+
+
+def test_perfect_map_scores_one_and_consistent_mass_is_its_mass() -> None:
+    ptm = make(XY4, [((0, 1, 2, 0), 0.7), ((0, 1, 2, 3), 0.2), ((0, 0, 1, 0), 0.05)])
+    s = score_ptm(ptm, XY4, true_places=[7, 8, 9, 7])
+    assert (s.map.counts.precision, s.map.counts.recall, s.map.counts.f1) == (1.0, 1.0, 1.0)
+    assert s.map.counts == PairCounts(1, 0, 0, 5)
+    assert s.consistent_mass == pytest.approx(0.7)
+    assert s.true_topology_mass == pytest.approx(0.7)
+    assert (s.n_true_places, s.true_places_from, s.map.num_places) == (3, "place-ids", 3)
+    assert (s.n_scored_pairs, s.n_same_pairs, s.n_different_pairs) == (6, 1, 5)
+
+
+def test_wrong_merge_precision_by_hand() -> None:
+    # MAP merges B into A's place: predicted-same pairs (0,1), (0,3), (1,3); only (0,3) is truly same.
+    s = score_ptm(make(XY4, [((0, 0, 1, 0), 1.0)]), XY4)
+    assert s.map.counts == PairCounts(tp=1, fp=2, fn=0, tn=3)
+    assert s.map.counts.precision == pytest.approx(1 / 3)
+    assert s.map.counts.recall == 1.0
+    assert s.map.counts.f1 == pytest.approx(2 * (1 / 3) / (1 / 3 + 1))
+    assert s.consistent_mass == 0.0
+    assert s.true_topology_mass is None
+    assert s.n_true_places == 3  # single linkage on the true positions
+
+
+def test_missed_revisit_has_zero_recall() -> None:
+    s = score_ptm(make(XY4, [((0, 1, 2, 3), 1.0)]), XY4)
+    assert s.map.counts == PairCounts(0, 0, 1, 5)
+    assert (s.map.counts.precision, s.map.counts.recall, s.map.counts.f1) == (1.0, 0.0, 0.0)
+
+
+def test_unscored_pairs_are_ignored() -> None:
+    # Visit 4 is 2.5 m from visit 0 and 2.0 m from visit 3: both pairs are neither same nor different.
+    xy = np.vstack([XY4, [[2.5, 0.0]]])
+    merged = score_ptm(make(xy, [((0, 1, 2, 0, 0), 1.0)]), xy)
+    apart = score_ptm(make(xy, [((0, 1, 2, 0, 3), 1.0)]), xy)
+    assert merged.n_scored_pairs == apart.n_scored_pairs == 10 - 2
+    assert merged.map.counts == apart.map.counts == PairCounts(1, 0, 0, 7)
+    assert merged.consistent_mass == apart.consistent_mass == 1.0
+
+
+def test_posterior_weighted_by_hand_on_three_topologies() -> None:
+    # Listed mass 0.9 -> weights 5/9, 3/9, 1/9.
+    tops = [((0, 1, 2, 0), 0.5), ((0, 0, 1, 0), 0.3), ((0, 1, 2, 3), 0.1)]
+    s = score_ptm(make(XY4, tops), XY4)
+    # per topology (TP, FP, FN, TN): (1,0,0,5), (1,2,0,3), (0,0,1,5)
+    w = np.array([5, 3, 1]) / 9
+    etp, efp, efn = w @ [1, 1, 0], w @ [0, 2, 0], w @ [0, 0, 1]
+    assert s.listed_mass == pytest.approx(0.9)
+    assert (s.expected.tp, s.expected.fp, s.expected.fn) == pytest.approx((8 / 9, 6 / 9, 1 / 9))
+    assert s.expected.tn == pytest.approx(w @ [5, 3, 5])
+    assert s.expected.precision == pytest.approx(etp / (etp + efp)) == pytest.approx(8 / 14)
+    assert s.expected.recall == pytest.approx(8 / 9)
+    assert s.expected.f1 == pytest.approx(2 * etp / (2 * etp + efp + efn)) == pytest.approx(16 / 23)
+    assert s.mean_f1 == pytest.approx(w @ [1.0, 0.5, 0.0])
+    assert s.consistent_mass == pytest.approx(0.5)  # not renormalised
+
+
+def test_random_ptms_match_brute_force_and_pair_marginals() -> None:
+    rng = np.random.default_rng(3)
+    cfg = EvalConfig(same_radius=1.5, different_radius=4.0)
+    for _ in range(20):
+        n = int(rng.integers(2, 12))
+        xy = rng.uniform(0.0, 8.0, size=(n, 2))
+        k = int(rng.integers(1, 6))
+        tops = list({canonical(rng.integers(0, 4, size=n).tolist()) for _ in range(k)})
+        probs = rng.dirichlet(np.ones(len(tops))) * rng.uniform(0.3, 1.0)
+        s = score_ptm(make(xy, list(zip(tops, probs, strict=True))), xy, config=cfg)
+        brute = [brute_counts(xy, t, 1.5, 4.0) for t in tops]
+        assert [t.counts for t in s.topologies] == brute
+        # E[TP] = sum over truly-same pairs of the posterior co-location marginal P(i ~ j).
+        w = probs / probs.sum()
+        etp = efp = 0.0
+        for i, j in itertools.combinations(range(n), 2):
+            marginal = sum(wk for wk, t in zip(w, tops, strict=True) if t[i] == t[j])
+            d = math.dist(xy[i], xy[j])
+            etp += marginal * (d < 1.5)
+            efp += marginal * (d > 4.0)
+        assert s.expected.tp == pytest.approx(etp)
+        assert s.expected.fp == pytest.approx(efp)
+        consistent = sum(p for t, p, b in zip(tops, probs, brute, strict=True) if b.fp + b.fn == 0)
+        assert s.consistent_mass == pytest.approx(consistent)
+
+
+def test_chunked_counting_equals_unchunked(monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 10, size=(30, 2))
+    tops = [(canonical(rng.integers(0, 6, size=30).tolist()), 0.01) for _ in range(40)]
+    ptm = make(xy, tops)
+    whole = score_ptm(ptm, xy)
+    monkeypatch.setattr(evaluation, "_CHUNK_ELEMENTS", 7)
+    assert score_ptm(ptm, xy).topologies == whole.topologies
+
+
+def test_no_true_same_pairs_conventions() -> None:
+    xy = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    apart = score_ptm(make(xy, [((0, 1, 2), 1.0)]), xy)
+    c = apart.map.counts
+    assert (c.precision, c.recall, c.f1) == (1.0, 1.0, 1.0)
+    merged = score_ptm(make(xy, [((0, 1, 0), 1.0)]), xy).map.counts
+    assert (merged.precision, merged.recall, merged.f1) == (0.0, 1.0, 0.0)
+
+
+def test_single_visit_and_empty_ptm_conventions() -> None:
+    one = score_ptm(make(np.zeros((1, 2)), [((0,), 0.8)]), [[3.0, 4.0]], true_places=[5])
+    assert (one.n_pairs, one.n_scored_pairs, one.n_true_places) == (0, 0, 1)
+    assert (one.map.counts.precision, one.map.counts.recall, one.map.counts.f1) == (1.0, 1.0, 1.0)
+    assert (one.expected.f1, one.mean_f1) == (1.0, 1.0)
+    assert one.consistent_mass == one.true_topology_mass == pytest.approx(0.8)
+    empty = score_ptm(make(np.zeros((0, 2)), [((), 1.0)]), np.zeros((0, 2)))
+    assert (empty.n_visits, empty.n_true_places, empty.map.counts.f1) == (0, 0, 1.0)
+
+
+def test_true_places_are_canonicalised_and_unlisted_truth_has_zero_mass() -> None:
+    ptm = make(XY4, [((0, 0, 1, 0), 0.6), ((0, 1, 2, 0), 0.3)])
+    assert score_ptm(ptm, XY4, true_places=[4, 2, 9, 4]).true_topology_mass == pytest.approx(0.3)
+    assert score_ptm(ptm, XY4, true_places=[0, 1, 2, 3]).true_topology_mass == 0.0
+    assert score_ptm(ptm, XY4, true_places=[0, 1, 2, 3]).n_true_places == 4
+
+
+def test_single_linkage_chains_and_matches_scipy_hierarchy() -> None:
+    chain = np.array([[0.0, 0.0], [1.4, 0.0], [2.8, 0.0], [4.2, 0.0], [5.8, 0.0]])
+    assert single_linkage_places(chain, 1.5).tolist() == [0, 0, 0, 0, 1]
+    rng = np.random.default_rng(11)
+    for _ in range(10):
+        xy = rng.uniform(0, 12, size=(40, 2))
+        ref = fcluster(linkage(xy, method="single"), t=1.5, criterion="distance")
+        assert single_linkage_places(xy, 1.5).tolist() == list(canonical(ref.tolist()))
+    assert single_linkage_places(np.zeros((0, 2)), 1.5).size == 0
+
+
+def test_as_dict_is_json_with_stable_keys() -> None:
+    s = score_ptm(make(XY4, [((0, 1, 2, 0), 0.5), ((0, 0, 1, 0), 0.3)]), XY4, true_places=[0, 1, 2, 0])
+    doc = json.loads(json.dumps(s.as_dict()))
+    assert doc["schema"] == "ptm_ros.eval/1"
+    assert doc["map_precision"] == 1.0 and doc["map_tp"] == 1 and doc["n_scored_pairs"] == 6
+    assert doc["posterior_precision"] == pytest.approx(s.expected.precision)
+    assert doc["consistent_mass"] == pytest.approx(0.5) and doc["true_topology_mass"] == pytest.approx(0.5)
+    assert [t["consistent"] for t in doc["topologies"]] == [True, False]
+    assert doc["topologies"][1]["fp"] == 2
+    assert "topologies" not in s.as_dict(per_topology=False)
+
+
+def test_thresholds_come_from_config() -> None:
+    # With a 0.4 m same radius the 0.5 m revisit becomes unscored; 12 m different radius drops pairs too.
+    s = score_ptm(make(XY4, [((0, 1, 2, 0), 1.0)]), XY4, config=EvalConfig(0.4, 12.0))
+    assert (s.n_same_pairs, s.n_different_pairs) == (0, 1)  # only B-C (14.1 m) is scored
+
+
+def test_errors() -> None:
+    ptm = make(XY4, [((0, 1, 2, 0), 1.0)])
+    with pytest.raises(ModelError, match=r"shape \(4, 2\)"):
+        score_ptm(ptm, XY4[:3])
+    with pytest.raises(ModelError, match="visit 2 is not finite"):
+        score_ptm(ptm, np.where(np.arange(8).reshape(4, 2) == 4, np.nan, XY4))
+    with pytest.raises(ModelError, match="visit 1 is not finite"):
+        score_ptm(ptm, np.where(np.arange(4)[:, None] == 1, np.inf, XY4))
+    with pytest.raises(ModelError, match="one entry per visit"):
+        score_ptm(ptm, XY4, true_places=[0, 1])
+    with pytest.raises(DataError, match="no topology"):
+        score_ptm(make(XY4, []), XY4)
+    with pytest.raises(DataError, match="zero total probability"):
+        score_ptm(make(XY4, [((0, 1, 2, 0), 0.0)]), XY4)
+    with pytest.raises(ModelError, match="topology 0 labels 3 visits"):
+        score_ptm(make(XY4, [((0, 1, 2), 1.0)]), XY4)
+    with pytest.raises(ConfigError, match="different_radius"):
+        EvalConfig(same_radius=2.0, different_radius=1.0)
+    with pytest.raises(ConfigError, match="same_radius must be > 0"):
+        EvalConfig(same_radius=0.0)
+    with pytest.raises(ConfigError, match="finite"):
+        EvalConfig(different_radius=math.inf)
+
+
+def test_thresholds_are_strict() -> None:
+    # Exactly 1.5 m is not "same" and exactly 4.0 m is not "different": both pairs are unscored.
+    xy = np.array([[0.0, 0.0], [1.5, 0.0], [-4.0, 0.0]])
+    s = score_ptm(make(xy, [((0, 0, 1), 1.0)]), xy)
+    assert (s.n_same_pairs, s.n_different_pairs) == (0, 1)  # only visits 1-2 (5.5 m) are scored
+    assert s.n_true_places == 3
+
+
+def test_visits_without_truth_are_left_out() -> None:
+    # Visit 4 (NaN row) has no ground truth: its pairs are unscored whatever the topology says.
+    xy = np.vstack([XY4, [[np.nan, np.nan]]])
+    tops = [((0, 1, 2, 0, 0), 0.5), ((0, 1, 2, 0, 1), 0.5)]
+    s = score_ptm(make(xy, tops), xy)
+    assert (s.n_visits, s.n_visits_without_truth, s.n_true_places) == (5, 1, 3)
+    assert (s.n_scored_pairs, s.n_same_pairs) == (6, 1)
+    assert [t.counts for t in s.topologies] == [PairCounts(1, 0, 0, 5)] * 2
+    assert s.consistent_mass == pytest.approx(1.0)
+    assert s.as_dict()["n_visits_without_truth"] == 1
+
+
+def test_place_ids_from_positions() -> None:
+    places = [[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]]
+    ids = place_ids_from_positions(XY4 + 0.3, places, 1.5)
+    assert ids is not None and ids.tolist() == [0, 1, 2, 0]
+    off = XY4.copy()
+    off[1, 1] += 2.0  # visit 1 is 2 m from B
+    assert place_ids_from_positions(off, places, 1.5) is None
+    assert place_ids_from_positions([[0.0, 0.0], [np.nan, np.nan]], places, 1.5) is None
+    assert place_ids_from_positions(XY4, np.zeros((0, 2)), 1.5) is None
+
+
+# ---- ptm-eval end to end ---------------------------------------------------------------------------
+
+GT_HEADER = "# scan raw_scan_index logger_timestamp x_corr y_corr theta_corr x_raw y_raw theta_raw\n"
+
+
+def write_carmen_gt(path: Path, stamps: list[float], xy: list[tuple[float, float]]) -> Path:
+    """A 9-column CARMEN ground truth (raw odometry = truth shifted by 100 m in x)."""
+    rows = [
+        f"{k} {k} {t} {x} {y} 0.0 {x + 100} {y} 0.0"
+        for k, (t, (x, y)) in enumerate(zip(stamps, xy, strict=True))
+    ]
+    path.write_text(GT_HEADER + "\n".join(rows) + "\n")
+    return path
+
+
+def run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, dict | None, str]:
+    code = eval_main(args)
+    out, err = capsys.readouterr()
+    return code, (json.loads(out) if code == 0 else None), err
+
+
+def test_cli_scores_carmen_ground_truth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Ground truth: the robot drives A(0,0) -> B(10,0) -> A(0,0) over 20 s, straight lines.
+    gt = write_carmen_gt(tmp_path / "gt.txt", [0.0, 10.0, 20.0], [(0.0, 0.0), (10.0, 0.0), (0.0, 0.0)])
+    # Landmarks at 0 s (A), 5 s (x=5), 19.9 s (x=0.1, A again) and 30 s (no truth: 10 s after the end).
+    stamps = [0.0, 5.0, 19.9, 30.0]
+    landmarks = [Landmark(i, t, (float(i), 0.0, 0.0)) for i, t in enumerate(stamps)]
+    ptm = make_ptm(landmarks, {(0, 1, 0, 2): 0.6, (0, 0, 0, 1): 0.3, (0, 1, 2, 3): 0.1})
+    path = save_ptm(ptm, tmp_path / "run" / "ptm.json")
+    code, doc, err = run_cli(
+        [str(path), "--ground-truth", str(gt), "--report", str(tmp_path / "rep")], capsys
+    )
+    assert code == 0, err
+    assert doc is not None
+    # scored pairs: (0,2) same at 0.1 m; (0,1), (1,2) different at 5 m, 4.9 m; pairs with visit 3 unscored
+    assert (doc["n_visits"], doc["n_visits_without_truth"], doc["n_scored_pairs"]) == (4, 1, 3)
+    assert (doc["n_same_pairs"], doc["n_true_places"], doc["true_places_from"]) == (1, 2, "single-linkage")
+    assert (doc["map_tp"], doc["map_fp"], doc["map_fn"], doc["map_f1"]) == (1, 0, 0, 1.0)
+    assert doc["topologies"][1]["fp"] == 2 and doc["topologies"][2]["fn"] == 1
+    assert doc["posterior_tp"] == pytest.approx(0.9)
+    assert doc["posterior_fp"] == pytest.approx(0.6)
+    assert doc["posterior_precision"] == pytest.approx(0.9 / 1.5)
+    assert doc["consistent_mass"] == pytest.approx(0.6)
+    assert doc["true_topology_mass"] is None
+    assert (tmp_path / "rep" / "report.html").is_file()
+    assert "visits without ground truth (unscored): 1" in (tmp_path / "rep" / "report.md").read_text()
+    # --no-topologies drops the per-topology list
+    code, doc, _ = run_cli([str(path), "--ground-truth", str(gt), "--no-topologies"], capsys)
+    assert code == 0 and doc is not None and "topologies" not in doc
+
+
+def test_cli_uses_simulator_places(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    gt = {
+        "schema": "ptm_ros.ground_truth/1",
+        "frame_id": "map",
+        "poses": {"stamp": [0.0, 10.0, 20.0], "x": [0.0, 10.0, 0.0], "y": [0.0, 0.0, 0.0], "yaw": [0.0] * 3},
+        "places": [{"id": "a", "x": 0.0, "y": 0.0, "kind": "junction"}, {"id": "b", "x": 10.0, "y": 0.0}],
+        "passages": [
+            {"stamp": 0.0, "place": "a"},
+            {"stamp": 10.0, "place": "b"},
+            {"stamp": 20.0, "place": "a"},
+        ],
+    }
+    (tmp_path / "ground_truth.json").write_text(json.dumps(gt))
+    landmarks = [Landmark(i, t, (0.0, 0.0, 0.0)) for i, t in enumerate([0.05, 10.0, 19.9])]
+    path = save_ptm(make_ptm(landmarks, {(0, 1, 0): 0.75, (0, 1, 2): 0.25}), tmp_path / "ptm.json")
+    code, doc, err = run_cli([str(path), "--ground-truth", str(tmp_path)], capsys)  # the bag directory
+    assert code == 0, err
+    assert doc is not None
+    assert (doc["true_places_from"], doc["n_true_places"]) == ("place-ids", 2)
+    assert doc["true_topology_mass"] == pytest.approx(0.75)
+    direct = score_against_ground_truth(load_ptm(path), tmp_path / "ground_truth.json")
+    assert direct.as_dict() == doc
+
+
+def test_cli_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    gt = write_carmen_gt(tmp_path / "gt.txt", [100.0, 110.0], [(0.0, 0.0), (10.0, 0.0)])
+    landmarks = [Landmark(i, t, (0.0, 0.0, 0.0)) for i, t in enumerate([1.0, 2.0])]
+    path = save_ptm(make_ptm(landmarks, {(0, 1): 1.0}), tmp_path / "ptm.json")
+    (tmp_path / "bad.json").write_text('{"schema": "nope"}')
+    (tmp_path / "gt.csv").write_text("1,2,3\n")
+    cases = [
+        ([str(path), "--ground-truth", str(gt)], "no landmark stamp"),
+        ([str(tmp_path / "missing.json"), "--ground-truth", str(gt)], "cannot read"),
+        ([str(tmp_path / "bad.json"), "--ground-truth", str(gt)], "invalid ptm.json"),
+        ([str(path), "--ground-truth", str(tmp_path / "gt.csv")], "unknown file type"),
+        ([str(path), "--ground-truth", str(tmp_path / "nothere.txt")], "does not exist"),
+        ([str(path), "--ground-truth", str(gt), "--same-radius", "5", "--different-radius", "4"], "radius"),
+        ([str(path), "--ground-truth", str(gt), "--max-extrapolation", "-1"], "max_extrapolation"),
+    ]
+    for args, message in cases:
+        code, _, err = run_cli(args, capsys)
+        assert code == 2, args
+        assert err.startswith("ptm-eval: error:") and message in err, err
+    with pytest.raises(SystemExit) as exc:
+        eval_main([str(path)])  # --ground-truth missing: argparse's own exit status 2
+    assert exc.value.code == 2
+
+
+def test_cli_on_intel_ground_truth(
+    datasets_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Intel's logger stamps step back 4 times; landmarks at every 5th ground-truth scan take its pose.
+    from ptm_ros.io.groundtruth import load_ground_truth
+
+    gt_path = datasets_dir / "intel" / "intel-gt-910.txt"
+    gt = load_ground_truth(gt_path)
+    rows = np.arange(0, len(gt.stamps), 5)
+    xy = gt.poses_corrected[rows, :2]
+    landmarks = [Landmark(i, float(gt.stamps[r]), tuple(gt.poses_raw[r])) for i, r in enumerate(rows)]
+    clusters = tuple(single_linkage_places(xy, 1.5).tolist())
+    ptm = make_ptm(landmarks, {clusters: 0.7, tuple(range(len(rows))): 0.3})
+    path = save_ptm(ptm, tmp_path / "ptm.json")
+    code, doc, err = run_cli([str(path), "--ground-truth", str(gt_path)], capsys)
+    assert code == 0, err
+    assert doc is not None
+    brute = [brute_counts(xy, t.labels, 1.5, 4.0) for t in ptm.topologies]
+    assert [(t["tp"], t["fp"], t["fn"], t["tn"]) for t in doc["topologies"]] == [
+        (c.tp, c.fp, c.fn, c.tn) for c in brute
+    ]
+    assert doc["n_visits_without_truth"] == 0
+    assert doc["n_true_places"] == len(set(clusters))
+    assert doc["map_recall"] == 1.0  # single linkage joins every pair closer than 1.5 m
