@@ -1,0 +1,188 @@
+"""Tests of the simulated worlds: geometry invariants, routes, passages and validation errors."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from ptm_ros.errors import ConfigError
+from ptm_ros.io.simulator import CameraConfig, SimConfig, simulate
+from ptm_ros.io.worlds import (
+    MIN_PLACE_SEPARATION,
+    WORLDS,
+    Place,
+    Rect,
+    build_world,
+    get_world,
+    trace_walls,
+)
+
+NO_CAMERA = SimConfig(camera=CameraConfig(enabled=False))
+
+
+def point_segment_distance(p: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """Distance from points ``(N, 2)`` to one segment ``(4,)`` (projection clipped to the segment)."""
+    a, b = seg[:2], seg[2:]
+    e = b - a
+    s = np.clip((p - a) @ e / (e @ e), 0.0, 1.0)
+    return np.hypot(*(p - a - s[:, None] * e).T)
+
+
+def shoelace(segments: np.ndarray) -> float:
+    """Signed area enclosed by oriented boundary segments (positive = counter-clockwise)."""
+    return float(0.5 * np.sum(segments[:, 0] * segments[:, 3] - segments[:, 2] * segments[:, 1]))
+
+
+@pytest.mark.parametrize("name", sorted(WORLDS))
+def test_places_far_apart_and_route_visits_every_place(name: str) -> None:
+    world = get_world(name)
+    for p, q in itertools.combinations(world.places, 2):
+        assert math.hypot(p.x - q.x, p.y - q.y) >= MIN_PLACE_SEPARATION, (p.id, q.id)
+    assert {p.id for p in world.places} == set(world.route)
+    corridors = {frozenset(c) for c in world.corridors}
+    for a, b in itertools.pairwise((*world.route, world.route[0])):
+        assert frozenset((a, b)) in corridors
+
+
+@pytest.mark.parametrize("name", sorted(WORLDS))
+def test_walls_form_closed_oriented_loops(name: str) -> None:
+    world = get_world(name)
+    starts = sorted(w.start for w in world.walls)
+    ends = sorted(w.end for w in world.walls)
+    assert starts == ends  # every wall ends where another one starts
+    lengths = np.array([w.length for w in world.walls])
+    assert np.all(lengths > 0)
+    # Axis-aligned walls on the 0.5 m grid.
+    seg = world.segments
+    assert np.all((seg[:, 0] == seg[:, 2]) | (seg[:, 1] == seg[:, 3]))
+    assert np.allclose(seg * 2, np.round(seg * 2), atol=0, rtol=0)
+
+
+def test_wall_orientation_encloses_the_free_area() -> None:
+    # Free space on the left of every wall: outer boundaries counter-clockwise, holes clockwise, so the
+    # shoelace sum is the free area. T: 12 x 2 m corridor plus a 2 x 5 m stem.
+    assert shoelace(get_world("t-junction").segments) == pytest.approx(24.0 + 10.0, abs=1e-12)
+    # Aliased loop: 14 x 14 m outer square minus the 10 x 10 m block, four 1 x 1 m doors and 6 x 5 m rooms.
+    assert shoelace(get_world("aliased-loop").segments) == pytest.approx(196 - 100 + 4 * (1 + 30), abs=1e-12)
+
+
+def test_single_rectangle_gives_four_counter_clockwise_walls() -> None:
+    walls = trace_walls([Rect(0.0, 0.0, 3.0, 2.0, 7)])
+    assert len(walls) == 4
+    assert {w.texture for w in walls} == {7}
+    corners = [(0.0, 0.0), (3.0, 0.0), (3.0, 2.0), (0.0, 2.0)]
+    assert sorted((w.start, w.end) for w in walls) == sorted(itertools.pairwise([*corners, corners[0]]))
+
+
+def test_aliased_loop_is_symmetric_under_quarter_turns() -> None:
+    world = get_world("aliased-loop")
+    seg = world.segments
+    rotated = np.stack([12.0 - seg[:, 1], seg[:, 0], 12.0 - seg[:, 3], seg[:, 2]], axis=1)
+    assert sorted(map(tuple, rotated.tolist())) == sorted(map(tuple, seg.tolist()))
+    assert set(world.wall_textures.tolist()) == {0}
+
+
+def test_texture_ids_repeat_across_corridors_of_the_larger_worlds() -> None:
+    two = get_world("two-loop")
+    # The south and north outer corridors share texture 1, and the inner loop is one texture.
+    by_texture = {t: int(np.sum(two.wall_textures == t)) for t in set(two.wall_textures.tolist())}
+    assert by_texture[1] >= 4
+    assert by_texture[5] >= 8
+
+
+@pytest.mark.parametrize("name", sorted(WORLDS))
+def test_passages_detected_equal_the_route(name: str) -> None:
+    world = get_world(name)
+    n = len(world.route) + 2  # wraps around the cyclic route
+    run = simulate(world, NO_CAMERA, np.random.default_rng(1), visits=n)
+    assert [p.place for p in run.passages] == list(world.visits(n))
+    stamps = np.array([p.stamp for p in run.passages])
+    assert np.all(np.diff(stamps) > 0)
+    # The true position at each passage is within the passage radius of its place.
+    for p in run.passages:
+        k = int(np.flatnonzero(run.odom_stamps == p.stamp)[0])
+        place = world.place(p.place)
+        assert math.hypot(run.true_poses[k, 0] - place.x, run.true_poses[k, 1] - place.y) <= 1.0
+    # The robot never comes closer than 0.4 m to a wall (2 m corridors, 1 m turn radius).
+    xy = run.true_poses[::5, :2]
+    clearance = min(point_segment_distance(xy, s).min() for s in world.segments)
+    assert clearance > 0.4
+
+
+def test_default_visits_match_the_brief() -> None:
+    assert get_world("aliased-loop").default_visits == 10
+    assert get_world("multi-loop").default_visits == 33
+    assert len(get_world("multi-loop").visits()) == 33
+    assert get_world("t-junction").visits(8) == ("w", "j", "s", "j", "e", "j", "w", "j")
+
+
+def test_get_world_lists_names_on_error() -> None:
+    with pytest.raises(ConfigError, match=r"unknown world 'nowhere'; known worlds: aliased-loop, multi-loop"):
+        get_world("nowhere")
+
+
+def test_visits_must_be_positive() -> None:
+    with pytest.raises(ConfigError, match="must be >= 1, got 0"):
+        get_world("t-junction").visits(0)
+
+
+PLACES = [Place("a", 0.0, 0.0, "corridor-end"), Place("b", 6.0, 0.0, "corridor-end")]
+
+
+def test_validation_errors() -> None:
+    with pytest.raises(ConfigError, match=r"places 'a' and 'b' are 4.00 m apart"):
+        build_world(
+            "x",
+            "",
+            [PLACES[0], Place("b", 4.0, 0.0, "junction")],
+            [("a", "b", 0)],
+            route=["a", "b"],
+            default_visits=2,
+        )
+    with pytest.raises(ConfigError, match="has kind 'plaza'"):
+        build_world(
+            "x",
+            "",
+            [PLACES[0], Place("b", 6.0, 0.0, "plaza")],
+            [("a", "b", 0)],
+            route=["a", "b"],
+            default_visits=2,
+        )
+    with pytest.raises(ConfigError, match="never visits"):
+        build_world("x", "", PLACES, [("a", "b", 0)], route=["a"], default_visits=2)
+    with pytest.raises(ConfigError, match="unknown places"):
+        build_world("x", "", PLACES, [("a", "c", 0)], route=["a", "b"], default_visits=2)
+    with pytest.raises(ConfigError, match=r"route step 'a' -> 'c' is not a corridor"):
+        build_world(
+            "x",
+            "",
+            [*PLACES, Place("c", 6.0, 6.0, "corner")],
+            [("a", "b", 0), ("b", "c", 0)],
+            route=["a", "c", "b"],
+            default_visits=2,
+        )
+    with pytest.raises(ConfigError, match="not axis-aligned"):
+        build_world(
+            "x",
+            "",
+            [PLACES[0], Place("b", 6.0, 6.0, "corner")],
+            [("a", "b", 0)],
+            route=["a", "b"],
+            default_visits=2,
+        )
+    with pytest.raises(ConfigError, match=r"place 'c' lies 0.50 m from corridor 'a'-'b'"):
+        build_world(
+            "x",
+            "",
+            [Place("a", 0, 0, "corner"), Place("b", 12, 0, "corner"), Place("c", 6, 0.5, "doorway")],
+            [("a", "b", 0), ("b", "c", 0)],
+            route=["a", "b", "c"],
+            default_visits=2,
+        )
+    with pytest.raises(ConfigError, match=r"multiples of 0\.5 m"):
+        Rect(0.0, 0.0, 1.2, 1.0, 0)
+    with pytest.raises(ConfigError, match="x1 > x0"):
+        Rect(1.0, 0.0, 1.0, 1.0, 0)
