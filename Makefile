@@ -9,6 +9,7 @@ DEMO_OUT ?= out/demo
 
 # DDS for tests and the demo: localhost only, a per-run domain, fast discovery announcements.
 ROS_ENV = AMENT_PREFIX_PATH=$(abspath $(VENV)) \
+	OPENBLAS_NUM_THREADS=$${OPENBLAS_NUM_THREADS:-1} \
 	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST \
 	ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-$$(( $$$$ % 200 + 20 ))} \
 	FASTDDS_DEFAULT_PROFILES_FILE=$(abspath config/fastdds.xml) \

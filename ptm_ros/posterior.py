@@ -6,7 +6,10 @@ the unnormalised log posterior of any topology:
 * prior: :mod:`ptm_ros.priors` (Ch. 1.3);
 * metric likelihood of odometry and laser registrations: :mod:`ptm_ros.odometry` (eq. 14–18, 47–49);
   laser registrations enter for pairs of visits placed at one place (each visit against the previous
-  visit of its place), computed lazily by a *registrar* and cached per pair;
+  visit of its place), computed lazily by a *registrar* and cached per pair. The data are the outcomes
+  of all pairs; a pair the topology does not chain has an uninformative outcome density 1/V_reg, so up
+  to a constant each chained valid registration contributes log N(z; ·) + log V_reg (a likelihood
+  ratio), and pairs never registered need not be computed;
 * appearance likelihood: :mod:`ptm_ros.appearance` (eq. 22–28, 54–57), a product over blocks cached
   per block, because a topology's blocks recur across MCMC moves and particles.
 
@@ -145,8 +148,11 @@ class PosteriorModel:
         metric, result = 0.0, None
         if self.config.use_odometry and self.n > 1:
             rng = np.random.default_rng([self.seed, *lab])
-            result = metric_log_likelihood(lab, self.visits, self.config.odometry, self.loops(lab), rng=rng)
-            metric = result.log_likelihood
+            loops = self.loops(lab)
+            result = metric_log_likelihood(lab, self.visits, self.config.odometry, loops, rng=rng)
+            # likelihood ratio of each used registration against "not the same place" (uniform over
+            # V_reg), so that every topology explains the same data (see the module docstring)
+            metric = result.log_likelihood + len(loops) * math.log(self.config.odometry.registration_volume)
         app = 0.0
         if self.appearance is not None:
             app = appearance_log_likelihood(lab, self.visits, self.appearance, cache=self._block_cache)
