@@ -51,15 +51,19 @@ class DetectorConfig:
 class InferenceConfig:
     """Which estimator computes the PTM, and its budget."""
 
-    method: str = "exact"
+    method: str = "rbpf"
     particles: int = 100
+    resample: str = "optimal"  # RBPF: "optimal" (Fearnhead-Clifford) or "top"
     seed: int = 0
     top: int = 50  # topologies written to ptm.json
-    max_exact_visits: int = 10  # exact enumeration refuses larger N (B_10 = 115 975)
+    max_exact_visits: int = 9  # exact enumeration refuses larger N (B_9 = 21 147; B_12 = 4.2 million)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             msg = f"inference method must be one of {METHODS}, got {self.method!r}"
+            raise ConfigError(msg)
+        if self.resample not in ("optimal", "top"):
+            msg = f"inference resample must be 'optimal' or 'top', got {self.resample!r}"
             raise ConfigError(msg)
         if self.particles < 1 or self.top < 1:
             msg = f"particles and top must be >= 1, got {self.particles}, {self.top}"

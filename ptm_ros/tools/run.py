@@ -56,7 +56,7 @@ def _progress(quiet: bool):
     from tqdm import tqdm
 
     def wrap(it, total):
-        return tqdm(it, total=total, desc="topologies", unit="T", mininterval=0.5, file=sys.stderr)
+        return tqdm(it, total=total, desc="ptm", mininterval=0.5, file=sys.stderr)
 
     return wrap
 
