@@ -15,7 +15,7 @@ from ptm_ros.io.worlds import get_world
 from ptm_ros.partitions import bell
 from ptm_ros.ptm import load_ptm
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import RunDiagnostics, detect_visits, run_offline
+from ptm_ros.tools.pipeline import detect_visits, run_offline
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,7 @@ def small_config(**over) -> PtmConfig:
 
 def test_visits_follow_the_odometry(tjunction_bag):
     run = read_run(tjunction_bag)
-    diag = RunDiagnostics()
+    diag = {}
     visits = detect_visits(run, small_config(), diag)
     assert 4 <= len(visits) <= 8
     stamps = run.odometry.stamps
@@ -44,7 +44,7 @@ def test_visits_follow_the_odometry(tjunction_bag):
         assert v.signature is not None and v.patch is not None and len(v.patch) > 30
     travel = sum(v.travel for v in visits[1:])
     assert 5.0 * (len(visits) - 1) <= travel < 5.0 * (len(visits) - 1) + 0.2
-    assert diag.visits_without_panorama == 0
+    assert diag["visits_without_panorama"] == 0 and diag["visits"] == len(visits)
 
 
 def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path):

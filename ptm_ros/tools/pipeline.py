@@ -7,48 +7,28 @@ functions on live messages.
 
 from __future__ import annotations
 
-import math
+import heapq
 import time
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ptm_ros.appearance import panorama_signature
 from ptm_ros.config import PtmConfig, save_config
-from ptm_ros.configio import to_dict
-from ptm_ros.detectors import EquidistantDetector, OdometryTracker
+from ptm_ros.detectors import EquidistantDetector
 from ptm_ros.errors import ConfigError, DataError, RegistrationError
-from ptm_ros.geometry import interpolate_poses, wrap_angle
+from ptm_ros.geometry import wrap_angle
 from ptm_ros.io.bag import RunData, read_run
-from ptm_ros.laser import build_patch, passage_slice, register_patches, scan_to_points, to_relative_pose
+from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
+from ptm_ros.laser import register_patches, to_relative_pose
 from ptm_ros.partitions import Labels
 from ptm_ros.posterior import PosteriorModel, Registrar, exact_posterior, normalize_log, top_k
 from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
 
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
-
-
-@dataclass
-class RunDiagnostics:
-    """What the pipeline skipped or noticed, reported in ptm.json (``diagnostics``)."""
-
-    odometry_messages: int = 0
-    odometry_skipped: dict[str, int] = field(default_factory=dict)
-    scans: int = 0
-    scan_beams_dropped: int = 0
-    images: int = 0
-    images_skipped: dict[str, int] = field(default_factory=dict)
-    visits_without_panorama: int = 0
-    visits_without_patch: int = 0
-    registrations: int = 0
-    registrations_valid: int = 0
-
-    def skip(self, reason: str) -> None:
-        self.odometry_skipped[reason] = self.odometry_skipped.get(reason, 0) + 1
 
 
 def detector_kind(run: RunData, config: PtmConfig) -> str:
@@ -60,101 +40,72 @@ def detector_kind(run: RunData, config: PtmConfig) -> str:
     return kind
 
 
-def detect_visits(run: RunData, config: PtmConfig, diagnostics: RunDiagnostics | None = None) -> list[Visit]:
-    """Landmark visits of a recorded run, with their appearance signatures and laser patches."""
-    diag = diagnostics if diagnostics is not None else RunDiagnostics()
+def make_detector(kind: str, config: PtmConfig) -> Any:
+    """The streaming detector object of a kind (see :mod:`ptm_ros.detectors`)."""
+    return EquidistantDetector(config.detector.equidistant)
+
+
+def make_extractor(config: PtmConfig, kind: str, *, use_scans: bool, use_images: bool) -> VisitExtractor:
+    """The streaming visit extractor shared by ``ptm-run`` and the detector node."""
+    ext = ExtractorConfig(
+        use_scans=use_scans and config.model.use_laser,
+        use_images=use_images,
+        image_max_dt=config.detector.image_max_dt,
+    )
+    return VisitExtractor(
+        make_detector(kind, config), laser=config.laser, appearance=config.model.appearance, config=ext
+    )
+
+
+def merged_messages(run: RunData) -> Iterator[tuple[float, int, int]]:
+    """(stamp, topic, index) of every message of a run in stamp order (odometry first on ties), the
+    order in which a live robot's messages arrive."""
+    streams = []
+    for topic, data in ((ODOM, run.odometry), (SCAN, run.scans), (IMAGE, run.images)):
+        if data is not None and len(data.stamps):
+            streams.append([(float(t), topic, k) for k, t in enumerate(data.stamps)])
+    return heapq.merge(*streams)
+
+
+def detect_visits(run: RunData, config: PtmConfig, diagnostics: dict[str, Any] | None = None) -> list[Visit]:
+    """Landmark visits of a recorded run, with their appearance signatures and laser patches.
+
+    Feeds the run's messages in stamp order through :class:`ptm_ros.landmarks.VisitExtractor`, the same
+    object the detector node uses; ``diagnostics`` (if given) receives the extractor's counters.
+    """
     odom = run.odometry
     if odom is None or len(odom.stamps) == 0:
-        msg = f"bag {run.path} has no odometry on {config.topics.odom}"
+        msg = f"bag {run.path} has no odometry"
         raise DataError(msg)
-    detector_kind(run, config)
-    detector = EquidistantDetector(config.detector.equidistant)
-    tracker = OdometryTracker()
-    picked: list[tuple[int, float, float]] = []  # (odometry index, travel, rotation)
-    diag.odometry_messages = len(odom.stamps)
-    for k, (stamp, pose) in enumerate(zip(odom.stamps, odom.poses, strict=True)):
-        if not (math.isfinite(stamp) and np.all(np.isfinite(pose))):
-            diag.skip("non-finite")
-            continue
-        if tracker.last_stamp is not None and stamp < tracker.last_stamp:
-            diag.skip("stamp-backwards")
-            continue
-        tracker.update(float(stamp), pose)
-        if detector.on_odometry(float(stamp), pose):
-            travel, rotation = tracker.reset()
-            picked.append((k, 0.0 if not picked else travel, 0.0 if not picked else rotation))
-    signatures = _signatures(run, [odom.stamps[k] for k, _, _ in picked], config, diag)
-    patches = _patches(run, [(odom.stamps[k], odom.poses[k]) for k, _, _ in picked], config, diag)
-    visits = []
-    for n, (k, travel, rotation) in enumerate(picked):
-        visits.append(
-            Visit(
-                index=n,
-                stamp=float(odom.stamps[k]),
-                pose=tuple(float(v) for v in odom.poses[k]),  # type: ignore[arg-type]
-                travel=travel,
-                rotation=rotation,
-                signature=signatures[n],
-                patch=patches[n],
+    has_scans = run.scans is not None and len(run.scans.stamps) > 0
+    has_images = run.images is not None and len(run.images.images) > 0
+    extractor = make_extractor(config, detector_kind(run, config), use_scans=has_scans, use_images=has_images)
+    visits: list[Visit] = []
+    for _, topic, k in merged_messages(run):
+        if topic == ODOM:
+            visits += extractor.on_odometry(odom.stamps[k], odom.poses[k])
+        elif topic == SCAN:
+            sc = run.scans
+            visits += extractor.on_scan(
+                sc.stamps[k],
+                sc.ranges[k],
+                sc.angle_min[k],
+                sc.angle_increment[k],
+                sc.range_min[k],
+                sc.range_max[k],
             )
-        )
+        else:
+            visits += extractor.on_image(run.images.stamps[k], run.images.images[k])
+    visits += extractor.flush()
+    if diagnostics is not None:
+        diagnostics.update(diagnostics_dict(extractor.diagnostics))
+        if run.images is not None:
+            diagnostics["images_skipped_by_reader"] = dict(run.images.skipped)
     return visits
 
 
-def _signatures(
-    run: RunData, stamps: Sequence[float], config: PtmConfig, diag: RunDiagnostics
-) -> list[np.ndarray | None]:
-    images = run.images
-    if images is None or not images.images:
-        return [None] * len(stamps)
-    diag.images = len(images.images)
-    diag.images_skipped = dict(images.skipped)
-    t = np.asarray(images.stamps, dtype=float)
-    out: list[np.ndarray | None] = []
-    for s in stamps:
-        k = int(np.argmin(np.abs(t - s)))
-        if abs(t[k] - s) > config.detector.image_max_dt:
-            diag.visits_without_panorama += 1
-            out.append(None)
-            continue
-        out.append(panorama_signature(images.images[k], config.model.appearance))
-    return out
-
-
-def _patches(
-    run: RunData, visits: Sequence[tuple[float, np.ndarray]], config: PtmConfig, diag: RunDiagnostics
-) -> list[np.ndarray | None]:
-    scans, odom = run.scans, run.odometry
-    if scans is None or odom is None or len(scans.stamps) == 0 or not config.model.use_laser:
-        return [None] * len(visits)
-    diag.scans = len(scans.stamps)
-    lc = config.laser
-    points = []
-    for k in range(len(scans.stamps)):
-        res = scan_to_points(
-            scans.ranges[k],
-            float(scans.angle_min[k]),
-            float(scans.angle_increment[k]),
-            float(scans.range_min[k]),
-            min(float(scans.range_max[k]), lc.max_range),
-        )
-        diag.scan_beams_dropped += res.dropped
-        points.append(res.points)
-    scan_poses = interpolate_poses(odom.stamps, odom.poses, scans.stamps)
-    out: list[np.ndarray | None] = []
-    for stamp, pose in visits:
-        sl = passage_slice(scans.stamps, scan_poses, stamp, pose, lc.patch_radius)
-        patch = build_patch(points[sl], scan_poses[sl], pose, lc.patch_radius, lc.patch_voxel)
-        if len(patch) < lc.min_points:
-            diag.visits_without_patch += 1
-            out.append(None)
-        else:
-            out.append(patch)
-    return out
-
-
 def make_registrar(
-    visits: Sequence[Visit], config: PtmConfig, diag: RunDiagnostics | None = None
+    visits: Sequence[Visit], config: PtmConfig, diag: dict[str, Any] | None = None
 ) -> Registrar:
     """Laser registration of visit j's patch onto visit i's (i < j), assuming they are one place."""
     lc = config.laser
@@ -169,8 +120,8 @@ def make_registrar(
         except RegistrationError:
             return None
         if diag is not None:
-            diag.registrations += 1
-            diag.registrations_valid += int(reg.valid)
+            diag["registrations"] = diag.get("registrations", 0) + 1
+            diag["registrations_valid"] = diag.get("registrations_valid", 0) + int(reg.valid)
         return to_relative_pose(reg, i, j)
 
     return registrar
@@ -298,7 +249,7 @@ class RunResult:
     ptm_path: Path
     report_path: Path | None
     score: Any | None
-    diagnostics: RunDiagnostics
+    diagnostics: dict[str, Any]
 
 
 def find_ground_truth(bag: Path) -> Path | None:
@@ -330,7 +281,7 @@ def run_offline(
         image_topic=topics.panorama,
         require=(topics.odom,),
     )
-    diag = RunDiagnostics()
+    diag: dict[str, Any] = {}
     visits = detect_visits(run, config, diag)
     registrar = make_registrar(visits, config, diag) if config.model.use_laser else None
     result = infer(visits, config, registrar=registrar, progress=progress)
@@ -345,7 +296,7 @@ def run_offline(
         wall_s=wall,
         bag=str(bag),
         detector=used.detector.kind,
-        diagnostics=to_dict(diag),
+        diagnostics=diag,
     )
     ptm_path = save_ptm(ptm, out / "ptm.json")
     save_config(used, out / "config.yaml")

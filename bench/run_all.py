@@ -1,0 +1,239 @@
+"""``make bench``: every benchmark of ptm_ros, results written under ``bench/``.
+
+1. Component benchmarks (each writes its own JSON beside this script): the metric likelihood
+   (``bench_odometry.py``), log P(T|Z) (``bench_posterior.py``), the particle filter (``bench_rbpf.py``),
+   MCMC (``bench_mcmc.py``) and the surprise detectors (``bench_surprise.py``), when present.
+2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
+   present), scored against ground truth beside two reference methods a user might use instead:
+   greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
+   landmark patches (:mod:`ptm_ros.baselines`). Writes ``bench/results.json`` and ``bench/results.md``.
+
+    PYTHONPATH=. .venv/bin/python bench/run_all.py [--skip-components] [--only NAME ...] [--work out/bench]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+DATASETS = REPO.parent / "shared" / "datasets"
+COMPONENTS = (
+    "bench_odometry.py",
+    "bench_posterior.py",
+    "bench_rbpf.py",
+    "bench_mcmc.py",
+    "bench_surprise.py",
+)
+SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
+REAL_RUNS = (
+    ("intel", "intel/intel-raw-910.clf.gz", "intel/intel-gt-910.txt"),
+    ("aces", "aces/aces-raw-440.clf.gz", "aces/aces-gt-440.txt"),
+    ("mit-csail", "mit-csail/mit-csail.clf.gz", "mit-csail/mit-csail-gt-406.txt"),
+)
+
+
+def run_components(names: list[str] | None) -> list[dict]:
+    out = []
+    for script in COMPONENTS:
+        path = BENCH / script
+        if not path.is_file() or (names and script not in names):
+            continue
+        t0 = time.perf_counter()
+        proc = subprocess.run(
+            [sys.executable, str(path)], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, check=False
+        )
+        out.append({"script": script, "exit_code": proc.returncode, "wall_s": time.perf_counter() - t0})
+        print(f"[bench] {script}: exit {proc.returncode} in {out[-1]['wall_s']:.1f} s", flush=True)
+    return out
+
+
+def prepare_runs(work: Path, only: list[str] | None) -> list[tuple[str, str, Path, Path]]:
+    """(name, kind, bag, ground truth) of every run to benchmark; bags are made once under ``work``."""
+    from ptm_ros.io.simulator import SimConfig, simulate, write_run
+    from ptm_ros.io.worlds import get_world
+    from ptm_ros.tools.convert import convert
+
+    runs = []
+    for world, seed in SIM_WORLDS:
+        if only and world not in only:
+            continue
+        bag = work / "sim" / f"{world}-s{seed}"
+        if not bag.exists():
+            write_run(simulate(get_world(world), SimConfig(), np.random.default_rng(seed)), bag)
+        runs.append((world, "simulated", bag, bag / "ground_truth.json"))
+    if not (DATASETS / "README.md").is_file():
+        print(f"[bench] {DATASETS} absent: real runs skipped", flush=True)
+        return runs
+    for name, log, gt in REAL_RUNS:
+        if only and name not in only:
+            continue
+        bag = work / "real" / name
+        if not bag.exists():
+            bag.parent.mkdir(parents=True, exist_ok=True)
+            convert(DATASETS / log, bag)
+        runs.append((name, "real", bag, DATASETS / gt))
+    return runs
+
+
+def single_topology_ptm(visits, labels, method: str):
+    from ptm_ros.ptm import Landmark, make_ptm
+
+    landmarks = [Landmark(v.index, v.stamp, v.pose) for v in visits]
+    return make_ptm(landmarks, {tuple(labels): 1.0}, inference={"method": method})
+
+
+def score_row(score) -> dict:
+    s = score.as_dict(per_topology=False)
+    keys = (
+        "n_visits",
+        "n_true_places",
+        "map_f1",
+        "map_precision",
+        "map_recall",
+        "posterior_f1",
+        "consistent_mass",
+        "true_topology_mass",
+        "n_scored_pairs",
+        "n_same_pairs",
+    )
+    return {k: s.get(k) for k in keys}
+
+
+def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
+    from ptm_ros.baselines import GreedyConfig, LoopClosureConfig, greedy_association, robust_loop_closure
+    from ptm_ros.config import load_config
+    from ptm_ros.io.bag import read_run
+    from ptm_ros.tools.evaluate import score_against_ground_truth
+    from ptm_ros.tools.pipeline import detect_visits, make_registrar, run_offline
+
+    config = load_config()
+    t0 = time.perf_counter()
+    result = run_offline(bag, work / "out" / name, config, ground_truth=gt)
+    wall = time.perf_counter() - t0
+    row = {"run": name, "kind": kind, "method": "ptm-rbpf", "wall_s": wall, **score_row(result.score)}
+    row["map_places"] = len(set(result.ptm.topologies[0].labels))
+    row["update_ms_median"] = result.ptm.inference.get("update_ms_median")
+    row["update_ms_p95"] = result.ptm.inference.get("update_ms_p95")
+    rows = [row]
+    run = read_run(bag)
+    visits = detect_visits(run, config)
+    t0 = time.perf_counter()
+    labels = greedy_association(visits, config.model.odometry, GreedyConfig())
+    wall = time.perf_counter() - t0
+    score = score_against_ground_truth(single_topology_ptm(visits, labels, "greedy"), gt)
+    rows.append(
+        {
+            "run": name,
+            "kind": kind,
+            "method": "greedy-nn",
+            "wall_s": wall,
+            **score_row(score),
+            "map_places": len(set(labels)),
+        }
+    )
+    t0 = time.perf_counter()
+    registrar = make_registrar(visits, config)
+    labels, _details = robust_loop_closure(
+        visits, config.model.odometry, config.laser, LoopClosureConfig(), registrar=registrar
+    )
+    wall = time.perf_counter() - t0
+    score = score_against_ground_truth(single_topology_ptm(visits, labels, "robust-loop-closure"), gt)
+    rows.append(
+        {
+            "run": name,
+            "kind": kind,
+            "method": "robust-loop-closure",
+            "wall_s": wall,
+            **score_row(score),
+            "map_places": len(set(labels)),
+        }
+    )
+    return {"run": name, "rows": rows}
+
+
+def fmt(v) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.3f}" if abs(v) < 1000 else f"{v:.0f}"
+    return str(v)
+
+
+def write_results(components: list[dict], runs: list[dict]) -> None:
+    doc = {
+        "generated": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "load_average": os.getloadavg(),
+        "components": components,
+        "runs": runs,
+    }
+    (BENCH / "results.json").write_text(json.dumps(doc, indent=1) + "\n")
+    cols = (
+        "run",
+        "method",
+        "n_visits",
+        "n_true_places",
+        "map_places",
+        "map_f1",
+        "posterior_f1",
+        "consistent_mass",
+        "true_topology_mass",
+        "wall_s",
+        "update_ms_median",
+        "update_ms_p95",
+    )
+    lines = [
+        "# ptm_ros benchmark results",
+        "",
+        f"Generated {doc['generated']} by `make bench` (`bench/run_all.py`); load average "
+        f"{', '.join(f'{x:.1f}' for x in doc['load_average'])} on this 2-core machine.",
+        "",
+        "Scores against ground truth (same place < 1.5 m, different > 4 m): `map_f1` of the most probable "
+        "topology, `posterior_f1` from expected pair counts, `consistent_mass` = mass with no scored pair "
+        "wrong. Reference methods commit to one topology (probability 1).",
+        "",
+        "| " + " | ".join(cols) + " |",
+        "|" + "---|" * len(cols),
+    ]
+    for run in runs:
+        for r in run["rows"]:
+            lines.append("| " + " | ".join(fmt(r.get(c)) for c in cols) + " |")
+    lines += ["", "Component benchmarks (their own JSON files beside this one):", ""]
+    lines += [f"- `{c['script']}`: exit {c['exit_code']}, {c['wall_s']:.1f} s" for c in components]
+    (BENCH / "results.md").write_text("\n".join(lines) + "\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--skip-components", action="store_true")
+    parser.add_argument("--only", nargs="*", default=None, help="run names / component scripts to run")
+    parser.add_argument("--work", type=Path, default=REPO / "out" / "bench")
+    args = parser.parse_args()
+    components = [] if args.skip_components else run_components(args.only)
+    runs = []
+    for name, kind, bag, gt in prepare_runs(args.work, args.only):
+        print(f"[bench] pipeline on {name} ({kind})", flush=True)
+        runs.append(bench_run(name, kind, bag, gt, args.work))
+        for r in runs[-1]["rows"]:
+            print(
+                f"[bench]   {r['method']:>20}: MAP F1 {fmt(r.get('map_f1'))}, "
+                f"posterior F1 {fmt(r.get('posterior_f1'))}, {r['wall_s']:.1f} s",
+                flush=True,
+            )
+        write_results(components, runs)
+    write_results(components, runs)
+
+
+if __name__ == "__main__":
+    main()

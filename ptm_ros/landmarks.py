@@ -1,0 +1,471 @@
+"""From sensor streams to landmark visits: the streaming visit extractor (thesis Ch. 3.10, Fig. 48; Ch. 4).
+
+:class:`VisitExtractor` turns odometry, laser scans and panoramas into :class:`~ptm_ros.visits.Visit`
+objects, each carrying what the topology inference needs: the odometry pose of the visit (an odometry
+sample, unchanged), the travel and rotation since the previous visit, the Fourier signature of the
+panorama nearest in time and the local laser patch of the passage through the place.
+
+Determinism. The offline pipeline (``ptm-run``) and the detector node must produce *identical* visits
+although over DDS the three topics interleave differently. The extractor therefore re-sequences its
+input: messages are queued and processed strictly in (stamp, topic) order, a message only once every
+expected topic has delivered a stamp at least as late (a watermark; each topic must be in order on its
+own, which ROS publishers and bags guarantee). Everything downstream (the detector, patches, signatures)
+sees one canonical sequence, so the output depends only on the data, never on arrival order.
+
+A visit is declared at an odometry sample (the detector fires at a stamp; the visit snaps to the
+odometry sample nearest to it), and completed once the processed stream has passed both the end of the
+passage through its patch radius and ``image_max_dt`` after it: the patch = scans taken while the
+robot's odometry stays within ``laser.patch_radius`` of the visit pose (the contiguous run around the
+visit, at most ``max_passage_s`` long), placed with odometry interpolated at the scan stamps; the
+signature = the panorama nearest in time within ``image_max_dt``.
+
+Bad input is counted in :attr:`VisitExtractor.diagnostics` and skipped, never raised: non-finite
+odometry, stamps going backwards on a topic, malformed scans, undecodable images.
+"""
+
+from __future__ import annotations
+
+import base64
+import heapq
+import json
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ptm_ros.appearance import AppearanceConfig, panorama_signature
+from ptm_ros.detectors import EquidistantDetector
+from ptm_ros.errors import DataError, PtmError
+from ptm_ros.geometry import interpolate_poses, wrap_angle
+from ptm_ros.laser import LaserConfig, build_patch, scan_to_points
+from ptm_ros.visits import Visit
+
+ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
+TOPIC_NAMES = {ODOM: "odometry", SCAN: "scan", IMAGE: "image"}
+VISIT_SCHEMA = "ptm_ros.visit/1"
+
+
+@dataclass(frozen=True)
+class ExtractorConfig:
+    """What the extractor needs to know besides the models' own configs."""
+
+    use_scans: bool = True  # wait for scans (laser patches); False: visits carry no patch
+    use_images: bool = True  # wait for panoramas (signatures); False: visits carry no signature
+    image_max_dt: float = 1.0  # s
+    max_passage_s: float = 120.0  # s: longest passage a patch is built from (bounds memory)
+    stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
+
+
+@dataclass
+class ExtractorDiagnostics:
+    """Counters of what was received, used and skipped (published on /diagnostics by the node)."""
+
+    received: dict[str, int] = field(default_factory=lambda: {"odometry": 0, "scan": 0, "image": 0})
+    skipped: dict[str, int] = field(default_factory=dict)
+    scan_beams_dropped: int = 0
+    visits: int = 0
+    visits_without_panorama: int = 0
+    visits_without_patch: int = 0
+    stalled_topics: int = 0
+
+    def skip(self, reason: str) -> None:
+        self.skipped[reason] = self.skipped.get(reason, 0) + 1
+
+
+@dataclass
+class _Pending:
+    k: int  # index of the odometry sample in the extractor's odometry log
+    stamp: float
+    pose: NDArray[np.float64]
+    travel: float
+    rotation: float
+    first_in: float  # stamp of the first odometry sample of the passage
+    last_in: float | None = None  # stamp of the last odometry sample of the passage (None: not left yet)
+    exit_stamp: float | None = None
+
+
+Detector = Any  # duck-typed: on_odometry / on_scan / on_image -> bool, optional last_landmark_stamp
+
+
+class VisitExtractor:
+    """Streaming landmark visits from odometry, scans and panoramas (see the module docstring).
+
+    Feed messages with :meth:`on_odometry`, :meth:`on_scan`, :meth:`on_image` in any interleaving (each
+    topic in order); each returns the visits completed by it, in visit order. :meth:`flush` completes
+    everything at the end of the data.
+    """
+
+    def __init__(
+        self,
+        detector: Detector | None = None,
+        *,
+        laser: LaserConfig | None = None,
+        appearance: AppearanceConfig | None = None,
+        config: ExtractorConfig | None = None,
+    ) -> None:
+        self.detector = detector if detector is not None else EquidistantDetector()
+        self.laser = laser or LaserConfig()
+        self.appearance = appearance or AppearanceConfig()
+        self.config = config or ExtractorConfig()
+        self.diagnostics = ExtractorDiagnostics()
+        self._queue: list[tuple[float, int, int, Any]] = []
+        self._seq = 0
+        self._watermark = {ODOM: -math.inf, SCAN: -math.inf, IMAGE: -math.inf}
+        self._expected = {
+            ODOM,
+            *([SCAN] if self.config.use_scans else []),
+            *([IMAGE] if self.config.use_images else []),
+        }
+        self._odom_t: list[float] = []
+        self._odom_p: list[NDArray[np.float64]] = []
+        self._odom_base = 0  # odometry samples dropped from the front of the log
+        self._scans: deque[tuple[float, NDArray[np.float64]]] = deque()
+        self._images: deque[tuple[float, NDArray[np.float64] | None]] = deque()
+        self._pending: deque[_Pending] = deque()
+        self._requests: list[float] = []  # detector firings waiting for the odometry around them
+        self._last_visit_k: int | None = None
+        self._processed = -math.inf
+        self._count = 0
+
+    # ------------------------------------------------------------------------------------ input
+
+    def on_odometry(self, stamp: float, pose: Any) -> list[Visit]:
+        """One odometry message (x, y, yaw) at ``stamp`` (s)."""
+        p = np.asarray(pose, dtype=float).reshape(-1)
+        if p.shape != (3,) or not np.all(np.isfinite(p)) or not math.isfinite(stamp):
+            self.diagnostics.skip("odometry-non-finite")
+            return []
+        return self._push(ODOM, float(stamp), p)
+
+    def on_scan(  # noqa: PLR0917 - the LaserScan fields read best positionally
+        self,
+        stamp: float,
+        ranges: Any,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float,
+        range_max: float,
+    ) -> list[Visit]:
+        """One laser scan (sensor_msgs/LaserScan fields)."""
+        if not math.isfinite(stamp):
+            self.diagnostics.skip("scan-bad-stamp")
+            return []
+        scan = (np.asarray(ranges, dtype=float).reshape(-1), angle_min, angle_increment, range_min, range_max)
+        return self._push(SCAN, float(stamp), scan)
+
+    def on_image(self, stamp: float, image: Any) -> list[Visit]:
+        """One panorama (H, W) or (H, W, 3), column 0 = robot heading."""
+        if not math.isfinite(stamp):
+            self.diagnostics.skip("image-bad-stamp")
+            return []
+        return self._push(IMAGE, float(stamp), image)
+
+    def flush(self) -> list[Visit]:
+        """End of data: process everything queued and complete every pending visit."""
+        self._flushing = True
+        out = self._drain(math.inf)
+        self._resolve_requests()
+        out += self._complete(math.inf)
+        return out
+
+    # ------------------------------------------------------------------------------- sequencing
+
+    def _push(self, topic: int, stamp: float, payload: Any) -> list[Visit]:
+        name = TOPIC_NAMES[topic]
+        self.diagnostics.received[name] += 1
+        if stamp < self._watermark[topic]:
+            self.diagnostics.skip(f"{name}-stamp-backwards")
+            return []
+        if stamp < self._processed:
+            self.diagnostics.skip(f"{name}-late")  # arrived after the stream had moved past its stamp
+            return []
+        self._watermark[topic] = stamp
+        heapq.heappush(self._queue, (stamp, topic, self._seq, payload))
+        self._seq += 1
+        return self._drain(self._horizon())
+
+    def _horizon(self) -> float:
+        odom = self._watermark[ODOM]
+        marks = []
+        for topic in self._expected:
+            mark = self._watermark[topic]
+            if topic != ODOM and odom - mark > self.config.stall_s and mark < odom:
+                self.diagnostics.stalled_topics += int(
+                    mark == -math.inf or odom - mark <= self.config.stall_s + 1e-9
+                )
+                mark = odom - self.config.stall_s  # a silent topic stops holding the stream back
+            marks.append(mark)
+        return min(marks)
+
+    def _drain(self, horizon: float) -> list[Visit]:
+        out: list[Visit] = []
+        while self._queue and self._queue[0][0] <= horizon:
+            stamp, topic, _, payload = heapq.heappop(self._queue)
+            self._processed = stamp
+            if topic == ODOM:
+                self._process_odometry(stamp, payload)
+            elif topic == SCAN:
+                self._process_scan(stamp, payload)
+            else:
+                self._process_image(stamp, payload)
+            out += self._complete(stamp)
+        return out
+
+    # ------------------------------------------------------------------------------- processing
+
+    def _fire(self, stamp: float) -> None:
+        when = getattr(self.detector, "last_landmark_stamp", None)
+        self._requests.append(float(when) if when is not None else stamp)
+
+    def _process_odometry(self, stamp: float, pose: NDArray[np.float64]) -> None:
+        self._odom_t.append(stamp)
+        self._odom_p.append(pose)
+        try:
+            if hasattr(self.detector, "on_odometry") and self.detector.on_odometry(stamp, pose):
+                self._fire(stamp)
+        except PtmError:
+            self.diagnostics.skip("odometry-rejected-by-detector")
+        self._resolve_requests()
+        self._track_passages(stamp, pose)
+
+    def _process_scan(self, stamp: float, scan: tuple) -> None:
+        ranges, amin, ainc, rmin, rmax = scan
+        try:
+            res = scan_to_points(ranges, amin, ainc, rmin, min(rmax, self.laser.max_range))
+        except PtmError:
+            self.diagnostics.skip("scan-malformed")
+            return
+        self.diagnostics.scan_beams_dropped += res.dropped
+        if self.config.use_scans:
+            self._scans.append((stamp, res.points))
+        if hasattr(self.detector, "on_scan"):
+            try:
+                if self.detector.on_scan(
+                    stamp, ranges, angle_min=amin, angle_increment=ainc, range_min=rmin, range_max=rmax
+                ):
+                    self._fire(stamp)
+            except PtmError:
+                self.diagnostics.skip("scan-rejected-by-detector")
+        self._resolve_requests()
+
+    def _process_image(self, stamp: float, image: Any) -> None:
+        sig = None
+        try:
+            sig = panorama_signature(image, self.appearance)
+        except PtmError:
+            self.diagnostics.skip("image-undecodable")
+        if self.config.use_images and sig is not None:
+            self._images.append((stamp, sig))
+        if hasattr(self.detector, "on_image"):
+            try:
+                if self.detector.on_image(stamp, image):
+                    self._fire(stamp)
+            except PtmError:
+                self.diagnostics.skip("image-rejected-by-detector")
+        self._resolve_requests()
+
+    def _resolve_requests(self) -> None:
+        """Snap detector firings to the nearest odometry sample once the odometry around them is known."""
+        while self._requests and self._odom_t:
+            when = self._requests[0]
+            if self._odom_t[-1] < when and not self._flushing:
+                return  # the odometry sample after the firing is not known yet
+            t = np.asarray(self._odom_t)
+            k = int(np.argmin(np.abs(t - when)))
+            self._requests.pop(0)
+            k_abs = k + self._odom_base
+            if self._last_visit_k is not None and k_abs <= self._last_visit_k:
+                self.diagnostics.skip("landmark-at-same-odometry-sample")
+                continue
+            self._open_visit(k)
+
+    def _open_visit(self, k: int) -> None:
+        t = self._odom_t
+        p = self._odom_p
+        prev = None if self._last_visit_k is None else self._last_visit_k - self._odom_base
+        travel = rotation = 0.0
+        if prev is not None:
+            lo = max(prev, 0)
+            seg = np.asarray(p[lo : k + 1])
+            travel = float(np.sum(np.hypot(np.diff(seg[:, 0]), np.diff(seg[:, 1])))) if len(seg) > 1 else 0.0
+            rotation = float(np.sum(np.abs(wrap_angle(np.diff(seg[:, 2]))))) if len(seg) > 1 else 0.0
+        pose = p[k]
+        first = k
+        limit = t[k] - self.config.max_passage_s
+        while first > 0 and t[first - 1] >= limit and self._inside(p[first - 1], pose):
+            first -= 1
+        pending = _Pending(
+            k=k + self._odom_base, stamp=t[k], pose=pose, travel=travel, rotation=rotation, first_in=t[first]
+        )
+        # the passage may already be over if odometry after k is known
+        for j in range(k + 1, len(t)):
+            if not self._inside(p[j], pose) or t[j] - t[k] > self.config.max_passage_s:
+                pending.last_in, pending.exit_stamp = t[j - 1], t[j]
+                break
+        self._pending.append(pending)
+        self._last_visit_k = k + self._odom_base
+
+    def _inside(self, a: NDArray[np.float64], centre: NDArray[np.float64]) -> bool:
+        return math.hypot(a[0] - centre[0], a[1] - centre[1]) <= self.laser.patch_radius
+
+    def _track_passages(self, stamp: float, pose: NDArray[np.float64]) -> None:
+        for v in self._pending:
+            left = not self._inside(pose, v.pose) or stamp - v.stamp > self.config.max_passage_s
+            if v.exit_stamp is None and stamp > v.stamp and left:
+                v.exit_stamp = stamp
+                v.last_in = self._odom_t[-2]
+
+    def _complete(self, processed: float) -> list[Visit]:
+        out: list[Visit] = []
+        while self._pending:
+            v = self._pending[0]
+            exit_stamp = (
+                v.exit_stamp if v.exit_stamp is not None else (math.inf if processed < math.inf else v.stamp)
+            )
+            if processed < math.inf and (
+                processed < exit_stamp or processed < v.stamp + self.config.image_max_dt
+            ):
+                break
+            self._pending.popleft()
+            out.append(self._finish(v, processed))
+        self._prune()
+        return out
+
+    def _finish(self, v: _Pending, processed: float) -> Visit:
+        last_in = v.last_in if v.last_in is not None else self._odom_t[-1]
+        patch = None
+        if self.config.use_scans:
+            sel = [(s, pts) for s, pts in self._scans if v.first_in <= s <= last_in]
+            if sel:
+                stamps = np.array([s for s, _ in sel])
+                poses = interpolate_poses(self._odom_t, self._odom_p, stamps)
+                patch = build_patch(
+                    [pts for _, pts in sel], poses, v.pose, self.laser.patch_radius, self.laser.patch_voxel
+                )
+                if len(patch) < self.laser.min_points:
+                    patch = None
+        signature = None
+        if self.config.use_images and self._images:
+            stamps = np.array([s for s, _ in self._images])
+            j = int(np.argmin(np.abs(stamps - v.stamp)))
+            if abs(stamps[j] - v.stamp) <= self.config.image_max_dt:
+                signature = self._images[j][1]
+        self.diagnostics.visits_without_patch += int(self.config.use_scans and patch is None)
+        self.diagnostics.visits_without_panorama += int(self.config.use_images and signature is None)
+        visit = Visit(
+            index=self._count,
+            stamp=v.stamp,
+            pose=(float(v.pose[0]), float(v.pose[1]), float(v.pose[2])),
+            travel=v.travel,
+            rotation=v.rotation,
+            signature=signature,
+            patch=patch,
+        )
+        self._count += 1
+        self.diagnostics.visits += 1
+        return visit
+
+    def _prune(self) -> None:
+        """Drop data no pending or future visit can need (bounded memory on long runs)."""
+        if not self._odom_t:
+            return
+        now = self._odom_t[-1]
+        keep_from = now - self.config.max_passage_s - 1.0
+        if self._pending:
+            keep_from = min(keep_from, self._pending[0].first_in)
+        if self._last_visit_k is not None:
+            # travel since the last visit is computed from the odometry log
+            last_t = self._odom_t[max(self._last_visit_k - self._odom_base, 0)]
+            keep_from = min(keep_from, last_t)
+        drop = 0
+        while drop < len(self._odom_t) - 2 and self._odom_t[drop + 1] < keep_from:
+            drop += 1
+        if drop:
+            del self._odom_t[:drop]
+            del self._odom_p[:drop]
+            self._odom_base += drop
+        while self._scans and self._scans[0][0] < keep_from:
+            self._scans.popleft()
+        image_from = min(keep_from, now - 2 * self.config.image_max_dt)
+        while len(self._images) > 1 and self._images[0][0] < image_from - self.config.image_max_dt:
+            self._images.popleft()
+
+
+# ------------------------------------------------------------------------------------ visit codec
+
+
+def _encode(a: NDArray[Any] | None) -> dict[str, Any] | None:
+    if a is None:
+        return None
+    arr = np.ascontiguousarray(a)
+    return {
+        "dtype": arr.dtype.str,
+        "shape": list(arr.shape),
+        "data": base64.b64encode(arr.tobytes()).decode(),
+    }
+
+
+def _decode(d: dict[str, Any] | None) -> NDArray[Any] | None:
+    if d is None:
+        return None
+    try:
+        arr = np.frombuffer(base64.b64decode(d["data"], validate=True), dtype=np.dtype(d["dtype"]))
+        return arr.reshape(d["shape"]).copy()
+    except (KeyError, TypeError, ValueError) as err:
+        msg = f"malformed array in visit JSON: {err}"
+        raise DataError(msg) from err
+
+
+def visit_to_json(visit: Visit) -> str:
+    """The lossless JSON form of a visit (schema ``ptm_ros.visit/1``; arrays base64 in native dtype)."""
+    return json.dumps(
+        {
+            "schema": VISIT_SCHEMA,
+            "index": visit.index,
+            "stamp": visit.stamp,
+            "pose": list(visit.pose),
+            "travel": visit.travel,
+            "rotation": visit.rotation,
+            "signature": _encode(visit.signature),
+            "words": _encode(visit.words),
+            "patch": _encode(visit.patch),
+        }
+    )
+
+
+def visit_from_json(text: str) -> Visit:
+    """Parse :func:`visit_to_json` output; malformed input raises :class:`DataError`."""
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as err:
+        msg = f"visit message is not JSON: {err}"
+        raise DataError(msg) from err
+    if not isinstance(d, dict) or d.get("schema") != VISIT_SCHEMA:
+        msg = f"visit message schema must be {VISIT_SCHEMA!r}"
+        raise DataError(msg)
+    try:
+        return Visit(
+            index=int(d["index"]),
+            stamp=float(d["stamp"]),
+            pose=tuple(float(x) for x in d["pose"]),  # type: ignore[arg-type]
+            travel=float(d["travel"]),
+            rotation=float(d["rotation"]),
+            signature=_decode(d.get("signature")),
+            words=_decode(d.get("words")),
+            patch=_decode(d.get("patch")),
+        )
+    except (KeyError, TypeError, ValueError, PtmError) as err:
+        msg = f"malformed visit message: {err}"
+        raise DataError(msg) from err
+
+
+def diagnostics_dict(diag: ExtractorDiagnostics) -> dict[str, Any]:
+    """Plain-dict counters (for ptm.json and /diagnostics)."""
+    return asdict(diag)
+
+
+ExtractorFactory = Callable[[], VisitExtractor]

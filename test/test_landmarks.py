@@ -1,0 +1,158 @@
+"""The streaming visit extractor: same visits whatever the interleaving; codec; bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ptm_ros.detectors import EquidistantConfig, EquidistantDetector
+from ptm_ros.errors import DataError
+from ptm_ros.geometry import path_length
+from ptm_ros.io.simulator import SimConfig, simulate
+from ptm_ros.io.worlds import get_world
+from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, visit_from_json, visit_to_json
+from ptm_ros.laser import LaserConfig
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(9), visits=5)
+
+
+def messages(sim):
+    cfg = SimConfig().laser
+    odom = [("o", float(t), p) for t, p in zip(sim.odom_stamps, sim.odom_poses, strict=True)]
+    scans = [("s", float(t), r) for t, r in zip(sim.scan_stamps, sim.scan_ranges, strict=True)]
+    images = [("i", float(t), im) for t, im in zip(sim.image_stamps, sim.images, strict=True)]
+    return odom, scans, images, cfg
+
+
+def run_extractor(streams, cfg, order, spacing=4.0):
+    ext = VisitExtractor(
+        EquidistantDetector(EquidistantConfig(spacing=spacing)),
+        laser=LaserConfig(),
+        config=ExtractorConfig(),
+    )
+    out = []
+    for kind, t, payload in order:
+        if kind == "o":
+            out += ext.on_odometry(t, payload)
+        elif kind == "s":
+            out += ext.on_scan(t, payload, cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max)
+        else:
+            out += ext.on_image(t, payload)
+    return out + ext.flush(), ext
+
+
+def interleave(streams, rng, max_lead):
+    """A random arrival order: each topic in order, topics running ahead of each other by < max_lead s."""
+    idx = [0] * len(streams)
+    order = []
+    while any(i < len(s) for i, s in zip(idx, streams, strict=True)):
+        live = [k for k, s in enumerate(streams) if idx[k] < len(s)]
+        heads = [streams[k][idx[k]][1] for k in live]
+        oldest = min(heads)
+        ok = [k for k, h in zip(live, heads, strict=True) if h - oldest < max_lead]
+        k = ok[int(rng.integers(len(ok)))]
+        order.append(streams[k][idx[k]])
+        idx[k] += 1
+    return order
+
+
+def assert_same_visits(a, b):
+    assert len(a) == len(b)
+    for u, v in zip(a, b, strict=True):
+        assert (u.index, u.stamp, u.pose, u.travel, u.rotation) == (
+            v.index,
+            v.stamp,
+            v.pose,
+            v.travel,
+            v.rotation,
+        )
+        assert np.array_equal(u.signature, v.signature)
+        assert np.array_equal(u.patch, v.patch)
+
+
+def test_visits_do_not_depend_on_arrival_order(sim):
+    odom, scans, images, cfg = messages(sim)
+    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
+    reference, _ = run_extractor(None, cfg, merged)
+    assert len(reference) >= 4
+    for seed in range(3):
+        order = interleave([odom, scans, images], np.random.default_rng(seed), max_lead=3.0)
+        visits, ext = run_extractor(None, cfg, order)
+        assert_same_visits(reference, visits)
+        assert ext.diagnostics.skipped == {}
+
+
+def test_visit_content(sim):
+    odom, scans, images, cfg = messages(sim)
+    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
+    visits, ext = run_extractor(None, cfg, merged)
+    stamps = list(sim.odom_stamps)
+    prev = None
+    for v in visits:
+        k = stamps.index(v.stamp)
+        assert v.pose == tuple(sim.odom_poses[k])  # an odometry sample, unchanged
+        assert v.signature is not None and v.patch is not None
+        # the patch is expressed in the visit frame: its points surround the origin within the max range
+        assert np.all(np.hypot(*v.patch.T) <= LaserConfig().max_range + LaserConfig().patch_radius)
+        if prev is not None:
+            assert math.isclose(v.travel, path_length(sim.odom_poses[prev : k + 1]), rel_tol=1e-12)
+            assert 4.0 <= v.travel < 4.2
+        prev = k
+    assert ext.diagnostics.visits == len(visits)
+
+
+def test_bad_input_is_counted_not_raised():
+    ext = VisitExtractor(EquidistantDetector(EquidistantConfig(spacing=4.0)))
+    ext.on_odometry(0.0, (0.0, math.nan, 0.0))
+    ext.on_odometry(10.0, (0.0, 0.0, 0.0))
+    ext.on_odometry(5.0, (0.0, 0.0, 0.0))  # backwards
+    ext.on_scan(10.0, [1.0, 2.0], 0.0, -0.1, 0.0, 10.0)  # negative increment: malformed
+    ext.on_image(10.0, np.zeros((4, 4, 4), dtype=np.uint8))  # undecodable (4 channels)
+    ext.flush()
+    skipped = ext.diagnostics.skipped
+    assert skipped["odometry-non-finite"] == 1
+    assert skipped["odometry-stamp-backwards"] == 1
+    assert skipped.get("scan-malformed", 0) + skipped.get("image-undecodable", 0) >= 1
+
+
+def test_buffers_stay_bounded_on_a_long_run(sim):
+    odom, scans, _, cfg = messages(sim)
+    ext = VisitExtractor(
+        EquidistantDetector(EquidistantConfig(spacing=2.0)), config=ExtractorConfig(use_images=False)
+    )
+    sizes = []
+    for lap in range(6):  # replay the run 6 times, shifted in time and space so that stamps increase
+        shift = lap * (sim.odom_stamps[-1] - sim.odom_stamps[0] + 1.0)
+        seq = sorted(
+            [("o", t + shift, p + np.array([lap * 100.0, 0.0, 0.0])) for _, t, p in odom]
+            + [("s", t + shift, r) for _, t, r in scans],
+            key=lambda m: (m[1], m[0] != "o"),
+        )
+        for kind, t, payload in seq:
+            if kind == "o":
+                ext.on_odometry(t, payload)
+            else:
+                ext.on_scan(t, payload, cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max)
+        sizes.append((len(ext._odom_t), len(ext._scans)))
+    assert sizes[-1][0] <= 2 * sizes[1][0] + 10 and sizes[-1][1] <= 2 * sizes[1][1] + 10
+
+
+def test_visit_json_round_trip(sim):
+    odom, scans, images, cfg = messages(sim)
+    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
+    visits, _ = run_extractor(None, cfg, merged)
+    for v in visits:
+        back = visit_from_json(visit_to_json(v))
+        assert_same_visits([v], [back])
+        assert back.words is None
+    with pytest.raises(DataError, match="not JSON"):
+        visit_from_json("{")
+    with pytest.raises(DataError, match="schema"):
+        visit_from_json('{"schema": "other"}')
+    with pytest.raises(DataError, match="malformed"):
+        visit_from_json('{"schema": "ptm_ros.visit/1", "index": 0}')
