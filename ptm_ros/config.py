@@ -85,11 +85,57 @@ class PtmConfig:
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:
-    """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (nested dicts) on top."""
-    data: dict[str, Any] = load_yaml(path) if path is not None else {}
+    """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (nested dicts) on top.
+
+    The file may be plain (``inference: {method: rbpf}``) or a ROS 2 parameter file
+    (``/**: {ros__parameters: {...}}`` and/or per-node sections), so one file serves ``ptm-run`` and the
+    nodes; the ``ros__parameters`` of every section are merged in file order.
+    """
+    data: dict[str, Any] = unwrap_ros_parameters(load_yaml(path)) if path is not None else {}
     if overrides:
         data = _merge(data, overrides)
     return from_dict(PtmConfig, data)
+
+
+#: ROS parameters every node accepts that are not ptm_ros configuration.
+ROS_ONLY_PARAMETERS = frozenset({"use_sim_time"})
+
+
+def unwrap_ros_parameters(doc: dict[str, Any]) -> dict[str, Any]:
+    """The configuration in a ROS 2 parameter file (``<node>: ros__parameters: ...``), or ``doc`` itself."""
+    sections = [v for v in doc.values() if isinstance(v, dict) and "ros__parameters" in v]
+    if not sections:
+        return doc
+    if len(sections) != len(doc):
+        msg = "a ROS parameter file must have only '<node>: {ros__parameters: ...}' sections at the top"
+        raise ConfigError(msg)
+    out: dict[str, Any] = {}
+    for sec in sections:
+        params = sec["ros__parameters"] or {}
+        if not isinstance(params, dict):
+            msg = "ros__parameters must be a mapping"
+            raise ConfigError(msg)
+        out = _merge(out, {k: v for k, v in params.items() if k not in ROS_ONLY_PARAMETERS})
+    return out
+
+
+def ros_parameters_yaml(config: PtmConfig | None = None) -> str:
+    """The configuration as a ROS 2 parameter file for all nodes (None values left out: ROS parameters
+    cannot be null, and a missing key takes its default)."""
+    import yaml
+
+    def drop_none(d: Any) -> Any:
+        if isinstance(d, dict):
+            return {k: drop_none(v) for k, v in d.items() if v is not None}
+        return d
+
+    body = drop_none(to_dict(config or PtmConfig()))
+    header = (
+        "# ptm_ros parameters with their defaults (generated from the config dataclasses by\n"
+        "# `python -m ptm_ros.config > config/ptm.yaml`). Use with `ptm-run --params FILE` or\n"
+        "# `--ros-args --params-file FILE`; keep only the keys you change.\n"
+    )
+    return header + yaml.safe_dump({"/**": {"ros__parameters": body}}, sort_keys=False)
 
 
 def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
@@ -110,3 +156,7 @@ def save_config(config: PtmConfig, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
     return path
+
+
+if __name__ == "__main__":
+    print(ros_parameters_yaml(), end="")

@@ -1,0 +1,64 @@
+"""Configuration: strict loading with precise errors, the shipped defaults file, round trips."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from ptm_ros.config import PtmConfig, load_config, ros_parameters_yaml, save_config
+from ptm_ros.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_defaults_file_matches_the_dataclasses():
+    assert (REPO / "config" / "ptm.yaml").read_text() == ros_parameters_yaml()
+    assert load_config(REPO / "config" / "ptm.yaml") == PtmConfig()
+
+
+def write(tmp_path, text):
+    p = tmp_path / "p.yaml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("inference: {particlez: 3}\n", r"inference: unknown key\(s\) \['particlez'\]"),
+        ("inference: {particles: three}\n", r"inference.particles: expected an integer"),
+        ("inference: {particles: 0}\n", r"particles and top must be >= 1"),
+        ("model: {odometry: {area_m2: .nan}}\n", r"model.odometry.area_m2: NaN"),
+        ("model: {prior: {kind: uniform}}\n", r"prior kind must be one of"),
+        ("model: {use_laser: 1}\n", r"model.use_laser: expected true/false"),
+        ("inference: [1, 2]\n", r"inference: expected a mapping"),
+        ("inference: {method: rbpf\n", r"malformed YAML"),
+        ("- 1\n", r"top level must be a mapping"),
+    ],
+)
+def test_bad_parameter_files_are_rejected_with_the_field_named(tmp_path, text, match):
+    with pytest.raises(ConfigError, match=match):
+        load_config(write(tmp_path, text))
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read parameter file"):
+        load_config(tmp_path / "absent.yaml")
+
+
+def test_ros_parameter_file_sections_are_merged(tmp_path):
+    text = (
+        "/**:\n  ros__parameters:\n    use_sim_time: true\n    inference: {particles: 7}\n"
+        "topology_filter:\n  ros__parameters:\n    inference: {seed: 3}\n"
+    )
+    cfg = load_config(write(tmp_path, text))
+    assert (cfg.inference.particles, cfg.inference.seed) == (7, 3)
+    with pytest.raises(ConfigError, match="only"):
+        load_config(write(tmp_path, "/**:\n  ros__parameters: {}\nextra: 1\n"))
+
+
+def test_overrides_and_round_trip(tmp_path):
+    cfg = load_config(None, {"inference": {"method": "exact", "top": 5}, "detector": {"kind": "equidistant"}})
+    assert cfg.inference.method == "exact" and cfg.inference.top == 5
+    assert load_config(save_config(cfg, tmp_path / "c.yaml")) == cfg
