@@ -58,7 +58,7 @@ Thesis: no equation of the thesis is implemented here; the innovation uses the o
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -68,9 +68,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, cholesky, solve_triangular
 from scipy.sparse.linalg import spsolve
 
-from ptm_ros.errors import ConfigError, ModelError, RegistrationError
-from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
-from ptm_ros.laser import LaserConfig, register_patches, to_relative_pose
+from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.geometry import Registrar, RelativePose, between, compose, wrap_angle
+from ptm_ros.laser import LaserConfig, patch_registrar
 from ptm_ros.odometry import OdometryConfig, odometry_covariances, optimize_poses, relative_odometry
 from ptm_ros.partitions import Labels, canonical
 from ptm_ros.visits import Visit, poses_array
@@ -79,7 +79,6 @@ FloatArray = NDArray[np.float64]
 
 #: A registrar returns the laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None
 #: (no valid registration). Same contract as :mod:`ptm_ros.posterior` and :mod:`ptm_ros.rbpf`.
-Registrar = Callable[[int, int], RelativePose | None]
 
 __all__ = [
     "GreedyConfig",
@@ -522,24 +521,6 @@ def loop_candidates(poses: ArrayLike, config: LoopClosureConfig) -> list[tuple[i
     keep = np.ones(len(ii), bool) if n <= config.all_pairs_below else dist <= config.search_radius
     order = np.lexsort((jj[keep], ii[keep], dist[keep]))[: config.max_candidates]
     return [(int(i), int(j)) for i, j in zip(ii[keep][order], jj[keep][order], strict=True)]
-
-
-def patch_registrar(visits: Sequence[Visit], laser_config: LaserConfig) -> Registrar:
-    """Register visit j's patch onto visit i's from ``(0, 0, yaw_j - yaw_i)``; None when a patch is missing,
-    too small, or the registration is not valid."""
-
-    def registrar(i: int, j: int) -> RelativePose | None:
-        a, b = visits[i], visits[j]
-        if a.patch is None or b.patch is None:
-            return None
-        initial = (0.0, 0.0, float(wrap_angle(b.pose[2] - a.pose[2])))
-        try:
-            reg = register_patches(b.patch, a.patch, initial, laser_config)
-        except RegistrationError:
-            return None
-        return to_relative_pose(reg, i, j)
-
-    return registrar
 
 
 def _components(n: int, edges: Sequence[tuple[int, int]]) -> Labels:

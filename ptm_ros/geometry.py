@@ -12,6 +12,7 @@ a stack of poses of shape ``(..., 3)`` and broadcast.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,6 +86,11 @@ class RelativePose:
     j: int
     mean: FloatArray
     cov: FloatArray
+
+
+#: Laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None when the registration failed
+#: its fitness check ("no information"). Callers cache results per pair.
+Registrar = Callable[[int, int], "RelativePose | None"]
 
 
 def interpolate_poses(stamps: ArrayLike, poses: ArrayLike, query: ArrayLike) -> FloatArray:

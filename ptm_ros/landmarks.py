@@ -17,7 +17,10 @@ odometry sample nearest to it), and completed once the processed stream has pass
 passage through its patch radius and ``image_max_dt`` after it: the patch = scans taken while the
 robot's odometry stays within ``laser.patch_radius`` of the visit pose (the contiguous run around the
 visit, at most ``max_passage_s`` long), placed with odometry interpolated at the scan stamps; the
-signature = the panorama nearest in time within ``image_max_dt``.
+signature = the panorama nearest in time within ``image_max_dt``. The patch is
+:func:`ptm_ros.laser.passage_patch` over the buffered scans (the passage's keyframes with their
+odometry corrected by scan matching); it only depends on the scans up to the completion stamp, which is
+itself fixed by the canonical sequence.
 
 Bad input is counted in :attr:`VisitExtractor.diagnostics` and skipped, never raised: non-finite
 odometry, stamps going backwards on a topic, malformed scans, undecodable images.
@@ -41,7 +44,7 @@ from ptm_ros.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.detectors import EquidistantDetector
 from ptm_ros.errors import DataError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
-from ptm_ros.laser import LaserConfig, build_patch, scan_to_points
+from ptm_ros.laser import LaserConfig, passage_patch, scan_to_points
 from ptm_ros.visits import Visit
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
@@ -83,9 +86,8 @@ class _Pending:
     pose: NDArray[np.float64]
     travel: float
     rotation: float
-    first_in: float  # stamp of the first odometry sample of the passage
-    last_in: float | None = None  # stamp of the last odometry sample of the passage (None: not left yet)
-    exit_stamp: float | None = None
+    first_in: float  # stamp of the odometry sample just before the passage (scans are kept from here)
+    exit_stamp: float | None = None  # first odometry sample after the visit outside the patch radius
 
 
 Detector = Any  # duck-typed: on_odometry / on_scan / on_image -> bool, optional last_landmark_stamp
@@ -299,12 +301,17 @@ class VisitExtractor:
         while first > 0 and t[first - 1] >= limit and self._inside(p[first - 1], pose):
             first -= 1
         pending = _Pending(
-            k=k + self._odom_base, stamp=t[k], pose=pose, travel=travel, rotation=rotation, first_in=t[first]
+            k=k + self._odom_base,
+            stamp=t[k],
+            pose=pose,
+            travel=travel,
+            rotation=rotation,
+            first_in=t[max(first - 1, 0)],
         )
         # the passage may already be over if odometry after k is known
         for j in range(k + 1, len(t)):
             if not self._inside(p[j], pose) or t[j] - t[k] > self.config.max_passage_s:
-                pending.last_in, pending.exit_stamp = t[j - 1], t[j]
+                pending.exit_stamp = t[j]
                 break
         self._pending.append(pending)
         self._last_visit_k = k + self._odom_base
@@ -317,7 +324,6 @@ class VisitExtractor:
             left = not self._inside(pose, v.pose) or stamp - v.stamp > self.config.max_passage_s
             if v.exit_stamp is None and stamp > v.stamp and left:
                 v.exit_stamp = stamp
-                v.last_in = self._odom_t[-2]
 
     def _complete(self, processed: float) -> list[Visit]:
         out: list[Visit] = []
@@ -336,18 +342,18 @@ class VisitExtractor:
         return out
 
     def _finish(self, v: _Pending, processed: float) -> Visit:
-        last_in = v.last_in if v.last_in is not None else self._odom_t[-1]
         patch = None
-        if self.config.use_scans:
-            sel = [(s, pts) for s, pts in self._scans if v.first_in <= s <= last_in]
-            if sel:
-                stamps = np.array([s for s, _ in sel])
-                poses = interpolate_poses(self._odom_t, self._odom_p, stamps)
-                patch = build_patch(
-                    [pts for _, pts in sel], poses, v.pose, self.laser.patch_radius, self.laser.patch_voxel
+        if self.config.use_scans and self._scans:
+            stamps = np.array([s for s, _ in self._scans])
+            poses = interpolate_poses(self._odom_t, self._odom_p, stamps)
+            try:
+                patch = passage_patch(
+                    [pts for _, pts in self._scans], stamps, poses, v.stamp, v.pose, config=self.laser
                 )
-                if len(patch) < self.laser.min_points:
-                    patch = None
+            except PtmError:
+                self.diagnostics.skip("patch-failed")
+            if patch is not None and len(patch) < self.laser.min_points:
+                patch = None
         signature = None
         if self.config.use_images and self._images:
             stamps = np.array([s for s, _ in self._images])

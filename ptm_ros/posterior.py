@@ -37,15 +37,11 @@ from ptm_ros.appearance import (
     fit_appearance_model,
 )
 from ptm_ros.errors import ModelError
-from ptm_ros.geometry import RelativePose
+from ptm_ros.geometry import Registrar, RelativePose
 from ptm_ros.odometry import MetricResult, OdometryConfig, metric_log_likelihood
 from ptm_ros.partitions import MAX_ENUMERATION, Labels, blocks, enumerate_partitions, is_canonical
 from ptm_ros.priors import PriorConfig, make_prior
 from ptm_ros.visits import Visit
-
-#: A registrar returns the laser measurement of between(x_i, x_j) for visits i < j, or None when the
-#: registration failed its fitness check ("no information").
-Registrar = Callable[[int, int], RelativePose | None]
 
 
 @dataclass(frozen=True)

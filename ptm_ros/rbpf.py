@@ -121,7 +121,7 @@ from scipy.special import gammaln
 
 from ptm_ros.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
+from ptm_ros.geometry import Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.odometry import OdometryConfig, odometry_covariances
 from ptm_ros.partitions import Labels
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
@@ -133,7 +133,6 @@ IntArray = NDArray[np.intp]
 
 #: A registrar returns the laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None
 #: (registration failed its fitness test: no information). Same contract as ``ptm_ros.posterior``.
-Registrar = Callable[[int, int], RelativePose | None]
 
 #: Resampling schemes: ``optimal`` (Fearnhead–Clifford, unbiased) or ``top`` (keep the heaviest children,
 #: a deterministic beam; biased, a baseline).

@@ -18,13 +18,13 @@ import numpy as np
 
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.detectors import EquidistantDetector
-from ptm_ros.errors import ConfigError, DataError, RegistrationError
-from ptm_ros.geometry import wrap_angle
+from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.geometry import Registrar
 from ptm_ros.io.bag import RunData, read_run
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
-from ptm_ros.laser import register_patches, to_relative_pose
+from ptm_ros.laser import patch_registrar
 from ptm_ros.partitions import Labels
-from ptm_ros.posterior import PosteriorModel, Registrar, exact_posterior, normalize_log, top_k
+from ptm_ros.posterior import PosteriorModel, exact_posterior, normalize_log, top_k
 from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
 
@@ -107,24 +107,8 @@ def detect_visits(run: RunData, config: PtmConfig, diagnostics: dict[str, Any] |
 def make_registrar(
     visits: Sequence[Visit], config: PtmConfig, diag: dict[str, Any] | None = None
 ) -> Registrar:
-    """Laser registration of visit j's patch onto visit i's (i < j), assuming they are one place."""
-    lc = config.laser
-
-    def registrar(i: int, j: int):
-        a, b = visits[i], visits[j]
-        if a.patch is None or b.patch is None:
-            return None
-        initial = (0.0, 0.0, float(wrap_angle(b.pose[2] - a.pose[2])))
-        try:
-            reg = register_patches(b.patch, a.patch, initial, lc)
-        except RegistrationError:
-            return None
-        if diag is not None:
-            diag["registrations"] = diag.get("registrations", 0) + 1
-            diag["registrations_valid"] = diag.get("registrations_valid", 0) + int(reg.valid)
-        return to_relative_pose(reg, i, j)
-
-    return registrar
+    """Laser registration of visit j's patch onto visit i's (i < j) under the same-place hypothesis."""
+    return patch_registrar(visits, config.laser, diag)
 
 
 @dataclass(frozen=True)

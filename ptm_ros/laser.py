@@ -1,0 +1,1001 @@
+"""Laser map patches and their registration: the scan measurement of a visit (thesis Ch. 3.10.4).
+
+The RBPF weight of a topology sample integrates the landmark locations out of the joint likelihood of
+the scan and odometry measurements (eq. 47–48); given the locations, scan and odometry factor
+(eq. 49). The scan measurement ``s_n`` of visit ``n`` is a *local map patch*: the laser scans taken
+while the robot passes through the landmark's neighbourhood, concatenated in the frame of the visit
+(Fig. 48). Whether two visits are one place, and where they lie relative to each other, is then read
+off a registration of their patches (the thesis uses point-to-plane matching, Chen & Medioni). This
+module turns that into a Gaussian measurement of the relative pose of two visits,
+
+.. math::
+    z_{ij} = x_i \\ominus x_j + v, \\qquad v \\sim \\mathcal{N}(0, \\Sigma_{ij}),
+
+(:class:`~ptm_ros.geometry.RelativePose`) which the metric likelihood (:mod:`ptm_ros.odometry`)
+consumes; a registration that fails its fitness test yields *no* measurement, never a false match.
+
+Pipeline:
+
+* :func:`scan_to_points` — one ``LaserScan`` to 2-D points in the sensor frame;
+* :func:`passage_patch` (offline) or :class:`PatchBuilder` (online, same result) — the patch of a visit:
+  the scans of one passage within ``patch_radius`` (:func:`passage_slice`), thinned to
+  :func:`keyframes`, their odometry corrected by scan-to-map ICP (:func:`refine_scan_poses`; the
+  thesis concatenates by odometry, which on the Intel log bends a 6 m passage by several degrees),
+  concatenated in the visit frame and voxel-downsampled deterministically. :func:`build_patch` is the
+  plain odometry concatenation;
+* :func:`register_patches` — kiss-icp point-to-point ICP (coarse, then fine voxel map) from several
+  initial headings, a point-to-plane Gauss–Newton polish whose inverse information is the covariance,
+  and a validity test: symmetric inlier fraction, a sharp optimum, no equally good distinct solution;
+* :func:`to_relative_pose` — the measurement, or None when the registration is not valid.
+
+Direction convention: ``register_patches(source, target, …)`` estimates
+``between(x_target, x_source)``, the pose of the *source* visit in the frame of the *target* visit, so
+``transform_points(mean, source)`` lands on ``target``; ``to_relative_pose(reg, i=target, j=source)``.
+
+kiss-icp (1.3) is imported lazily inside the functions that run ICP (core modules stay numpy/scipy
+only); it is used through ``kiss_icp.mapping.VoxelHashMap`` and ``kiss_icp.registration.Registration``
+with one thread, on ``(N, 3)`` points with ``z = 0`` (no deskewing: patches are already static).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import cho_factor, cho_solve, eigh
+from scipy.spatial import cKDTree
+
+from ptm_ros.errors import ConfigError, ModelError, RegistrationError
+from ptm_ros.geometry import (
+    FloatArray,
+    Registrar,
+    RelativePose,
+    between,
+    compose,
+    inverse,
+    transform_points,
+    wrap_angle,
+)
+from ptm_ros.visits import Visit
+
+__all__ = [
+    "LaserConfig",
+    "PatchBuilder",
+    "Registration",
+    "ScanPoints",
+    "build_patch",
+    "keyframes",
+    "passage_patch",
+    "passage_slice",
+    "refine_scan_poses",
+    "register_patches",
+    "scan_to_points",
+    "to_relative_pose",
+    "voxel_downsample",
+]
+
+_IDENTITY = np.zeros(3)
+_MIN_SCAN_POINTS = 10  # fewer points than this: a scan keeps its odometry pose in refine_scan_poses
+_MAX_STEP_CORRECTION = (0.5, 0.2)  # (m, rad): larger ICP corrections of one odometry step are rejected
+_NORMAL_NEIGHBOURS = 16  # target points in the PCA of a normal
+_MAX_CURVATURE = 0.05  # eigenvalue ratio above which a neighbourhood has no normal (corner, clutter)
+_STEP_PRIOR_STD = np.array([0.1, 0.1, 0.05])  # m, m, rad: trust in kiss-icp along unseen directions
+_GN_ITERATIONS = 30  # point-to-plane Gauss–Newton iterations after kiss-icp
+_MIN_RESIDUAL_VARIANCE = 1e-12  # m², keeps the information finite on noise-free data
+
+
+# --------------------------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class LaserConfig:
+    """Parameters of patch building and patch registration (lengths in m, angles in rad).
+
+    Attributes:
+        patch_radius: scans taken within this distance of the visit pose form its patch (Fig. 48).
+        patch_voxel: resolution at which patches are stored (first point per voxel).
+        keyframe_xy: a scan joins a patch only after the robot moved this far since the last one …
+        keyframe_yaw: … or turned this much.
+        refine: correct the odometry along a passage by scan-to-map ICP before concatenating.
+        voxel: kiss-icp map voxel of the fine ICP stage (>= 0.25); the coarse stage uses twice this.
+        max_range: longest beam used; pass ``min(scan.range_max, max_range)`` to :func:`scan_to_points`;
+            patches drop points farther from their sensor.
+        correspondence_distance: maximum point distance of a correspondence in the fine ICP stage.
+        n_rotations: initial headings tried, evenly spaced over the full turn around the guess.
+        inlier_distance: a source point within this distance of the target is an inlier.
+        min_inlier_fraction: a registration is valid only if at least this fraction of the source
+            points lie near the target *and* of the target points near the source.
+        min_points: fewest points a (downsampled) patch may have to be registered, and fewest inliers
+            of a valid registration.
+        distinct_xy: translation at which two solutions count as distinct.
+        distinct_yaw: rotation at which two solutions count as distinct.
+        min_peak_drop: the match must be a sharp peak: moving the solution by ``distinct_xy`` (in any
+            of 8 directions) or turning it by ``±distinct_yaw`` must lose at least this inlier fraction
+            (rejects corridors and other sliding matches).
+        ambiguity_margin: the registration is invalid when a distinct solution from another initial
+            heading comes within this inlier fraction of the best one (symmetric rooms).
+        min_std_xy: covariance floor, translation standard deviation.
+        min_std_yaw: covariance floor, heading standard deviation.
+        max_iterations: ICP iterations per stage.
+    """
+
+    patch_radius: float = 3.0
+    patch_voxel: float = 0.05
+    keyframe_xy: float = 0.05
+    keyframe_yaw: float = 0.05
+    refine: bool = True
+    voxel: float = 0.5
+    max_range: float = 30.0
+    correspondence_distance: float = 1.0
+    n_rotations: int = 8
+    inlier_distance: float = 0.15
+    min_inlier_fraction: float = 0.4
+    min_points: int = 30
+    distinct_xy: float = 1.0
+    distinct_yaw: float = 0.17
+    min_peak_drop: float = 0.2
+    ambiguity_margin: float = 0.1
+    min_std_xy: float = 0.05
+    min_std_yaw: float = 0.02
+    max_iterations: int = 100
+
+    def __post_init__(self) -> None:
+        positive = (
+            "patch_radius",
+            "patch_voxel",
+            "max_range",
+            "correspondence_distance",
+            "inlier_distance",
+            "distinct_xy",
+            "distinct_yaw",
+            "min_std_xy",
+            "min_std_yaw",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0.0):
+                msg = f"LaserConfig.{name} must be a finite number > 0, got {value!r}"
+                raise ConfigError(msg)
+        if not (isinstance(self.voxel, int | float) and math.isfinite(self.voxel) and self.voxel >= 0.25):
+            msg = f"LaserConfig.voxel must be >= 0.25 m (kiss-icp), got {self.voxel!r}"
+            raise ConfigError(msg)
+        if not 0.0 < self.min_inlier_fraction <= 1.0:
+            msg = f"LaserConfig.min_inlier_fraction must be in (0, 1], got {self.min_inlier_fraction!r}"
+            raise ConfigError(msg)
+        for name in ("keyframe_xy", "keyframe_yaw"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0.0):
+                msg = f"LaserConfig.{name} must be a finite number >= 0, got {value!r}"
+                raise ConfigError(msg)
+        if not isinstance(self.refine, bool):
+            msg = f"LaserConfig.refine must be a bool, got {self.refine!r}"
+            raise ConfigError(msg)
+        for name in ("min_peak_drop", "ambiguity_margin"):
+            value = getattr(self, name)
+            if not 0.0 <= value < 1.0:
+                msg = f"LaserConfig.{name} must be in [0, 1), got {value!r}"
+                raise ConfigError(msg)
+        for name, low in (("n_rotations", 1), ("min_points", 4), ("max_iterations", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                msg = f"LaserConfig.{name} must be an integer >= {low}, got {value!r}"
+                raise ConfigError(msg)
+
+
+# ------------------------------------------------------------------------------------------ scans
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """The usable beams of one scan: ``points`` ``(P, 2)`` in the sensor frame, ``dropped`` beams."""
+
+    points: FloatArray
+    dropped: int
+
+
+def scan_to_points(
+    ranges: ArrayLike,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+    *,
+    angle_max: float | None = None,
+) -> ScanPoints:
+    """Convert a ``LaserScan``'s ranges to points; beam ``k`` points at ``angle_min + k·angle_increment``.
+
+    Beams that are NaN, infinite, shorter than ``range_min`` or longer than ``range_max`` are dropped
+    (sensor_msgs/LaserScan: values outside ``[range_min, range_max]`` are discarded). ``angle_max``,
+    when given, must agree with the beam count to within one beam (drivers differ on the last beam).
+    Empty ``ranges`` give 0 points.
+    """
+    r = np.asarray(ranges, dtype=float)
+    if r.ndim != 1:
+        msg = f"ranges must be 1-D, got shape {r.shape}"
+        raise ModelError(msg)
+    for name, value in (("angle_min", angle_min), ("angle_increment", angle_increment)):
+        if not math.isfinite(value):
+            msg = f"{name} must be finite, got {value}"
+            raise ModelError(msg)
+    if not (math.isfinite(range_min) and range_min >= 0.0 and range_max > range_min):
+        msg = f"need 0 <= range_min < range_max, got range_min={range_min}, range_max={range_max}"
+        raise ModelError(msg)
+    n = len(r)
+    if angle_increment == 0.0 and n > 1:
+        msg = f"angle_increment is 0 but the scan has {n} beams"
+        raise ModelError(msg)
+    if angle_max is not None and n > 0:
+        if not math.isfinite(angle_max):
+            msg = f"angle_max must be finite, got {angle_max}"
+            raise ModelError(msg)
+        if angle_increment != 0.0:
+            span = (angle_max - angle_min) / angle_increment
+            if span < -1e-6:
+                msg = (
+                    f"angle_min={angle_min}, angle_max={angle_max}, angle_increment={angle_increment} "
+                    f"imply a negative beam count ({span:.3f})"
+                )
+                raise ModelError(msg)
+            if abs(span + 1.0 - n) > 1.0 + 1e-6:
+                msg = f"angle_min/angle_max/angle_increment imply {span + 1.0:.1f} beams, got {n}"
+                raise ModelError(msg)
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(r) & (r >= range_min) & (r <= range_max)
+    angles = angle_min + angle_increment * np.flatnonzero(keep)
+    rk = r[keep]
+    points = np.column_stack([rk * np.cos(angles), rk * np.sin(angles)]).reshape(-1, 2)
+    return ScanPoints(points=points, dropped=int(n - keep.sum()))
+
+
+# ---------------------------------------------------------------------------------------- patches
+
+
+def voxel_downsample(points: ArrayLike, voxel: float) -> FloatArray:
+    """Keep the first point (in input order) of every ``voxel``-sized grid cell, sorted by cell.
+
+    Deterministic, and idempotent on concatenations: ``voxel_downsample(vstack([voxel_downsample(A),
+    B]))`` equals ``voxel_downsample(vstack([A, B]))``.
+    """
+    pts = _as_points(points, "points")
+    if not (math.isfinite(voxel) and voxel > 0.0):
+        msg = f"voxel must be finite and > 0, got {voxel}"
+        raise ModelError(msg)
+    if len(pts) == 0:
+        return pts
+    cells = np.floor(pts / voxel).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return pts[first]
+
+
+def passage_slice(
+    scan_stamps: ArrayLike, scan_poses: ArrayLike, visit_stamp: float, visit_pose: ArrayLike, radius: float
+) -> slice:
+    """The scans of one passage through a visit: the longest run of consecutive scans within ``radius``
+    of ``visit_pose`` that contains the scan nearest in time to ``visit_stamp`` (empty if that scan is
+    outside the radius). Other passages through the same place are left out, so two visits of one
+    place never share scans.
+    """
+    stamps = np.asarray(scan_stamps, dtype=float).reshape(-1)
+    poses = _as_poses(scan_poses, "scan_poses")
+    if len(stamps) != len(poses):
+        msg = f"{len(stamps)} scan stamps but {len(poses)} scan poses"
+        raise ModelError(msg)
+    _check_positive(radius=radius)
+    if len(stamps) == 0:
+        return slice(0, 0)
+    inside = _within(poses, _as_pose(visit_pose, "visit_pose"), radius)
+    centre = int(np.argmin(np.abs(stamps - visit_stamp)))
+    if not inside[centre]:
+        return slice(centre, centre)
+    lo = centre
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    hi = centre + 1
+    while hi < len(inside) and inside[hi]:
+        hi += 1
+    return slice(lo, hi)
+
+
+def build_patch(
+    scans_points: Sequence[ArrayLike],
+    scan_poses: ArrayLike,
+    visit_pose: ArrayLike,
+    radius: float,
+    voxel: float,
+    *,
+    sensor_offset: ArrayLike | None = None,
+) -> FloatArray:
+    """The local map patch of a visit (Fig. 48) from odometry alone: points ``(P, 2)`` in the visit frame.
+
+    Scans ``scans_points[k]`` (sensor frame) taken at robot odometry poses ``scan_poses[k]`` within
+    ``radius`` of ``visit_pose`` are moved into the visit frame, ``visit_pose ⊖ (scan_pose ⊕
+    sensor_offset)``, concatenated in order and voxel-downsampled (:func:`voxel_downsample`). Pass the
+    scans of one passage (:func:`passage_slice`); :func:`passage_patch` also corrects the odometry.
+    """
+    poses = _as_poses(scan_poses, "scan_poses")
+    if len(scans_points) != len(poses):
+        msg = f"{len(scans_points)} scans but {len(poses)} scan poses"
+        raise ModelError(msg)
+    _check_positive(radius=radius, voxel=voxel)
+    visit = _as_pose(visit_pose, "visit_pose")
+    offset = _offset(sensor_offset)
+    inside = np.flatnonzero(_within(poses, visit, radius))
+    scans = [_as_points(scans_points[k], f"scans_points[{k}]") for k in inside]
+    return _concatenate(scans, poses[inside], visit, offset, voxel)
+
+
+def keyframes(scan_poses: ArrayLike, min_xy: float, min_yaw: float) -> NDArray[np.intp]:
+    """Indices of the scans kept for a patch: the first, then each that moved at least ``min_xy`` or turned
+    at least ``min_yaw`` since the last kept one (bounds a patch's memory while the robot stands still)."""
+    poses = _as_poses(scan_poses, "scan_poses")
+    kept: list[int] = []
+    for k in range(len(poses)):
+        if not kept or _moved(poses[kept[-1]], poses[k], min_xy, min_yaw):
+            kept.append(k)
+    return np.array(kept, dtype=np.intp)
+
+
+def refine_scan_poses(
+    scans_points: Sequence[ArrayLike],
+    scan_poses: ArrayLike,
+    config: LaserConfig | None = None,
+    *,
+    sensor_offset: ArrayLike | None = None,
+) -> FloatArray:
+    """Correct the odometry along one passage by scan-to-map ICP (kiss-icp): robot poses ``(S, 3)``.
+
+    The first scan keeps its odometry pose and seeds a voxel map; each next scan starts from the
+    previous corrected pose plus the odometry increment, is aligned to the map (kiss-icp, then
+    point-to-plane Gauss–Newton against the map points) and added to it. A
+    correction larger than 0.5 m or 0.2 rad over the odometry increment, or a scan with fewer than 10
+    points, falls back to odometry. The thesis concatenates scans by odometry (Fig. 48); on real logs
+    (Intel) the rotational odometry drift over a 6 m passage distorts patches by several degrees.
+    """
+    cfg = LaserConfig() if config is None else config
+    poses = _as_poses(scan_poses, "scan_poses")
+    if len(scans_points) != len(poses):
+        msg = f"{len(scans_points)} scans but {len(poses)} scan poses"
+        raise ModelError(msg)
+    if len(poses) == 0:
+        return poses
+    offset = _offset(sensor_offset)
+    scans = [_as_points(p, f"scans_points[{k}]") for k, p in enumerate(scans_points)]
+
+    from kiss_icp.mapping import VoxelHashMap
+    from kiss_icp.registration import Registration as KissRegistration
+
+    icp = KissRegistration(
+        max_num_iterations=cfg.max_iterations, convergence_criterion=1e-4, max_num_threads=1
+    )
+    extent = cfg.max_range + cfg.patch_radius  # only points added with update() are culled by it
+    voxel_map = VoxelHashMap(voxel_size=cfg.voxel, max_distance=extent, max_points_per_voxel=20)
+    sensor = compose(poses, offset)
+    refined = sensor.copy()
+    map_points = np.empty((0, 2))
+    for k, pts in enumerate(scans):
+        if k > 0:
+            guess = compose(refined[k - 1], between(sensor[k - 1], sensor[k]))
+            refined[k] = guess
+            src = voxel_downsample(pts, cfg.voxel)
+            if len(src) >= _MIN_SCAN_POINTS and len(map_points) >= _MIN_SCAN_POINTS:
+                aligned = _align(icp, src, voxel_map, guess, cfg.correspondence_distance)
+                if aligned is not None:
+                    overlap = _Overlap(pts, map_points, 0.5 * cfg.voxel, cfg.inlier_distance)
+                    aligned, _ = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD)
+                    if not _moved(guess, aligned, *_MAX_STEP_CORRECTION):
+                        refined[k] = aligned
+        world = transform_points(refined[k], pts)
+        voxel_map.add_points(_lift(voxel_downsample(world, 0.5 * cfg.voxel)))
+        map_points = voxel_downsample(np.vstack([map_points, world]), cfg.patch_voxel)
+    return compose(refined, inverse(offset))
+
+
+def passage_patch(
+    scans_points: Sequence[ArrayLike],
+    scan_stamps: ArrayLike,
+    scan_poses: ArrayLike,
+    visit_stamp: float,
+    visit_pose: ArrayLike,
+    *,
+    config: LaserConfig | None = None,
+    sensor_offset: ArrayLike | None = None,
+) -> FloatArray:
+    """The patch of a visit from a whole scan sequence (offline, Fig. 48): points ``(P, 2)``, visit frame.
+
+    Takes the :func:`passage_slice` within ``config.patch_radius``, its :func:`keyframes`, corrects their
+    poses with :func:`refine_scan_poses` when ``config.refine`` and concatenates them at
+    ``config.patch_voxel``. The visit frame is the visit's odometry pose carried along with the
+    correction of the kept scan nearest in time. :class:`PatchBuilder` gives the same patch online.
+    """
+    cfg = LaserConfig() if config is None else config
+    stamps = np.asarray(scan_stamps, dtype=float).reshape(-1)
+    poses = _as_poses(scan_poses, "scan_poses")
+    if not len(scans_points) == len(stamps) == len(poses):
+        msg = f"{len(scans_points)} scans, {len(stamps)} stamps and {len(poses)} poses differ in number"
+        raise ModelError(msg)
+    sl = passage_slice(stamps, poses, visit_stamp, visit_pose, cfg.patch_radius)
+    keep = sl.start + keyframes(poses[sl], cfg.keyframe_xy, cfg.keyframe_yaw)
+    scans = [_as_points(scans_points[k], f"scans_points[{k}]") for k in keep]
+    visit = _as_pose(visit_pose, "visit_pose")
+    return _passage_patch(
+        scans, stamps[keep], poses[keep], visit_stamp, visit, cfg=cfg, offset=_offset(sensor_offset)
+    )
+
+
+@dataclass
+class _OpenPatch:
+    key: int
+    stamp: float
+    pose: FloatArray
+    scans: list[tuple[float, FloatArray, FloatArray]]  # (stamp, robot pose, sensor points) keyframes
+    entered: bool = False
+
+
+class PatchBuilder:
+    """Online patch accumulator for the filter; the patch of a visit equals :func:`passage_patch`'s.
+
+    Feed every scan with :meth:`add_scan` and declare visits with :meth:`add_visit`, possibly late: the
+    last ``max_scans`` keyframe scans (moved ``keyframe_xy`` or turned ``keyframe_yaw`` since the
+    previous buffered one) are kept for that. A visit's patch is complete once the robot leaves
+    ``config.patch_radius`` of the visit pose; :meth:`pop_ready` then returns it. Memory is bounded:
+    ``max_scans`` buffered scans, and per open visit at most ``max_scans`` keyframes. (A scan skipped
+    from the buffer for standing still right at the radius boundary can make a late visit's patch
+    start one scan later than :func:`passage_patch`'s.)
+    """
+
+    def __init__(
+        self,
+        config: LaserConfig | None = None,
+        *,
+        sensor_offset: ArrayLike | None = None,
+        max_scans: int = 2000,
+    ) -> None:
+        self.config = LaserConfig() if config is None else config
+        if isinstance(max_scans, bool) or not isinstance(max_scans, int) or max_scans < 1:
+            msg = f"max_scans must be an integer >= 1, got {max_scans!r}"
+            raise ConfigError(msg)
+        self._max_scans = max_scans
+        self._offset = _offset(sensor_offset)
+        self._scans: deque[tuple[float, FloatArray, FloatArray]] = deque(maxlen=max_scans)
+        self._open: list[_OpenPatch] = []
+        self._ready: list[tuple[int, FloatArray]] = []
+        self._keys: set[int] = set()
+
+    @property
+    def n_buffered(self) -> int:
+        """Scans currently buffered for visits declared late."""
+        return len(self._scans)
+
+    @property
+    def n_open(self) -> int:
+        """Visits whose patch is still open."""
+        return len(self._open)
+
+    def add_scan(self, stamp: float, pose: ArrayLike, points: ArrayLike) -> None:
+        """Ingest one scan: header stamp (s), robot odometry pose, points ``(P, 2)`` in the sensor frame."""
+        robot = _as_pose(pose, "pose")
+        pts = _as_points(points, "points")
+        if not math.isfinite(stamp):
+            msg = f"scan stamp must be finite, got {stamp}"
+            raise ModelError(msg)
+        if self._scans and stamp < self._scans[-1][0]:
+            msg = f"scan stamps must not decrease: {stamp} after {self._scans[-1][0]}"
+            raise ModelError(msg)
+        scan = (float(stamp), robot, pts)
+        cfg = self.config
+        if not self._scans or _moved(self._scans[-1][1], robot, cfg.keyframe_xy, cfg.keyframe_yaw):
+            self._scans.append(scan)
+        still_open = []
+        for patch in self._open:
+            if _within(robot[None, :], patch.pose, cfg.patch_radius)[0]:
+                self._extend(patch, scan)
+                still_open.append(patch)
+            elif patch.entered or stamp >= patch.stamp:
+                self._close(patch)
+            else:
+                still_open.append(patch)
+        self._open = still_open
+
+    def add_visit(self, key: int, stamp: float, pose: ArrayLike) -> None:
+        """Declare visit ``key`` at header stamp ``stamp`` (s) and odometry pose ``pose``."""
+        visit = _as_pose(pose, "pose")
+        if not math.isfinite(stamp):
+            msg = f"visit stamp must be finite, got {stamp}"
+            raise ModelError(msg)
+        if key in self._keys:
+            msg = f"visit {key} was already declared"
+            raise ModelError(msg)
+        self._keys.add(key)
+        patch = _OpenPatch(key=key, stamp=float(stamp), pose=visit, scans=[])
+        if not self._scans:
+            self._open.append(patch)
+            return
+        stamps = np.array([s[0] for s in self._scans])
+        poses = np.array([s[1] for s in self._scans])
+        sl = passage_slice(stamps, poses, stamp, visit, self.config.patch_radius)
+        for k in range(sl.start, sl.stop):
+            self._extend(patch, self._scans[k])
+        still_inside = sl.stop == len(stamps) and sl.stop > sl.start
+        if still_inside or (sl.stop == sl.start and stamp >= stamps[-1]):
+            self._open.append(patch)
+        else:
+            self._close(patch)
+
+    def pop_ready(self) -> list[tuple[int, FloatArray]]:
+        """The completed ``(key, patch)`` pairs since the last call, in completion order."""
+        ready, self._ready = self._ready, []
+        return ready
+
+    def flush(self) -> list[tuple[int, FloatArray]]:
+        """Close every open patch (end of data) and return all completed ones."""
+        for patch in self._open:
+            self._close(patch)
+        self._open = []
+        return self.pop_ready()
+
+    def _extend(self, patch: _OpenPatch, scan: tuple[float, FloatArray, FloatArray]) -> None:
+        patch.entered = True
+        cfg = self.config
+        if len(patch.scans) >= self._max_scans:
+            return
+        if not patch.scans or _moved(patch.scans[-1][1], scan[1], cfg.keyframe_xy, cfg.keyframe_yaw):
+            patch.scans.append(scan)
+
+    def _close(self, patch: _OpenPatch) -> None:
+        stamps = np.array([s[0] for s in patch.scans])
+        poses = np.array([s[1] for s in patch.scans]).reshape(-1, 3)
+        scans = [s[2] for s in patch.scans]
+        points = _passage_patch(
+            scans, stamps, poses, patch.stamp, patch.pose, cfg=self.config, offset=self._offset
+        )
+        self._ready.append((patch.key, points))
+
+
+def _passage_patch(
+    scans: list[FloatArray],
+    stamps: FloatArray,
+    poses: FloatArray,
+    visit_stamp: float,
+    visit: FloatArray,
+    *,
+    cfg: LaserConfig,
+    offset: FloatArray,
+) -> FloatArray:
+    """Crop to ``max_range``, refine (optionally) and concatenate the keyframes of one passage."""
+    if not scans:
+        return np.empty((0, 2))
+    scans = [pts[np.hypot(pts[:, 0], pts[:, 1]) <= cfg.max_range] for pts in scans]
+    refined = refine_scan_poses(scans, poses, cfg, sensor_offset=offset) if cfg.refine else poses
+    c = int(np.argmin(np.abs(stamps - visit_stamp)))
+    frame = compose(refined[c], between(poses[c], visit))
+    return _concatenate(scans, refined, frame, offset, cfg.patch_voxel)
+
+
+def _concatenate(
+    scans: Sequence[FloatArray], poses: FloatArray, visit: FloatArray, offset: FloatArray, voxel: float
+) -> FloatArray:
+    """Scans moved into the visit frame, stacked in order, voxel-downsampled."""
+    if not scans:
+        return np.empty((0, 2))
+    parts = [
+        transform_points(between(visit, compose(pose, offset)), pts)
+        for pose, pts in zip(poses, scans, strict=True)
+    ]
+    return voxel_downsample(np.vstack(parts), voxel)
+
+
+# ----------------------------------------------------------------------------------- registration
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of :func:`register_patches`.
+
+    Attributes:
+        mean: ``(3,)`` estimate of ``between(x_target, x_source)`` (source visit in the target frame).
+        cov: ``(3, 3)`` symmetric positive-definite covariance of ``mean`` (floored).
+        inlier_fraction: the smaller of ``source_fraction`` and ``target_fraction``.
+        source_fraction: fraction of (downsampled) source points within ``inlier_distance`` of the target.
+        target_fraction: fraction of (downsampled) target points within ``inlier_distance`` of the source.
+        rmse: root-mean-square distance of the source inliers (m); NaN without inliers.
+        n_inliers: number of source inliers.
+        n_points: number of (downsampled) source points.
+        valid: whether the registration passes the fitness, sharpness and ambiguity tests.
+        reason: why it is not valid (empty when valid).
+    """
+
+    mean: FloatArray
+    cov: FloatArray
+    inlier_fraction: float
+    source_fraction: float
+    target_fraction: float
+    rmse: float
+    n_inliers: int
+    n_points: int
+    valid: bool
+    reason: str = ""
+    candidates: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
+    """``(x, y, yaw, inlier_fraction)`` of the ICP solution from every initial heading, best first."""
+
+
+def register_patches(
+    source: ArrayLike,
+    target: ArrayLike,
+    initial: ArrayLike = (0.0, 0.0, 0.0),
+    config: LaserConfig | None = None,
+) -> Registration:
+    """Register patch ``source`` onto patch ``target`` (both in their own visit's frame).
+
+    ``initial`` is a guess of ``between(x_target, x_source)`` (e.g. ``(0, 0, 0)`` when the two visits
+    are hypothesised to be one place). ICP (kiss-icp, point-to-point, coarse then fine voxel map) starts
+    from ``initial ⊕ (0, 0, 2πk/K)``, ``K = config.n_rotations``, because two visits of one place may
+    face any heading. The solution with the largest symmetric inlier fraction is polished by
+    point-to-plane Gauss–Newton (Chen & Medioni, as in the thesis); its covariance is the inverse
+    information ``(Σ_k g_k g_kᵀ / σ² + P⁻¹)⁻¹`` (target normals from local PCA, ``σ²`` the residual
+    variance, ``P`` a weak prior of one patch radius / π), floored at
+    ``(min_std_xy, min_std_xy, min_std_yaw)``.
+
+    The result is valid when (1) at least ``min_inlier_fraction`` of the source points lie within
+    ``inlier_distance`` of the target and of the target points near the source, with at least
+    ``min_points`` inliers; (2) the optimum is sharp: shifting it by ``distinct_xy`` or turning it by
+    ``distinct_yaw`` loses at least ``min_peak_drop`` of that fraction; (3) no distinct solution from
+    another heading comes within ``ambiguity_margin`` of it.
+
+    Raises:
+        ModelError: malformed inputs.
+        RegistrationError: a patch has fewer than ``config.min_points`` points after downsampling
+            (kiss-icp would silently return the initial guess).
+    """
+    cfg = LaserConfig() if config is None else config
+    src = _as_points(source, "source")
+    tgt = _as_points(target, "target")
+    guess = _as_pose(initial, "initial")
+    fine_voxel = cfg.voxel
+    coarse_voxel = 2.0 * cfg.voxel
+    src_eval = voxel_downsample(src, 0.5 * fine_voxel)
+    src_fine = voxel_downsample(src, fine_voxel)
+    src_coarse = voxel_downsample(src, coarse_voxel)
+    tgt_count = len(voxel_downsample(tgt, 0.5 * fine_voxel))
+    if min(len(src_eval), tgt_count) < cfg.min_points:
+        msg = (
+            f"patches too small to register: source {len(src_eval)}, target {tgt_count} points after "
+            f"{0.5 * fine_voxel:.3g} m downsampling (need {cfg.min_points})"
+        )
+        raise RegistrationError(msg)
+
+    from kiss_icp.mapping import VoxelHashMap
+    from kiss_icp.registration import Registration as KissRegistration
+
+    tgt3 = _lift(tgt)
+    extent = cfg.max_range + cfg.patch_radius  # only points added with update() are culled by it
+    fine_map = VoxelHashMap(voxel_size=fine_voxel, max_distance=extent, max_points_per_voxel=20)
+    fine_map.add_points(tgt3)
+    coarse_map = VoxelHashMap(voxel_size=coarse_voxel, max_distance=extent, max_points_per_voxel=20)
+    coarse_map.add_points(tgt3)
+    icp = KissRegistration(
+        max_num_iterations=cfg.max_iterations, convergence_criterion=1e-4, max_num_threads=1
+    )
+    overlap = _Overlap(src, tgt, 0.5 * fine_voxel, cfg.inlier_distance)
+
+    fits = []
+    for k in range(cfg.n_rotations):
+        pose = compose(guess, np.array([0.0, 0.0, 2.0 * np.pi * k / cfg.n_rotations]))
+        pose = _align(icp, src_coarse, coarse_map, pose, 3.0 * coarse_voxel)
+        pose = _align(icp, src_fine, fine_map, pose, cfg.correspondence_distance)
+        if pose is not None:
+            fits.append(overlap(pose))
+    if not fits:
+        msg = "ICP diverged from every initial heading"
+        raise RegistrationError(msg)
+    fits.sort(key=lambda f: (-f.fraction, f.rmse if f.n_inliers else math.inf))
+    prior_std = np.array([cfg.patch_radius, cfg.patch_radius, np.pi])
+    refined, cov = _point_to_plane(fits[0].pose, overlap, cfg, prior_std)
+    fits[0] = best = overlap(refined)
+    reason = _invalid_reason(fits, overlap, cfg)
+    floor = np.array([cfg.min_std_xy, cfg.min_std_xy, cfg.min_std_yaw])
+    return Registration(
+        mean=best.pose,
+        cov=_floor_cov(cov, floor),
+        inlier_fraction=best.fraction,
+        source_fraction=best.source_fraction,
+        target_fraction=best.target_fraction,
+        rmse=best.rmse,
+        n_inliers=best.n_inliers,
+        n_points=len(overlap.src_eval),
+        valid=not reason,
+        reason=reason,
+        candidates=tuple((float(f.pose[0]), float(f.pose[1]), float(f.pose[2]), f.fraction) for f in fits),
+    )
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """Symmetric fitness of one relative pose."""
+
+    pose: FloatArray
+    source_fraction: float
+    target_fraction: float
+    n_inliers: int
+    rmse: float
+
+    @property
+    def fraction(self) -> float:
+        return min(self.source_fraction, self.target_fraction)
+
+
+class _Overlap:
+    """Inlier test of two patches under a relative pose, both ways (source → target, target → source).
+
+    Evaluation points are the patches downsampled at ``voxel``; distances are to the full patches.
+    """
+
+    def __init__(self, src: FloatArray, tgt: FloatArray, voxel: float, inlier_distance: float) -> None:
+        self.tgt = tgt
+        self.src_eval = voxel_downsample(src, voxel)
+        self.tgt_eval = voxel_downsample(tgt, voxel)
+        self.src_tree = cKDTree(src)
+        self.tgt_tree = cKDTree(tgt)
+        self.inlier_distance = inlier_distance
+        self._normals = np.full((len(tgt), 2), np.nan)
+        self._flat = np.zeros(len(tgt), dtype=bool)
+
+    def normals_at(self, idx: np.ndarray) -> tuple[FloatArray, np.ndarray]:
+        """Normals of target points ``idx`` and whether each is line-like (computed once, on demand)."""
+        todo = np.unique(idx[np.isnan(self._normals[idx, 0])])
+        if len(todo):
+            self._normals[todo], self._flat[todo] = _normals(self.tgt, self.tgt_tree, todo)
+        return self._normals[idx], self._flat[idx]
+
+    def __call__(self, pose: FloatArray) -> _Fit:
+        d_src, _ = self.tgt_tree.query(transform_points(pose, self.src_eval))
+        d_tgt, _ = self.src_tree.query(transform_points(inverse(pose), self.tgt_eval))
+        inl = d_src <= self.inlier_distance
+        return _Fit(
+            pose=pose,
+            source_fraction=float(inl.mean()),
+            target_fraction=float(np.mean(d_tgt <= self.inlier_distance)),
+            n_inliers=int(inl.sum()),
+            rmse=float(np.sqrt(np.mean(d_src[inl] ** 2))) if inl.any() else math.nan,
+        )
+
+
+def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -> str:
+    """Why the best (first) fit is no trustworthy match (empty string when it is one)."""
+    best = fits[0]
+    if best.fraction < cfg.min_inlier_fraction:
+        return (
+            f"inlier fraction {best.fraction:.3f} < {cfg.min_inlier_fraction} "
+            f"(source {best.source_fraction:.3f}, target {best.target_fraction:.3f})"
+        )
+    if best.n_inliers < cfg.min_points:
+        return f"{best.n_inliers} inliers < {cfg.min_points}"
+    angles = np.arange(8) * (np.pi / 4.0)
+    shifts = [best.pose + cfg.distinct_xy * np.array([np.cos(a), np.sin(a), 0.0]) for a in angles]
+    turns = [compose(best.pose, np.array([0.0, 0.0, s * cfg.distinct_yaw])) for s in (-1.0, 1.0)]
+    nearby = max(overlap(p).fraction for p in shifts + turns)
+    if best.fraction - nearby < cfg.min_peak_drop:
+        return (
+            f"flat optimum: moving {cfg.distinct_xy} m or turning {cfg.distinct_yaw} rad keeps inlier "
+            f"fraction {nearby:.3f} of {best.fraction:.3f}"
+        )
+    for other in fits[1:]:
+        if other.fraction < best.fraction - cfg.ambiguity_margin:
+            break
+        if _moved(best.pose, other.pose, cfg.distinct_xy, cfg.distinct_yaw):
+            return (
+                f"ambiguous: distinct solution {np.round(other.pose, 3).tolist()} has inlier fraction "
+                f"{other.fraction:.3f} vs {best.fraction:.3f}"
+            )
+    return ""
+
+
+def to_relative_pose(registration: Registration, i: int, j: int) -> RelativePose | None:
+    """The measurement of ``between(x_i, x_j)`` from a registration of patch j (source) onto patch i
+    (target); None when the registration is not valid ("no information", never a false match)."""
+    if i == j:
+        msg = f"a relative pose needs two different visits, got i = j = {i}"
+        raise ModelError(msg)
+    if not registration.valid:
+        return None
+    return RelativePose(i=i, j=j, mean=registration.mean.copy(), cov=registration.cov.copy())
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+
+def _as_points(points: ArrayLike, name: str) -> FloatArray:
+    pts = np.asarray(points, dtype=float)
+    if pts.size == 0:
+        return np.empty((0, 2))
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        msg = f"{name} must have shape (P, 2), got {pts.shape}"
+        raise ModelError(msg)
+    if not np.all(np.isfinite(pts)):
+        msg = f"{name} holds non-finite coordinates"
+        raise ModelError(msg)
+    return pts
+
+
+def _as_pose(pose: ArrayLike, name: str) -> FloatArray:
+    p = np.asarray(pose, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        msg = f"{name} must be 3 finite numbers (x, y, yaw), got {p!r}"
+        raise ModelError(msg)
+    return p
+
+
+def _as_poses(poses: ArrayLike, name: str) -> FloatArray:
+    p = np.asarray(poses, dtype=float)
+    if p.size == 0:
+        return np.empty((0, 3))
+    if p.ndim != 2 or p.shape[1] != 3 or not np.all(np.isfinite(p)):
+        msg = f"{name} must be finite with shape (S, 3), got shape {p.shape}"
+        raise ModelError(msg)
+    return p
+
+
+def _check_positive(**values: float) -> None:
+    for name, value in values.items():
+        if not (math.isfinite(value) and value > 0.0):
+            msg = f"{name} must be finite and > 0, got {value}"
+            raise ModelError(msg)
+
+
+def _offset(sensor_offset: ArrayLike | None) -> FloatArray:
+    return _IDENTITY if sensor_offset is None else _as_pose(sensor_offset, "sensor_offset")
+
+
+def _moved(a: FloatArray, b: FloatArray, min_xy: float, min_yaw: float) -> bool:
+    """Whether pose ``b`` is at least ``min_xy`` away from or ``min_yaw`` turned from pose ``a``."""
+    d = between(a, b)
+    return bool(math.hypot(d[0], d[1]) >= min_xy or abs(d[2]) >= min_yaw)
+
+
+def _within(poses: FloatArray, centre: FloatArray, radius: float) -> np.ndarray:
+    return np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1]) <= radius
+
+
+def _to_visit_frame(visit: FloatArray, robot: FloatArray, offset: FloatArray, pts: FloatArray) -> FloatArray:
+    return transform_points(between(visit, compose(robot, offset)), pts)
+
+
+def _lift(points: FloatArray) -> FloatArray:
+    return np.ascontiguousarray(np.column_stack([points, np.zeros(len(points))]))
+
+
+def _se3(pose: FloatArray) -> FloatArray:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:2, 3] = pose[:2]
+    return m
+
+
+def _se2(matrix: FloatArray) -> FloatArray:
+    """Project a 4×4 rigid transform to SE(2): planar translation, yaw from the rotated x-axis."""
+    yaw = math.atan2(matrix[1, 0], matrix[0, 0])
+    return np.array([matrix[0, 3], matrix[1, 3], float(wrap_angle(yaw))])
+
+
+def _align(icp: object, src: FloatArray, voxel_map: object, pose: FloatArray | None, max_dist: float):
+    """One kiss-icp alignment of ``src`` onto ``voxel_map`` from ``pose``; None if it failed."""
+    if pose is None:
+        return None
+    matrix = np.asarray(
+        icp.align_points_to_map(  # type: ignore[attr-defined]
+            points=_lift(src),
+            voxel_map=voxel_map,
+            initial_guess=_se3(pose),
+            max_correspondance_distance=max_dist,
+            kernel=max_dist / 3.0,
+        ),
+        dtype=float,
+    )
+    if not np.all(np.isfinite(matrix)):
+        return None
+    return _se2(matrix)
+
+
+def _point_to_plane(
+    pose: FloatArray, overlap: _Overlap, cfg: LaserConfig, prior_std: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Gauss–Newton point-to-plane refinement of an ICP ``pose`` (Chen & Medioni, thesis Ch. 3.10.4)
+    and its covariance (before flooring).
+
+    Each source point ``s_k`` (the fitness sample) within ``inlier_distance`` of its nearest target point
+    ``m_k`` with a line-like neighbourhood and unit normal ``n_k`` gives the residual
+    ``e_k = n_kᵀ (R s_k + t − m_k)`` with gradient ``g_k = (n_x, n_y, (R s_k) × n_k)`` with respect to
+    ``(x, y, yaw)``. A Gaussian prior centred on the ICP pose with standard deviations ``prior_std``
+    keeps the directions the residuals do not see (a corridor's axis) where point-to-point ICP put
+    them. At convergence the covariance is ``(Σ g_k g_kᵀ / σ² + P⁻¹)⁻¹`` with
+    ``σ² = Σ e_k² / (N − 3)``. If the refinement wanders farther than ``distinct_xy``/``distinct_yaw``
+    the ICP pose is kept.
+    """
+    src, tgt, tree = overlap.src_eval, overlap.tgt, overlap.tgt_tree
+    prior = np.diag(np.asarray(prior_std, dtype=float) ** -2)
+    current = pose.copy()
+    info = prior
+    for _ in range(_GN_ITERATIONS):
+        moved = transform_points(current, src)
+        dist, idx = tree.query(moved)
+        close = dist <= cfg.inlier_distance
+        n, flat = overlap.normals_at(idx[close])
+        inl = np.flatnonzero(close)[flat]
+        n = n[flat]
+        if len(inl) <= 3:
+            return pose, cho_solve(cho_factor(prior), np.eye(3))
+        q = moved[inl]
+        e = np.einsum("ij,ij->i", n, q - tgt[idx[inl]])
+        arm = q - current[:2]
+        g = np.column_stack([n, arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]])
+        sigma2 = max(float(e @ e) / (len(e) - 3), _MIN_RESIDUAL_VARIANCE)
+        info = prior + g.T @ g / sigma2
+        offset = current - pose
+        offset[2] = wrap_angle(offset[2])
+        step = -cho_solve(cho_factor(info), g.T @ e / sigma2 + prior @ offset)
+        current = np.array(
+            [current[0] + step[0], current[1] + step[1], float(wrap_angle(current[2] + step[2]))]
+        )
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    if _moved(pose, current, cfg.distinct_xy, cfg.distinct_yaw):
+        current = pose
+    cov = cho_solve(cho_factor(info), np.eye(3))
+    return current, 0.5 * (cov + cov.T)
+
+
+def _normals(
+    tgt: FloatArray, tree: cKDTree, which: np.ndarray, k: int = _NORMAL_NEIGHBOURS
+) -> tuple[FloatArray, np.ndarray]:
+    """Unit normals ``(M, 2)`` of target points ``which`` from the PCA of their ``k`` nearest neighbours,
+    and whether each neighbourhood is line-like (smaller/larger scatter eigenvalue at most
+    ``_MAX_CURVATURE``; corners and clutter have no reliable normal)."""
+    k = min(k, len(tgt))
+    _, nb = tree.query(tgt[which], k=k)
+    nb_pts = tgt[nb.reshape(len(which), k)]
+    centred = nb_pts - nb_pts.mean(axis=1, keepdims=True)
+    scatter = np.einsum("mki,mkj->mij", centred, centred)
+    vals, vecs = np.linalg.eigh(scatter)
+    return vecs[:, :, 0], vals[:, 0] <= _MAX_CURVATURE * vals[:, 1]
+
+
+def _floor_cov(cov: FloatArray, min_std: FloatArray) -> FloatArray:
+    """Floor a covariance: raise the eigenvalues of ``D⁻¹ cov D⁻¹``, ``D = diag(min_std)``, to at least 1.
+
+    The result is ⪰ ``cov`` and ⪰ ``D²`` (Loewner order) and equals ``cov`` when ``cov`` ⪰ ``D²`` already.
+    """
+    w = cov / np.outer(min_std, min_std)
+    vals, vecs = eigh(w)
+    floored = (vecs * np.maximum(vals, 1.0)) @ vecs.T
+    out = floored * np.outer(min_std, min_std)
+    return 0.5 * (out + out.T)
+
+
+def patch_registrar(
+    visits: Sequence[Visit], config: LaserConfig | None = None, counters: dict[str, int] | None = None
+) -> Registrar:
+    """Registrar over a visit sequence: visit j's patch registered onto visit i's from ``(0, 0, 0)`` (the
+    "same place" hypothesis; the rotations tried cover any heading, and odometry drift makes an
+    odometry-based guess meaningless). None when a patch is missing or too small, or the registration is
+    not valid. ``counters`` (optional) accumulates ``registrations`` and ``registrations_valid``.
+    """
+    cfg = LaserConfig() if config is None else config
+
+    def registrar(i: int, j: int) -> RelativePose | None:
+        a, b = visits[i].patch, visits[j].patch
+        if a is None or b is None:
+            return None
+        try:
+            reg = register_patches(b, a, _IDENTITY, cfg)
+        except RegistrationError:
+            return None
+        if counters is not None:
+            counters["registrations"] = counters.get("registrations", 0) + 1
+            counters["registrations_valid"] = counters.get("registrations_valid", 0) + int(reg.valid)
+        return to_relative_pose(reg, i, j)
+
+    return registrar
