@@ -34,6 +34,11 @@ setup(
             "ptm-sim = ptm_ros.tools.sim:main",
             "ptm-run = ptm_ros.tools.run:main",
             "ptm-eval = ptm_ros.tools.evaluate:main",
+            "ptm-bringup = ptm_ros.tools.bringup:main",
+            "ptm-bag-player = ptm_ros.nodes.bag_player:main",
+            "landmark_detector = ptm_ros.nodes.landmark_detector:main",
+            "topology_filter = ptm_ros.nodes.topology_filter:main",
+            "map_publisher = ptm_ros.nodes.map_publisher:main",
         ],
     },
 )

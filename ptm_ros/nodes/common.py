@@ -1,0 +1,548 @@
+"""What the ptm_ros nodes share: QoS profiles, ROS parameters declared from the config dataclasses,
+message conversions, diagnostics and the process entry point.
+
+Parameters
+----------
+Every leaf field of :class:`~ptm_ros.config.PtmConfig` becomes one read-only ROS parameter named by its
+dotted path (``inference.particles``, ``model.odometry.a_xy``), typed after the field (bool, integer,
+double, string, string array), described by the field's docstring entry or inline comment. A field whose
+type admits None (``detector.kind``, ``model.appearance.nig_kappa``) is dynamically typed and unset by
+default; the strings ``null``, ``~`` and ``""`` also mean None. The values are validated by building the
+configuration with :func:`ptm_ros.configio.from_dict`, so a node rejects exactly what ``ptm-run`` rejects,
+with the same message naming the field. Nested YAML sections in a ``--params-file`` are flattened by ROS
+itself, so ``config/ptm.yaml`` serves the nodes unchanged.
+
+Message conversions keep the offline pipeline's numbers bit for bit: stamps are
+``(sec·10⁹ + nanosec) / 10⁹`` correctly rounded and yaws are decoded with
+:func:`ptm_ros.io.bag.quaternion_to_yaw`, exactly as :func:`ptm_ros.io.bag.read_run` does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import io
+import math
+import re
+import sys
+import tokenize
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose
+from numpy.typing import NDArray
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+from ptm_ros.config import PtmConfig
+from ptm_ros.configio import from_dict
+from ptm_ros.errors import BagError, ConfigError
+from ptm_ros.io.bag import (
+    NS_PER_S,
+    _decode_image,
+    ns_to_stamp,
+    quaternion_to_yaw,
+    stamp_to_ns,
+    yaw_to_quaternion,
+)
+
+if typing.TYPE_CHECKING:
+    from rclpy.node import Node
+
+# ------------------------------------------------------------------------------------- end of input
+
+#: The bag player's last message, on ``end_of_input`` (std_msgs/String, latched):
+#: ``{"schema": END_OF_INPUT_SCHEMA, "counts": {"/odom": 1343, ...}}``, messages published per topic.
+END_OF_INPUT_SCHEMA = "ptm_ros.end_of_input/1"
+#: The detector's in-band end marker after its last visit on ``landmark_visits``:
+#: ``{"schema": END_SCHEMA, "visits": N}``, the number of visits it published.
+END_SCHEMA = "ptm_ros.visits_end/1"
+
+# ----------------------------------------------------------------------------------------------- QoS
+
+#: Values of the ``sensor_qos`` parameter.
+SENSOR_QOS = ("reliable", "sensor_data")
+
+#: Landmark visits: nothing may be lost and a late subscriber (a restarted filter) gets every visit.
+STREAM_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+#: Maps, the ensemble and end-of-input markers: the latest message, kept for late subscribers.
+LATCHED_QOS = QoSProfile(
+    depth=1,
+    history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+#: Replayed sensor data: reliable and unbounded, so a slow subscriber throttles the player instead of
+#: losing messages (compatible with both ``sensor_qos`` settings of the subscribers).
+REPLAY_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+#: Display topics (landmark poses): reliable, a deep queue.
+DISPLAY_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def sensor_qos(kind: str) -> QoSProfile:
+    """QoS of the sensor subscriptions: ``reliable`` (keep all; replay without loss, the default) or
+    ``sensor_data`` (best effort, shallow: a live robot, where a late scan is worth less than a new one).
+
+    Raises:
+        ConfigError: an unknown kind.
+    """
+    if kind == "reliable":
+        return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    if kind == "sensor_data":
+        return qos_profile_sensor_data
+    msg = f"sensor_qos must be one of {SENSOR_QOS}, got {kind!r}"
+    raise ConfigError(msg)
+
+
+# ---------------------------------------------------------------------------------------- parameters
+
+_NONE_STRINGS = ("", "null", "~", "None")
+_SCALAR_TYPES: dict[Any, int] = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+}
+_ARRAY_TYPES: dict[Any, int] = {
+    bool: ParameterType.PARAMETER_BOOL_ARRAY,
+    int: ParameterType.PARAMETER_INTEGER_ARRAY,
+    float: ParameterType.PARAMETER_DOUBLE_ARRAY,
+    str: ParameterType.PARAMETER_STRING_ARRAY,
+}
+_TYPE_NAMES = {
+    ParameterType.PARAMETER_NOT_SET: "any",
+    ParameterType.PARAMETER_BOOL: "bool",
+    ParameterType.PARAMETER_INTEGER: "integer",
+    ParameterType.PARAMETER_DOUBLE: "double",
+    ParameterType.PARAMETER_STRING: "string",
+    ParameterType.PARAMETER_BOOL_ARRAY: "bool array",
+    ParameterType.PARAMETER_INTEGER_ARRAY: "integer array",
+    ParameterType.PARAMETER_DOUBLE_ARRAY: "double array",
+    ParameterType.PARAMETER_STRING_ARRAY: "string array",
+}
+
+
+@dataclass(frozen=True)
+class ConfigParameter:
+    """One leaf of the configuration as a ROS parameter.
+
+    Attributes:
+        name: dotted path (``inference.particles``).
+        type: a ``rcl_interfaces/ParameterType`` constant; ``PARAMETER_NOT_SET`` when ``optional``.
+        default: the dataclass default (None for an unset optional).
+        optional: the field admits None (declared dynamically typed).
+        description: from the field's docstring entry or inline comment.
+        range: ``(low, high)`` from the field's ``metadata["range"]``, if any.
+    """
+
+    name: str
+    type: int
+    default: Any
+    optional: bool
+    description: str
+    range: tuple[float, float] | None = None
+
+
+def _unwrap_optional(hint: Any) -> tuple[Any, bool]:
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) == 1 and len(args) != len(typing.get_args(hint)):
+            return args[0], True
+    return hint, False
+
+
+def _ros_type(hint: Any) -> int:
+    if hint in _SCALAR_TYPES:
+        return _SCALAR_TYPES[hint]
+    if typing.get_origin(hint) in (tuple, list):
+        inner = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        if len(set(inner)) == 1 and inner[0] in _ARRAY_TYPES:
+            return _ARRAY_TYPES[inner[0]]
+    return ParameterType.PARAMETER_NOT_SET
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """Field descriptions of a dataclass: its docstring's ``Attributes:`` entries, else the comment at
+    the end of the field's line in the source."""
+    docs: dict[str, str] = {}
+    try:
+        source = inspect.getsource(cls)
+    except (OSError, TypeError):
+        source = ""
+    names = {f.name for f in dataclasses.fields(cls)}
+    for tok_line in _field_comments(source):
+        name, comment = tok_line
+        if name in names:
+            docs[name] = comment
+    doc = inspect.getdoc(cls) or ""
+    section = re.split(r"^\s*Attributes:\s*$", doc, maxsplit=1, flags=re.MULTILINE)
+    if len(section) == 2:
+        current = None
+        for line in section[1].splitlines():
+            m = re.match(r"^\s{2,}(\w+):\s*(.*)$", line)
+            if m and m.group(1) in names:
+                current = m.group(1)
+                docs[current] = m.group(2).strip()
+            elif current and line.strip() and line.startswith("    "):
+                docs[current] += " " + line.strip()
+            elif not line.strip():
+                current = None
+    return docs
+
+
+def _field_comments(source: str) -> list[tuple[str, str]]:
+    """``(field, comment)`` for every ``name: type = value  # comment`` line of a class body."""
+    out = []
+    first_name: dict[int, str] = {}
+    try:
+        for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+            row = tok.start[0]
+            if tok.type == tokenize.NAME and row not in first_name:
+                first_name[row] = tok.string
+            elif tok.type == tokenize.COMMENT and row in first_name:
+                out.append((first_name[row], tok.string.lstrip("#").strip()))
+    except (tokenize.TokenError, IndentationError, SyntaxError):
+        return out
+    return out
+
+
+def config_parameters(root: type = PtmConfig, prefix: str = "") -> tuple[ConfigParameter, ...]:
+    """Every leaf field of the configuration dataclass ``root`` as a :class:`ConfigParameter`."""
+    hints = typing.get_type_hints(root)
+    docs = field_docs(root)
+    out: list[ConfigParameter] = []
+    for f in dataclasses.fields(root):
+        if not f.init:
+            continue
+        name = f"{prefix}{f.name}"
+        hint, optional = _unwrap_optional(hints[f.name])
+        if dataclasses.is_dataclass(hint):
+            out.extend(config_parameters(hint, f"{name}."))  # type: ignore[arg-type]
+            continue
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            default = None
+        ros_type = ParameterType.PARAMETER_NOT_SET if optional else _ros_type(hint)
+        if isinstance(default, tuple):
+            default = list(default)
+        text = docs.get(f.name, "")
+        type_name = getattr(hint, "__name__", str(hint))
+        description = (
+            f"{text} ({root.__name__}.{f.name}: {type_name}{' or None' if optional else ''})".strip()
+        )
+        rng = f.metadata.get("range") if f.metadata else None
+        out.append(
+            ConfigParameter(
+                name=name,
+                type=ros_type,
+                default=default,
+                optional=optional,
+                description=description,
+                range=None if rng is None else (float(rng[0]), float(rng[1])),
+            )
+        )
+    return tuple(out)
+
+
+def _descriptor(p: ConfigParameter) -> ParameterDescriptor:
+    d = ParameterDescriptor(
+        name=p.name,
+        type=p.type,
+        description=p.description,
+        read_only=True,
+        dynamic_typing=p.type == ParameterType.PARAMETER_NOT_SET,
+    )
+    if p.range is not None:
+        lo, hi = p.range
+        if p.type == ParameterType.PARAMETER_INTEGER:
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+        elif p.type == ParameterType.PARAMETER_DOUBLE:
+            d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+    return d
+
+
+def _nest(flat: Mapping[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, value in flat.items():
+        *path, leaf = name.split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
+def config_from_parameters(values: Mapping[str, Any], root: type = PtmConfig) -> Any:
+    """Build the configuration from flat parameter values (missing names take their defaults).
+
+    An optional field given as ``None`` or one of ``"", "null", "~", "None"`` is None; arrays become
+    tuples. Raises :class:`ConfigError` naming the field, exactly as ``ptm-run`` would.
+    """
+    specs = {p.name: p for p in config_parameters(root)}
+    unknown = sorted(set(values) - set(specs))
+    if unknown:
+        msg = f"unknown parameter(s) {unknown}"
+        raise ConfigError(msg)
+    flat: dict[str, Any] = {}
+    for name, raw in values.items():
+        value = raw
+        if specs[name].optional and (value is None or (isinstance(value, str) and value in _NONE_STRINGS)):
+            value = None
+        if value is None and not specs[name].optional:
+            continue  # an unset parameter: its default
+        flat[name] = list(value) if isinstance(value, (tuple, list)) else value
+    return from_dict(root, _nest(flat))
+
+
+def declare_config(node: Node, root: type = PtmConfig) -> Any:
+    """Declare every configuration field of ``root`` on ``node`` and return the validated configuration.
+
+    Raises:
+        ConfigError: a value of the wrong type, out of range, or rejected by the dataclass (the message
+            names the parameter).
+    """
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    values: dict[str, Any] = {}
+    for p in config_parameters(root):
+        try:
+            param = node.declare_parameter(p.name, p.default, _descriptor(p))
+        except InvalidParameterTypeException as err:
+            expected = _TYPE_NAMES.get(p.type, str(p.type))
+            hint = " (write a double with a decimal point, e.g. 3.0)" if expected == "double" else ""
+            msg = f"parameter {p.name}: expected {expected}{hint}; {err}"
+            raise ConfigError(msg) from err
+        except InvalidParameterValueException as err:
+            msg = f"parameter {p.name}: {err}"
+            raise ConfigError(msg) from err
+        values[p.name] = param.value
+    return config_from_parameters(values, root)
+
+
+#: Every node-specific parameter of the suite (not configuration). One ``/**`` parameter file serves all
+#: nodes, so each node accepts the others' parameters too; any other name is a typo and is rejected.
+NODE_PARAMETERS = frozenset(
+    {
+        "use_sim_time",
+        "out_dir",
+        "sensor_qos",
+        "use_scans",
+        "use_images",
+        "stall_s",
+        "end_timeout",
+        "marker_topologies",
+        "refit_max_visits",
+        "frame_id",
+    }
+)
+
+
+def check_parameter_names(node: Node, root: type = PtmConfig) -> None:
+    """Reject parameter overrides (``--params-file``, ``-p``) that no ptm_ros node knows.
+
+    ROS itself ignores undeclared overrides, so a misspelt parameter would pass silently; this makes the
+    nodes as strict as ``ptm-run``. (Reads rclpy's ``_parameter_overrides``; skipped if it is absent.)
+
+    Raises:
+        ConfigError: naming the unknown parameters.
+    """
+    overrides = getattr(node, "_parameter_overrides", None)
+    if not isinstance(overrides, Mapping):
+        return
+    known = NODE_PARAMETERS | {p.name for p in config_parameters(root)}
+    unknown = sorted(n for n in overrides if n not in known and not n.startswith("qos_overrides."))
+    if unknown:
+        msg = f"unknown parameter(s) {unknown} (see config/ptm.yaml and the node's documentation)"
+        raise ConfigError(msg)
+
+
+def declare_node_parameter(
+    node: Node,
+    name: str,
+    default: Any,
+    description: str,
+    *,
+    choices: Sequence[str] | None = None,
+    minimum: float | None = None,
+    read_only: bool = True,
+) -> Any:
+    """Declare one node-specific parameter (not part of the configuration) and return its value.
+
+    Raises:
+        ConfigError: a value of the wrong type, not among ``choices`` or below ``minimum``.
+    """
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
+    ptype = _SCALAR_TYPES[type(default)]
+    desc = ParameterDescriptor(name=name, type=ptype, description=description, read_only=read_only)
+    if choices is not None:
+        desc.additional_constraints = f"one of {', '.join(choices)}"
+    if minimum is not None and ptype == ParameterType.PARAMETER_INTEGER:
+        desc.integer_range = [IntegerRange(from_value=int(minimum), to_value=2**62, step=0)]
+    elif minimum is not None and ptype == ParameterType.PARAMETER_DOUBLE:
+        desc.floating_point_range = [FloatingPointRange(from_value=float(minimum), to_value=1e300, step=0.0)]
+    try:
+        value = node.declare_parameter(name, default, desc).value
+    except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+        msg = f"parameter {name}: {err}"
+        raise ConfigError(msg) from err
+    if choices is not None and value not in choices:
+        msg = f"parameter {name} must be one of {tuple(choices)}, got {value!r}"
+        raise ConfigError(msg)
+    return value
+
+
+# ---------------------------------------------------------------------------------------- conversions
+
+
+def header_stamp(header: Any) -> float:
+    """A message header's stamp in seconds, exactly as :func:`ptm_ros.io.bag.read_run` computes it."""
+    return ns_to_stamp(int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec))
+
+
+def time_msg(stamp: float) -> Time:
+    """``builtin_interfaces/Time`` of a stamp in seconds (the inverse of :func:`header_stamp`; stamps
+    that no ROS time can hold become zero)."""
+    try:
+        ns = stamp_to_ns(stamp)
+    except BagError:
+        ns = 0
+    return Time(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
+
+
+def odometry_sample(msg: Any) -> tuple[float, tuple[float, float, float]]:
+    """``(stamp, (x, y, yaw))`` of a ``nav_msgs/Odometry`` (non-finite values passed through)."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return header_stamp(msg.header), (float(p.x), float(p.y), quaternion_to_yaw(q.x, q.y, q.z, q.w))
+
+
+def scan_fields(msg: Any) -> tuple[float, NDArray[np.float32], float, float, float, float]:
+    """``(stamp, ranges, angle_min, angle_increment, range_min, range_max)`` of a LaserScan."""
+    return (
+        header_stamp(msg.header),
+        np.asarray(msg.ranges, dtype=np.float32),
+        float(msg.angle_min),
+        float(msg.angle_increment),
+        float(msg.range_min),
+        float(msg.range_max),
+    )
+
+
+def image_array(msg: Any) -> NDArray[Any] | None:
+    """The pixels of a ``sensor_msgs/Image`` as ``(H, W)`` or ``(H, W, C)``; None for an unsupported
+    encoding (decoded exactly as :func:`ptm_ros.io.bag.read_run` does).
+
+    Raises:
+        BagError: the data is shorter than ``height × step``.
+    """
+    return _decode_image(msg)
+
+
+def pose_msg(x: float, y: float, yaw: float, z: float = 0.0) -> Pose:
+    """A ``geometry_msgs/Pose`` of a planar pose (yaw encoded so that ``read_run`` decodes it exactly)."""
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = float(x), float(y), float(z)
+    if math.isfinite(yaw):
+        qx, qy, qz, qw = yaw_to_quaternion(yaw)
+        pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = qx, qy, qz, qw
+    return pose
+
+
+def key_values(values: Mapping[str, Any], prefix: str = "") -> list[KeyValue]:
+    """Flatten a (nested) mapping of counters into ``diagnostic_msgs/KeyValue`` (dotted keys)."""
+    out: list[KeyValue] = []
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.extend(key_values(value, f"{name}."))
+        elif isinstance(value, float):
+            out.append(KeyValue(key=name, value=f"{value:.6g}"))
+        else:
+            out.append(KeyValue(key=name, value=str(value)))
+    return out
+
+
+def diagnostic_status(
+    name: str, hardware_id: str, message: str, values: Mapping[str, Any], *, warn: bool
+) -> DiagnosticStatus:
+    """One ``diagnostic_msgs/DiagnosticStatus`` (level OK or WARN)."""
+    return DiagnosticStatus(
+        level=DiagnosticStatus.WARN if warn else DiagnosticStatus.OK,
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=key_values(values),
+    )
+
+
+class OnceLogger:
+    """Logs the first occurrence of each kind of problem as a warning and later ones at debug level."""
+
+    def __init__(self, logger: Any) -> None:
+        self._logger = logger
+        self._seen: set[str] = set()
+
+    def __call__(self, kind: str, message: str) -> None:
+        if kind in self._seen:
+            self._logger.debug(message)
+            return
+        self._seen.add(kind)
+        self._logger.warning(f"{message} (further '{kind}' problems are counted in /diagnostics, not logged)")
+
+
+# ------------------------------------------------------------------------------------------- process
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "ptm_ros") -> int:
+    """Initialise rclpy, build the node, spin until shutdown; return the process exit code.
+
+    A :class:`ConfigError` while building the node (a bad parameter) is logged as fatal and gives exit
+    code 2; SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern).
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=list(args) if args is not None else sys.argv)
+    try:
+        try:
+            node = factory()
+        except ConfigError as err:
+            rclpy.logging.get_logger(name).fatal(f"invalid parameters: {err}")
+            return 2
+        try:
+            rclpy.spin(node)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            node.destroy_node()
+        return 0
+    finally:
+        rclpy.try_shutdown()

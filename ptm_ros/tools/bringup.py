@@ -1,0 +1,494 @@
+"""``ptm-bringup [--bag BAG] [--rate R] [--params YAML] [--out DIR]``: the node suite without ros2 launch.
+
+Starts ``map_publisher``, ``topology_filter`` and ``landmark_detector`` as separate processes talking
+over DDS (each in its own process group, logs streamed with a ``[node]`` prefix), waits until their
+services are discovered, then — with ``--bag`` — starts ``ptm-bag-player`` (``use_sim_time`` on every
+node). Every node gets the same parameters: ``DIR/params.yaml``, the full configuration (defaults, then
+``--params``) in ROS parameter-file form; then the bringup's settings for an exact replay (the
+detector's ``stall_s: 0``, the filter's ``refit_max_visits: 0``, ``use_sim_time`` with a bag); then
+``--params`` itself when it is a ROS parameter file, so its per-node sections apply and may override
+those (e.g. ``landmark_detector: ros__parameters: sensor_qos: sensor_data``).
+The bag's ``topics.odom`` / ``scan`` / ``panorama`` are remapped onto the detector's ``odom`` / ``scan`` /
+``panorama``, and the detector waits only for the streams the bag has (as ``ptm-run`` does).
+
+End of a bag: the player announces it, the detector completes its last visits, the filter processes
+them and marks its ensemble complete; ``ptm-bringup`` asks the map publisher (``/map_publisher/save_ptm``)
+to write ``DIR/ptm.json`` — the ensemble it received over DDS — as soon as that ensemble is complete.
+On SIGINT / SIGTERM it stops the player, has the detector complete its pending visits (``~/flush``),
+gives the filter up to 30 s to map them (a second SIGINT skips the wait) and writes whatever the map
+publisher has (nothing when it holds no visit). Then it stops every process: SIGINT to
+its group, SIGTERM after 5 s, SIGKILL after 3 more; stray members of a group are killed too, so no
+process outlives the bringup. After a bag it writes ``ptm-run``'s report with figures beside ptm.json
+(unless ``--no-report``) and prints the most probable topologies, scored against the bag's ground truth
+when it has one. Exit codes: 0 written, 1 a node failed / nothing to write / timeout, 2 bad arguments,
+parameters or bag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+PROG = "ptm-bringup"
+NODES = ("map_publisher", "topology_filter", "landmark_detector")
+STOP_TIMEOUTS = (5.0, 3.0, 2.0)  # s after SIGINT, after SIGTERM, after SIGKILL
+SIGINT_GRACE_S = 30.0  # s the filter gets to map the last visits after SIGINT (a second SIGINT skips)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description="Start the ptm_ros nodes (and a bag player) over DDS.")
+    p.add_argument("--bag", type=Path, default=None, help="replay this rosbag2 and stop at its end")
+    p.add_argument(
+        "--rate", type=float, default=1.0, help="replay speed (default 1; 0 = as fast as possible)"
+    )
+    p.add_argument("--params", type=Path, default=None, help="YAML parameter file (plain or ROS form)")
+    p.add_argument(
+        "--out", type=Path, default=Path("out/bringup"), help="output directory (default out/bringup)"
+    )
+    p.add_argument("--wait", type=float, default=60.0, help="s to wait for the nodes to come up (default 60)")
+    p.add_argument(
+        "--timeout", type=float, default=600.0, help="s to wait for the map after the bag ended (default 600)"
+    )
+    p.add_argument("--no-report", action="store_true", help="skip the report and figures (with --bag)")
+    p.add_argument("--top", type=int, default=5, help="topologies to print (default 5)")
+    return p
+
+
+# ------------------------------------------------------------------------------------------ parameters
+
+
+def _nest_dotted(params: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in params.items():
+        *path, leaf = str(key).split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = _nest_dotted(value) if isinstance(value, dict) else value
+    return out
+
+
+def load_parameters(path: Path | None) -> tuple[Any, bool]:
+    """The configuration of a ``--params`` file and whether it is a ROS parameter file.
+
+    Node parameters (:data:`ptm_ros.nodes.common.NODE_PARAMETERS`) in a ROS file are left to the nodes.
+
+    Raises:
+        ConfigError: a malformed file, unknown keys or bad values.
+    """
+    from ptm_ros.config import PtmConfig, unwrap_ros_parameters
+    from ptm_ros.configio import from_dict, load_yaml
+    from ptm_ros.nodes.common import NODE_PARAMETERS
+
+    if path is None:
+        return PtmConfig(), False
+    doc = load_yaml(path)
+    is_ros = any(isinstance(v, dict) and "ros__parameters" in v for v in doc.values())
+    if is_ros:
+        stripped = {}
+        for name, section in doc.items():
+            params = section.get("ros__parameters") if isinstance(section, dict) else None
+            if isinstance(params, dict):
+                params = _nest_dotted({k: v for k, v in params.items() if k not in NODE_PARAMETERS})
+            stripped[name] = {**section, "ros__parameters": params} if isinstance(section, dict) else section
+        doc = unwrap_ros_parameters(stripped)
+    return from_dict(PtmConfig, doc), is_ros
+
+
+def odometry_frame(bag: Path, topic: str) -> str:
+    """``header.frame_id`` of the bag's first odometry message ("odom" when empty)."""
+    from ptm_ros.io.bag import iter_raw, typestore
+
+    for raw in iter_raw(bag, [topic]):
+        return typestore().deserialize_cdr(raw.rawdata, raw.msgtype).header.frame_id or "odom"
+    return "odom"
+
+
+# ------------------------------------------------------------------------------------------- processes
+
+
+@dataclass
+class Child:
+    """A started process (leader of its own process group) and the thread streaming its output."""
+
+    name: str
+    popen: subprocess.Popen[str]
+    thread: threading.Thread = field(repr=False)
+
+    @property
+    def running(self) -> bool:
+        return self.popen.poll() is None
+
+
+def _stream(name: str, pipe: TextIO, out: TextIO, lock: threading.Lock) -> None:
+    for line in pipe:
+        with lock:
+            out.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
+            out.flush()
+    pipe.close()
+
+
+_PRINT_LOCK = threading.Lock()
+
+
+def spawn(name: str, cmd: Sequence[str], env: dict[str, str], out: TextIO = sys.stdout) -> Child:
+    """Start ``cmd`` in a new session (its own process group), streaming its output with a prefix."""
+    popen = subprocess.Popen(
+        list(cmd),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        env=env,
+        text=True,
+        bufsize=1,
+        start_new_session=True,
+    )
+    assert popen.stdout is not None
+    thread = threading.Thread(target=_stream, args=(name, popen.stdout, out, _PRINT_LOCK), daemon=True)
+    thread.start()
+    return Child(name, popen, thread)
+
+
+def _signal_group(child: Child, sig: int) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(child.popen.pid, sig)
+
+
+def stop_all(children: Sequence[Child], timeouts: Sequence[float] = STOP_TIMEOUTS) -> dict[str, int | None]:
+    """SIGINT every group, then SIGTERM, then SIGKILL those still running; returns the exit codes."""
+    for sig, wait in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL), timeouts, strict=True):
+        alive = [c for c in children if c.running]
+        if not alive:
+            break
+        for c in alive:
+            _signal_group(c, sig)
+        deadline = time.monotonic() + wait
+        for c in alive:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                c.popen.wait(timeout=max(deadline - time.monotonic(), 0.01))
+    for c in children:
+        _signal_group(c, signal.SIGKILL)  # stray members of a group whose leader has exited
+        c.thread.join(timeout=2.0)
+    return {c.name: c.popen.poll() for c in children}
+
+
+def child_env() -> dict[str, str]:
+    """The environment of the children: ours, unbuffered, one BLAS thread, ament prefix set."""
+    env = dict(os.environ)
+    env.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    env["PYTHONUNBUFFERED"] = "1"
+    env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+    return env
+
+
+def node_command(name: str, ros_args: Sequence[str]) -> list[str]:
+    """``python -m ptm_ros.nodes.<name> --ros-args ...`` (independent of installed console scripts)."""
+    return [sys.executable, "-m", f"ptm_ros.nodes.{name}", "--ros-args", *ros_args]
+
+
+# ------------------------------------------------------------------------------------------- the run
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What to start: the node commands in start order, the player's command (with ``--bag``), timeouts."""
+
+    out: Path
+    nodes: dict[str, list[str]]
+    player: list[str] | None
+    wait: float
+    timeout: float
+
+
+def make_plan(args: argparse.Namespace) -> Plan:
+    """Validate the parameters and the bag, write ``DIR/params.yaml`` and ``DIR/config.yaml``.
+
+    Raises:
+        PtmError: bad parameters or bag (nothing has been started).
+    """
+    from ptm_ros.config import ros_parameters_yaml, save_config
+    from ptm_ros.errors import BagError
+    from ptm_ros.nodes.bag_player import bag_topics
+
+    config, params_is_ros = load_parameters(args.params)
+    t = config.topics
+    topics = bag_topics(args.bag) if args.bag is not None else {}
+    if args.bag is not None and t.odom not in topics:
+        msg = f"bag {args.bag} has no odometry topic {t.odom} (topics: {sorted(topics)})"
+        raise BagError(msg)
+    frame = odometry_frame(args.bag, t.odom) if args.bag is not None else "odom"
+    out: Path = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    params_file = out / "params.yaml"
+    params_file.write_text(ros_parameters_yaml(config))
+    save_config(config, out / "config.yaml")
+    # order matters (the last value wins): the configuration, the bringup's node settings, the user's
+    # ROS parameter file (may override those), the outputs the bringup relies on
+    mine = ["--params-file", str(params_file)]
+    mine += ["-p", f"use_sim_time:={'true' if args.bag is not None else 'false'}"]
+    users = ["--params-file", str(args.params.resolve())] if params_is_ros else []
+    detector = [*mine, "-r", f"odom:={t.odom}", "-r", f"scan:={t.scan}", "-r", f"panorama:={t.panorama}"]
+    if args.bag is not None:  # wait for the streams the bag has (as ptm-run does), however late they come
+        for name, topic in (("use_scans", t.scan), ("use_images", t.panorama)):
+            present = topic in topics and topics[topic].count > 0
+            detector += ["-p", f"{name}:={str(present).lower()}"]
+        detector += ["-p", "stall_s:=0.0"]
+    filt = [*mine, "-p", "refit_max_visits:=0", "-p", f"frame_id:={frame}", *users]
+    nodes = {
+        "map_publisher": node_command("map_publisher", [*mine, *users, "-p", f"out_dir:={out}"]),
+        "topology_filter": node_command(
+            "topology_filter", [*filt, "-p", f"out_dir:={out / 'topology_filter'}"]
+        ),
+        "landmark_detector": node_command("landmark_detector", [*detector, *users]),
+    }
+    player = None
+    if args.bag is not None:
+        replay = [x for x in (t.odom, t.scan, t.panorama) if x in topics]
+        player = [sys.executable, "-m", "ptm_ros.nodes.bag_player", str(args.bag.resolve())]
+        player += ["--rate", f"{args.rate:g}", "--wait", f"{args.wait:g}", "--topics", *replay]
+    return Plan(out=out, nodes=nodes, player=player, wait=args.wait, timeout=args.timeout)
+
+
+class Bringup:
+    """The running suite: children, the bringup's own ROS node (service clients) and the stop flag."""
+
+    def __init__(self, plan: Plan) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from std_msgs.msg import String
+        from std_srvs.srv import Trigger
+
+        from ptm_ros.nodes.common import LATCHED_QOS
+
+        self.plan = plan
+        self.children: list[Child] = []
+        self.stop_requested = False
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node("ptm_bringup", context=self.context)
+        self.save_client = self.node.create_client(Trigger, "/map_publisher/save_ptm")
+        self._clients = [
+            self.save_client,
+            self.node.create_client(Trigger, "/topology_filter/save_ptm"),
+            self.node.create_client(Trigger, "/landmark_detector/flush"),
+        ]
+        self.graph_complete = False  # the filter's latest ensemble covers a finished input
+        self.node.create_subscription(String, "/ptm_graph", self._on_graph, LATCHED_QOS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def _on_graph(self, msg: Any) -> None:
+        try:
+            stream = json.loads(msg.data).get("stream", {})
+        except (json.JSONDecodeError, AttributeError):
+            return
+        self.graph_complete = bool(isinstance(stream, dict) and stream.get("complete"))
+
+    def log(self, text: str) -> None:
+        with _PRINT_LOCK:
+            print(f"[{PROG}] {text}", flush=True)
+
+    def failed_child(self, *, player: bool = True) -> Child | None:
+        """A node that exited (at all) or (with ``player``) a player that exited with an error."""
+        for c in self.children:
+            code = c.popen.poll()
+            if code is not None and (c.name != "player" or (player and code != 0)):
+                return c
+        return None
+
+    def call(self, client: Any, timeout: float = 10.0) -> Any:
+        """Call a Trigger service; the response, or None without an answer."""
+        from std_srvs.srv import Trigger
+
+        if not client.service_is_ready():
+            return None
+        future = client.call_async(Trigger.Request())
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        return future.result() if future.done() else None
+
+    def wait_for_nodes(self) -> bool:
+        """Wait until every node's services are discovered (False on timeout, stop or a dead node)."""
+        deadline = time.monotonic() + self.plan.wait
+        while time.monotonic() < deadline and not self.stop_requested:
+            if self.failed_child() is not None:
+                return False
+            if all(c.service_is_ready() for c in self._clients):
+                return True
+            self.executor.spin_once(timeout_sec=0.1)
+        return False
+
+    def save(self) -> dict[str, Any] | None:
+        """Ask the map publisher to write ptm.json; its parsed response, or None without an answer."""
+        result = self.call(self.save_client)
+        if result is None:
+            return None
+        if not result.success:
+            return {"success": False, "message": result.message}
+        try:
+            return {"success": True, **json.loads(result.message)}
+        except json.JSONDecodeError:
+            return {"success": True, "message": result.message}
+
+    def execute(self, env: dict[str, str]) -> int:
+        """Start everything, supervise until the map is complete, SIGINT/SIGTERM or a failure."""
+        for name, cmd in self.plan.nodes.items():
+            self.children.append(spawn(name, cmd, env))
+        if not self.wait_for_nodes():
+            if self.stop_requested:
+                return self.write_what_we_have()
+            dead = self.failed_child()
+            what = f"{dead.name} exited with code {dead.popen.poll()}" if dead else "not discovered in time"
+            self.log(f"error: the nodes did not come up: {what}")
+            return 1
+        self.log("nodes are up")
+        if self.plan.player is not None:
+            self.children.append(spawn("player", self.plan.player, env))
+        player_done_at: float | None = None
+        while not self.stop_requested:
+            dead = self.failed_child()
+            if dead is not None:
+                self.log(f"error: {dead.name} exited with code {dead.popen.poll()}")
+                self.write_what_we_have()
+                return 1
+            if (
+                self.plan.player is not None
+                and player_done_at is None
+                and self.children[-1].popen.poll() == 0
+            ):
+                player_done_at = time.monotonic()
+                self.log("bag finished; waiting for the last visits to be mapped")
+            if player_done_at is None:
+                self.executor.spin_once(timeout_sec=0.1)
+                continue
+            if self.graph_complete:  # the map publisher has it too, or will in a moment
+                reply = self.save()
+                if reply and reply.get("success") and reply.get("complete"):
+                    return self.announce(reply)
+                time.sleep(0.2)
+            if time.monotonic() - player_done_at > self.plan.timeout:
+                self.log(f"error: the map was not complete {self.plan.timeout:g} s after the bag ended")
+                self.write_what_we_have()
+                return 1
+            self.executor.spin_once(timeout_sec=0.2)
+        self.end_input()
+        return self.write_what_we_have()
+
+    def end_input(self) -> None:
+        """On SIGINT: stop the player, have the detector complete its visits (``~/flush``) and give the
+        filter up to :data:`SIGINT_GRACE_S` to map them (a second SIGINT skips the wait)."""
+        player = [c for c in self.children if c.name == "player"]
+        stop_all(player)
+        if self.call(self._clients[2], timeout=5.0) is None:
+            return
+        self.log(f"input ended; mapping the last visits (up to {SIGINT_GRACE_S:g} s, SIGINT again to skip)")
+        self.stop_requested = False
+        deadline = time.monotonic() + SIGINT_GRACE_S
+        while not (self.graph_complete or self.stop_requested or time.monotonic() > deadline):
+            if self.failed_child(player=False) is not None:
+                return
+            self.executor.spin_once(timeout_sec=0.1)
+        self.stop_requested = True
+
+    def announce(self, reply: dict[str, Any]) -> int:
+        self.log(f"wrote {reply['path']}: {reply['visits']} visits, {reply['topologies']} topologies")
+        return 0
+
+    def write_what_we_have(self) -> int:
+        """Have the map publisher write whatever it has (on SIGINT or after an error)."""
+        reply = self.save()
+        if reply and reply.get("success"):
+            return self.announce(reply)
+        reason = reply.get("message") if reply else "the map publisher did not answer"
+        self.log(f"nothing written to {self.plan.out / 'ptm.json'}: {reason}")
+        return 1
+
+    def close(self) -> dict[str, int | None]:
+        """Stop every process and the bringup's own node; returns the exit codes."""
+        import rclpy
+
+        codes = stop_all(self.children)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        return codes
+
+
+def report(args: argparse.Namespace, ptm_path: Path) -> str:
+    """After a bag: the report with figures beside ptm.json (``ptm-run``'s), scored against the bag's
+    ground truth when it has one; returns ``ptm-run``'s summary lines."""
+    from ptm_ros.io.bag import read_run
+    from ptm_ros.ptm import load_ptm
+    from ptm_ros.tools.pipeline import RunResult, find_ground_truth, score_against
+    from ptm_ros.tools.run import format_summary
+
+    ptm = load_ptm(ptm_path)
+    truth = find_ground_truth(args.bag)
+    score = score_against(ptm, truth) if truth is not None else None
+    html = None
+    if not args.no_report:
+        from ptm_ros.report import write_report
+
+        config, _ = load_parameters(args.params)
+        odom = read_run(args.bag, odom_topic=config.topics.odom, scan_topic=None, image_topic=None).odometry
+        trajectory = None if odom is None else odom.poses
+        title = f"PTM of {args.bag.name} (node suite over DDS)"
+        html = write_report(ptm_path.parent, ptm, trajectory=trajectory, score=score, title=title)
+    result = RunResult(ptm=ptm, ptm_path=ptm_path, report_path=html, score=score, diagnostics={})
+    return format_summary(result, args.top)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validate, start, supervise, stop; then, after a bag, report."""
+    from ptm_ros.errors import PtmError
+
+    try:
+        plan = make_plan(args)
+    except PtmError as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    suite = Bringup(plan)
+
+    def request_stop(signum: int, frame: Any) -> None:
+        suite.stop_requested = True
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        code = suite.execute(child_env())
+    finally:
+        codes = suite.close()
+        suite.log(f"stopped: exit codes {codes}")
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    ptm_path = plan.out / "ptm.json"
+    if code == 0 and args.bag is not None and not suite.stop_requested and ptm_path.is_file():
+        try:
+            print(report(args, ptm_path), flush=True)
+        except (PtmError, OSError) as err:
+            print(f"{PROG}: error: cannot report on {ptm_path}: {err}", file=sys.stderr)
+            return 1
+    return code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not args.rate >= 0.0:
+        print(f"{PROG}: error: --rate must be >= 0, got {args.rate}", file=sys.stderr)
+        return 2
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,192 @@
+"""``ptm-bringup`` end to end over real DDS: separate node processes replaying a simulated bag give exactly
+``ptm-run``'s ensemble; SIGINT stops everything; bad input fails before anything starts; no orphans."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from ros_helpers import dds_env, kill_processes_mentioning, next_domain_id, processes_mentioning
+
+from ptm_ros.config import PtmConfig
+from ptm_ros.io.bag import read_run
+from ptm_ros.io.simulator import SimConfig, simulate, write_run
+from ptm_ros.io.worlds import get_world
+from ptm_ros.ptm import load_ptm
+from ptm_ros.tools import bringup
+from ptm_ros.tools import run as run_cli
+from ptm_ros.tools.pipeline import detect_visits
+
+BRINGUP = [sys.executable, "-m", "ptm_ros.tools.bringup"]
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bringup") / "tj"
+    write_run(simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(7), visits=5), out)
+    return out
+
+
+def assert_no_orphans(*marks: str) -> None:
+    deadline = time.monotonic() + 5.0  # a process may take a moment to disappear from /proc
+    left = [p for m in marks for p in processes_mentioning(m)]
+    while left and time.monotonic() < deadline:
+        time.sleep(0.1)
+        left = [p for m in marks for p in processes_mentioning(m)]
+    for m in marks:
+        kill_processes_mentioning(m)
+    assert not left, f"processes outlived ptm-bringup: {left}"
+
+
+def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
+    # a ROS parameter file with a per-node section; ptm-run gets the same configuration in plain form
+    ros_params = tmp_path / "ros.yaml"
+    ros_params.write_text(
+        "/**:\n  ros__parameters:\n    inference: {seed: 3, particles: 40}\n"
+        "landmark_detector:\n  ros__parameters:\n    sensor_qos: reliable\n"
+    )
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("inference: {seed: 3, particles: 40}\n")
+    out = tmp_path / "bringup"
+    cmd = [*BRINGUP, "--bag", str(sim_bag), "--rate", "0", "--params", str(ros_params), "--out", str(out)]
+    try:
+        proc = subprocess.run(
+            cmd, env=dds_env(next_domain_id()), capture_output=True, text=True, timeout=300, check=False
+        )
+    finally:
+        assert_no_orphans(str(out), str(sim_bag))
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-4000:]
+    for name in ("[map_publisher]", "[topology_filter]", "[landmark_detector]", "[player]"):
+        assert name in log
+    assert (
+        run_cli.main([str(sim_bag), "--out", str(tmp_path / "run"), "--params", str(plain), "--no-report"])
+        == 0
+    )
+
+    online = load_ptm(out / "ptm.json")
+    offline = load_ptm(tmp_path / "run" / "ptm.json")
+    assert online.landmarks == offline.landmarks and len(online.landmarks) >= 4
+    assert [t.labels for t in online.topologies] == [t.labels for t in offline.topologies]
+    p_on = np.array([t.probability for t in online.topologies])
+    p_off = np.array([t.probability for t in offline.topologies])
+    assert np.max(np.abs(p_on - p_off)) <= 1e-9
+    assert online.inference["seed"] == 3 and online.inference["particles"] == 40
+    doc = json.loads((out / "ptm.json").read_text())
+    assert doc["stream"] == {"visits": len(online.landmarks), "complete": True}
+    assert all(0.0 <= e["probability"] <= 1.0 for e in doc["edges"])
+    assert (out / "config.yaml").is_file() and (out / "params.yaml").is_file()
+    assert (out / "report.html").is_file() and "most probable topologies" in proc.stdout
+    assert "score vs ground truth" in proc.stdout  # the simulator's ground truth beside the bag
+
+
+class Bringup:
+    """A ``ptm-bringup`` process whose output is collected line by line."""
+
+    def __init__(self, args: list[str]) -> None:
+        self.proc = subprocess.Popen(
+            [*BRINGUP, *args],
+            env=dds_env(next_domain_id()),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+
+    @property
+    def log(self) -> str:
+        return "".join(self.lines)
+
+    def wait_for_line(self, text: str, timeout: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not any(text in line for line in self.lines):
+            assert self.proc.poll() is None and time.monotonic() < deadline, f"no {text!r} in:\n{self.log}"
+            time.sleep(0.05)
+
+    def interrupt(self) -> int:
+        self.proc.send_signal(signal.SIGINT)
+        code = self.proc.wait(timeout=120)
+        self._reader.join(timeout=10)
+        return code
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+
+
+def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
+    out = tmp_path / "interrupted"
+    run = Bringup(["--bag", str(sim_bag), "--rate", "2", "--out", str(out), "--no-report"])
+    try:
+        run.wait_for_line("[topology_filter] [INFO]", timeout=120.0)
+        run.wait_for_line(": visit 1: ", timeout=120.0)  # at least two visits mapped, the bag not over
+        code = run.interrupt()
+    finally:
+        run.kill()
+        assert_no_orphans(str(out), str(sim_bag))
+    assert code == 0, run.log
+    assert "input ended; mapping the last visits" in run.log
+    assert "stopped: exit codes {'map_publisher': 0, 'topology_filter': 0, 'landmark_detector': 0" in run.log
+    ptm = load_ptm(out / "ptm.json")
+    full = detect_visits(read_run(sim_bag), PtmConfig())  # ptm-run's visits of the whole bag
+    k = len(ptm.landmarks)
+    assert 2 <= k < len(full)  # the visits completed before the interrupt, in order
+    assert [(lm.stamp, lm.pose) for lm in ptm.landmarks] == [(v.stamp, v.pose) for v in full[:k]]
+
+
+def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path):
+    out = tmp_path / "live"
+    run = Bringup(["--out", str(out)])
+    try:
+        run.wait_for_line("nodes are up")
+        code = run.interrupt()
+    finally:
+        run.kill()
+        assert_no_orphans(str(out))
+    assert code == 1, run.log  # nothing was mapped: nothing to write
+    assert "nothing written" in run.log and "holds no landmark visit" in run.log
+    assert "stopped: exit codes {'map_publisher': 0, 'topology_filter': 0, 'landmark_detector': 0}" in run.log
+    assert not (out / "ptm.json").exists()
+
+
+def test_bad_input_fails_before_anything_starts(sim_bag, tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("inference: {particles: 0}\n")
+    assert bringup.main(["--params", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "particles and top must be >= 1" in capsys.readouterr().err
+    assert bringup.main(["--bag", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    odd = tmp_path / "odd.yaml"
+    odd.write_text("topics: {odom: /wheel_odom}\n")
+    assert bringup.main(["--bag", str(sim_bag), "--params", str(odd), "--out", str(tmp_path / "o")]) == 2
+    assert "no odometry topic /wheel_odom" in capsys.readouterr().err
+    assert bringup.main(["--rate", "-2"]) == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_parameter_files_in_both_forms(tmp_path):
+    plain = tmp_path / "a.yaml"
+    plain.write_text("inference: {particles: 9}\n")
+    assert bringup.load_parameters(plain)[0].inference.particles == 9
+    assert bringup.load_parameters(plain)[1] is False
+    ros = tmp_path / "b.yaml"
+    ros.write_text(
+        "/**:\n  ros__parameters:\n    use_sim_time: true\n    inference.particles: 11\n"
+        "topology_filter:\n  ros__parameters:\n    marker_topologies: 2\n    inference: {seed: 5}\n"
+    )
+    config, is_ros = bringup.load_parameters(ros)
+    assert is_ros and (config.inference.particles, config.inference.seed) == (11, 5)

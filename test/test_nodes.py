@@ -1,0 +1,691 @@
+"""The ROS 2 nodes: parameters from the config dataclasses, message conversions, the streaming filter
+session against the offline pipeline, the graph / marker / path content, and the nodes over real DDS
+(in-process nodes on a private domain, plus start-up failures of node processes)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_helpers import Inbox, dds_env, next_domain_id, ros_context, wait_for
+
+from ptm_ros.config import PtmConfig, load_config
+from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
+from ptm_ros.io.simulator import SimConfig, simulate, write_run
+from ptm_ros.io.worlds import get_world
+from ptm_ros.landmarks import visit_to_json
+from ptm_ros.nodes import common
+from ptm_ros.nodes.map_publisher import map_path, parse_graph
+from ptm_ros.nodes.topology_filter import (
+    FilterSession,
+    edge_probabilities,
+    ensemble_markers,
+    graph_document,
+    parse_visit_message,
+    topology_alpha,
+)
+from ptm_ros.partitions import enumerate_partitions
+from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
+from ptm_ros.tools.pipeline import detect_visits, infer, make_extractor, make_registrar
+
+# --------------------------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory):
+    out = tmp_path_factory.mktemp("nodes") / "tj"
+    write_run(simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(4), visits=5), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def sim_visits(sim_bag):
+    return detect_visits(read_run(sim_bag), PtmConfig())
+
+
+def no_laser() -> PtmConfig:
+    return load_config(None, {"model": {"use_laser": False}, "inference": {"particles": 30}})
+
+
+# ------------------------------------------------------------------------------------------- parameters
+
+
+def test_every_config_leaf_is_a_typed_parameter():
+    from rcl_interfaces.msg import ParameterType as T
+
+    specs = {p.name: p for p in common.config_parameters()}
+    assert specs["inference.particles"].type == T.PARAMETER_INTEGER
+    assert specs["model.odometry.a_xy"].type == T.PARAMETER_DOUBLE
+    assert specs["model.use_laser"].type == T.PARAMETER_BOOL
+    assert specs["model.prior.kind"].type == T.PARAMETER_STRING
+    assert specs["model.appearance.models"].type == T.PARAMETER_STRING_ARRAY
+    assert specs["detector.kind"].optional and specs["detector.kind"].type == T.PARAMETER_NOT_SET
+    assert specs["model.appearance.nig_kappa"].optional
+    assert all("(" in p.description for p in specs.values())  # every parameter is described
+    # the defaults rebuild the default configuration, and every leaf of the YAML file is a parameter
+    defaults = {p.name: p.default for p in specs.values()}
+    assert common.config_from_parameters(defaults) == PtmConfig()
+
+    def leaves(d, prefix=""):
+        for k, v in d.items():
+            yield from leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
+
+    import yaml
+
+    doc = yaml.safe_load((Path(__file__).parents[1] / "config" / "ptm.yaml").read_text())
+    assert set(leaves(doc["/**"]["ros__parameters"])) <= set(specs)
+
+
+@dataclass(frozen=True)
+class Inner:
+    """A section.
+
+    Attributes:
+        alpha: the first
+            parameter, on two lines.
+    """
+
+    alpha: float = 1.0
+    beta: int = 2  # counts things
+    gamma: str | None = None
+
+
+@dataclass(frozen=True)
+class Root:
+    """The root."""
+
+    inner: Inner = field(default_factory=Inner)
+    names: tuple[str, ...] = ("a", "b")
+    flag: bool = False  # a switch
+
+
+def test_parameters_of_a_dataclass_tree():
+    from rcl_interfaces.msg import ParameterType as T
+
+    specs = {p.name: p for p in common.config_parameters(Root)}
+    assert list(specs) == ["inner.alpha", "inner.beta", "inner.gamma", "names", "flag"]
+    assert [specs[n].type for n in specs] == [
+        T.PARAMETER_DOUBLE,
+        T.PARAMETER_INTEGER,
+        T.PARAMETER_NOT_SET,
+        T.PARAMETER_STRING_ARRAY,
+        T.PARAMETER_BOOL,
+    ]
+    assert specs["inner.alpha"].description.startswith("the first parameter, on two lines.")
+    assert specs["inner.beta"].description.startswith("counts things")
+    assert specs["flag"].description.startswith("a switch")
+    assert specs["inner.gamma"].optional and specs["inner.gamma"].default is None
+    assert specs["names"].default == ["a", "b"]
+    got = common.config_from_parameters({"inner.gamma": "x", "names": ["c"], "inner.beta": 5}, Root)
+    assert got == Root(inner=Inner(beta=5, gamma="x"), names=("c",))
+    assert common.config_from_parameters({"inner.gamma": "null"}, Root) == Root()
+
+
+def test_parameter_values_build_the_same_config_as_ptm_run():
+    values = {
+        "inference.particles": 7,
+        "model.appearance.models": ["fourier", "words"],
+        "model.appearance.nig_kappa": 2,
+        "detector.kind": "equidistant",
+        "model.appearance.dcm_alpha": "null",  # how a ROS parameter file spells None
+    }
+    expected = load_config(
+        None,
+        {
+            "inference": {"particles": 7},
+            "model": {"appearance": {"models": ["fourier", "words"], "nig_kappa": 2.0}},
+            "detector": {"kind": "equidistant"},
+        },
+    )
+    assert common.config_from_parameters(values) == expected
+    assert common.config_from_parameters({"detector.kind": "~"}).detector.kind is None
+    with pytest.raises(ConfigError, match="particles and top must be >= 1"):
+        common.config_from_parameters({"inference.particles": 0})
+    with pytest.raises(ConfigError, match=r"inference.particles: expected an integer"):
+        common.config_from_parameters({"inference.particles": "many"})
+    with pytest.raises(ConfigError, match=r"unknown parameter\(s\) \['inference.particlez'\]"):
+        common.config_from_parameters({"inference.particlez": 3})
+
+
+def test_sensor_qos_choices():
+    from rclpy.qos import ReliabilityPolicy
+
+    assert common.sensor_qos("reliable").reliability == ReliabilityPolicy.RELIABLE
+    assert common.sensor_qos("sensor_data").reliability == ReliabilityPolicy.BEST_EFFORT
+    with pytest.raises(ConfigError, match="sensor_qos must be one of"):
+        common.sensor_qos("fast")
+
+
+# ------------------------------------------------------------------------------------------ conversions
+
+
+def test_odometry_and_scan_conversions_match_the_bag_reader(tmp_path):
+    """The node's decoding of rclpy messages equals read_run's decoding of the same CDR bytes."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Image, LaserScan
+
+    rng = np.random.default_rng(3)
+    stamps = [1.0, 13.123456789, 1_700_000_000.25, 2.000000001]
+    yaws = [0.0, math.pi, -math.pi, 3.5, -6.2, 1e-3]
+    bag = tmp_path / "b"
+    with BagWriter(bag) as w:
+        for s, yaw in zip(stamps, yaws, strict=False):
+            w.write_odometry(s, (rng.normal(), rng.normal(), yaw))
+        for s in stamps:
+            w.write_scan(
+                s,
+                rng.uniform(0.1, 20.0, 31).astype(np.float32),
+                angle_min=-1.5,
+                angle_increment=0.1,
+                range_min=0.05,
+                range_max=25.0,
+            )
+        w.write_image(5.0, rng.integers(0, 255, (4, 6), dtype=np.uint8))
+        w.write_image(6.0, rng.integers(0, 255, (3, 5, 3), dtype=np.uint8))
+    run = read_run(bag)
+    types = {"/odom": Odometry, "/scan": LaserScan, "/panorama": Image}
+    got: dict[str, list] = {k: [] for k in types}
+    for raw in iter_raw(bag):
+        got[raw.topic].append(deserialize_message(raw.rawdata, types[raw.topic]))
+    for k, msg in enumerate(got["/odom"]):
+        stamp, pose = common.odometry_sample(msg)
+        assert stamp == run.odometry.stamps[k]
+        assert pose == tuple(run.odometry.poses[k])  # bit for bit, yaws beyond pi included
+    for k, msg in enumerate(got["/scan"]):
+        stamp, ranges, amin, ainc, rmin, rmax = common.scan_fields(msg)
+        assert stamp == run.scans.stamps[k] and np.array_equal(ranges, run.scans.ranges[k])
+        assert (amin, ainc, rmin, rmax) == (
+            run.scans.angle_min[k],
+            run.scans.angle_increment[k],
+            run.scans.range_min[k],
+            run.scans.range_max[k],
+        )
+    for k, msg in enumerate(got["/panorama"]):
+        assert np.array_equal(common.image_array(msg), run.images.images[k])
+    msg = got["/panorama"][0]
+    msg.encoding = "32FC1"
+    assert common.image_array(msg) is None
+
+
+def test_time_and_pose_messages_round_trip():
+    from types import SimpleNamespace
+
+    for s in (0.0, 13.12, 1_700_000_000.123456789, 2.5e-9):
+        assert common.header_stamp(SimpleNamespace(stamp=common.time_msg(s))) == pytest.approx(s, abs=5e-10)
+    assert common.time_msg(-1.0).sec == 0 and common.time_msg(math.nan).sec == 0
+    for yaw in np.linspace(-2 * math.pi, 2 * math.pi, 17):
+        q = common.pose_msg(1.0, 2.0, float(yaw)).orientation
+        assert (q.x, q.y, q.z, q.w) == yaw_to_quaternion(float(yaw))
+
+
+# ------------------------------------------------------------------------------------- filter session
+
+
+def cached(registrar):
+    cache = {}
+
+    def reg(i, j):
+        if (i, j) not in cache:
+            cache[(i, j)] = registrar(i, j)
+        return cache[(i, j)]
+
+    return reg
+
+
+def test_streaming_session_equals_the_offline_rbpf_after_every_visit(sim_visits):
+    """The ensemble after visit n is ptm-run's RBPF on visits 0..n, exactly (appearance refit + replay)."""
+    config = load_config(None, {"inference": {"particles": 30}})
+    session = FilterSession(config)
+    registrar = cached(make_registrar(sim_visits, config))
+    assert any(v.signature is not None for v in sim_visits) and any(v.patch is not None for v in sim_visits)
+    for n, visit in enumerate(sim_visits):
+        session.add(visit)
+        offline = infer(sim_visits[: n + 1], config, registrar=registrar)
+        online = session.inference()
+        assert online.probabilities == offline.probabilities  # same topologies, bit-identical masses
+        for lab in offline.probabilities:
+            assert np.array_equal(online.positions[lab], offline.positions[lab])
+    assert session.replays > 0  # the appearance priors did change along the way
+
+
+def test_session_rejects_out_of_order_visits_and_resets(sim_visits):
+    session = FilterSession(no_laser())
+    session.add(sim_visits[0])
+    before = session.inference().probabilities
+    with pytest.raises(DataError, match="expected visit 1, got visit 2"):
+        session.add(sim_visits[2])
+    assert session.inference().probabilities == before and len(session.visits) == 1
+    session.reset()
+    assert session.filter is None and not session.visits
+    with pytest.raises(DataError, match="no visit"):
+        session.inference()
+    with pytest.raises(ConfigError, match="use ptm-run for 'exact'"):
+        FilterSession(load_config(None, {"inference": {"method": "exact"}}))
+
+
+def test_frozen_appearance_priors_stop_replays(sim_visits):
+    from ptm_ros.appearance import fit_appearance_model
+
+    # with every visit carrying a signature: replays only while at most 3 visits, then the fit is frozen
+    signed = [replace(v, index=i) for i, v in enumerate(v for v in sim_visits if v.signature is not None)]
+    assert len(signed) >= 5
+    session = FilterSession(no_laser(), refit_max_visits=3)
+    for v in signed:
+        session.add(v)
+    assert session.replays == 2
+    frozen = fit_appearance_model(signed[:3], no_laser().model.appearance)
+    assert np.array_equal(session.filter.appearance.nig.mu, frozen.nig.mu)
+    assert np.array_equal(session.filter.appearance.nig.beta, frozen.nig.beta)
+    # a visit without a signature switches appearance off for the run: one replay, even when frozen
+    session = FilterSession(no_laser(), refit_max_visits=3)
+    missing = [n for n, v in enumerate(sim_visits) if v.signature is None]
+    assert missing and missing[0] >= 3
+    for n, v in enumerate(sim_visits):
+        before = session.replays
+        session.add(v)
+        if n >= 3:
+            assert (session.replays > before) == (n == missing[0])
+    assert session.filter.appearance is None
+
+
+# ------------------------------------------------------------------------------------- graph and markers
+
+
+def random_ptm(rng, n=5, k=12):
+    parts = list(enumerate_partitions(n))
+    chosen = [parts[i] for i in rng.choice(len(parts), size=k, replace=False)]
+    w = rng.dirichlet(np.ones(k)) * 0.9
+    landmarks = [Landmark(i, 10.0 + i, (float(rng.normal()), float(rng.normal()), 0.3 * i)) for i in range(n)]
+    positions = {tuple(lab): rng.normal(size=(max(lab) + 1, 2)) for lab in chosen}
+    return make_ptm(landmarks, dict(zip(map(tuple, chosen), w, strict=True)), positions=positions)
+
+
+def test_edge_probabilities_against_adjacency_sums():
+    rng = np.random.default_rng(0)
+    ptm = random_ptm(rng)
+    m = 5
+    expected = np.zeros((m, m))
+    for t in ptm.topologies:  # brute force: any consecutive pair of visits joining places a and b
+        adj = np.zeros((m, m), dtype=bool)
+        for i in range(len(t.labels) - 1):
+            a, b = t.labels[i], t.labels[i + 1]
+            adj[a, b] = adj[b, a] = a != b
+        expected += t.probability * adj
+    got = np.zeros((m, m))
+    for e in edge_probabilities(ptm.topologies):
+        a, b = e["places"]
+        assert a < b and 0.0 <= e["probability"] <= 1.0
+        got[a, b] = got[b, a] = e["probability"]
+    assert np.allclose(got, expected, atol=1e-15)
+    one = edge_probabilities([Topology(labels=(0, 1, 0, 2, 2), probability=1.0)])
+    assert one == [{"places": [0, 1], "probability": 1.0}, {"places": [0, 2], "probability": 1.0}]
+
+
+def test_graph_document_is_a_valid_ptm_json():
+    ptm = random_ptm(np.random.default_rng(1))
+    doc = json.loads(json.dumps(graph_document(ptm, complete=True)))
+    back = from_json_dict(doc)
+    assert back.topologies == ptm.topologies and back.landmarks == ptm.landmarks
+    assert doc["graph_schema"] == "ptm_ros.ptm_graph/1" and doc["stream"] == {"visits": 5, "complete": True}
+    assert parse_graph(json.dumps(doc))[1].topologies == ptm.topologies
+    with pytest.raises(DataError, match="not JSON"):
+        parse_graph("{")
+    with pytest.raises(DataError, match=r"invalid ptm\.json"):
+        parse_graph(json.dumps({**doc, "schema": "x"}))
+
+
+def check_markers(array, ptm, count):
+    from visualization_msgs.msg import Marker
+
+    assert array.markers[0].action == Marker.DELETEALL
+    by_ns = {}
+    for mk in array.markers[1:]:
+        by_ns.setdefault(mk.ns, {})[mk.id] = mk
+    assert sorted(by_ns) == [f"topology_{r}" for r in range(min(count, len(ptm.topologies)))]
+    for r, t in enumerate(ptm.topologies[:count]):
+        mk = by_ns[f"topology_{r}"]
+        m = max(t.labels) + 1
+        visits, places, edges = mk[0], mk[1], mk[2]
+        assert len(visits.points) == len(t.labels) == len(visits.colors)
+        assert len(places.points) == m
+        # each visit has its place's colour; edges join places of consecutive visits
+        assert all(visits.colors[i] == places.colors[t.labels[i]] for i in range(len(t.labels)))
+        place_xy = {(p.x, p.y) for p in places.points}
+        assert all((p.x, p.y) in place_xy for p in edges.points) and len(edges.points) % 2 == 0
+        pairs = {tuple(sorted((t.labels[i], t.labels[i + 1]))) for i in range(len(t.labels) - 1)}
+        assert len(edges.points) == 2 * sum(a != b for a, b in pairs)
+        assert visits.colors[0].a == pytest.approx(topology_alpha(t.probability))
+        if t.positions is not None:
+            assert [(p.x, p.y) for p in places.points] == list(t.positions)
+
+
+def test_markers_reference_valid_places_and_start_with_deleteall():
+    ptm = random_ptm(np.random.default_rng(2))
+    check_markers(ensemble_markers(ptm, 3, 12.0), ptm, 3)
+    assert topology_alpha(0.9) > topology_alpha(0.1) > 0.0
+    empty = ensemble_markers(replace(ptm, topologies=()), 3, 0.0)
+    assert len(empty.markers) == 1
+
+
+def test_map_path_has_one_pose_per_visit_at_its_place():
+    ptm = random_ptm(np.random.default_rng(3))
+    path = map_path(ptm)
+    top = ptm.topologies[0]
+    assert len(path.poses) == len(ptm.landmarks)
+    for ps, lm, label in zip(path.poses, ptm.landmarks, top.labels, strict=True):
+        assert (ps.pose.position.x, ps.pose.position.y) == top.positions[label]
+        assert common.header_stamp(ps.header) == pytest.approx(lm.stamp, abs=1e-9)
+    bare = replace(ptm, topologies=(replace(top, positions=None),))
+    assert [(p.pose.position.x, p.pose.position.y) for p in map_path(bare).poses] == [
+        lm.pose[:2] for lm in ptm.landmarks
+    ]
+    assert map_path(replace(ptm, topologies=())).poses == []
+
+
+def test_visit_messages_are_parsed_or_rejected(sim_visits):
+    v = sim_visits[1]
+    back = parse_visit_message(visit_to_json(v))
+    assert back == v and np.array_equal(back.patch, v.patch)
+    assert parse_visit_message(json.dumps({"schema": common.END_SCHEMA, "visits": 4})) == 4
+    for bad, match in [
+        ("{", "not JSON"),
+        ("[1]", "schema must be"),
+        (json.dumps({"schema": "ptm_ros.visit/1", "index": 0}), "malformed visit"),
+        (json.dumps({"schema": common.END_SCHEMA, "visits": -1}), "bad count"),
+    ]:
+        with pytest.raises(DataError, match=match):
+            parse_visit_message(bad)
+
+
+# --------------------------------------------------------------------------------------- nodes over DDS
+
+
+def odometry_msg(stamp, pose, frame="odom"):
+    from nav_msgs.msg import Odometry
+
+    msg = Odometry()
+    msg.header.stamp = common.time_msg(stamp)
+    msg.header.frame_id = frame
+    msg.pose.pose = common.pose_msg(*pose)
+    return msg
+
+
+def test_filter_and_map_publisher_over_dds(sim_visits, tmp_path, monkeypatch, capfd):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+    from visualization_msgs.msg import MarkerArray
+
+    from ptm_ros.nodes.map_publisher import MapPublisherNode
+    from ptm_ros.nodes.topology_filter import TopologyFilterNode
+
+    config = no_laser()
+    overrides = [
+        Parameter("model.use_laser", value=False),
+        Parameter("inference.particles", value=30),
+        Parameter("marker_topologies", value=3),
+        Parameter("out_dir", value=str(tmp_path / "filter")),
+    ]
+    with ros_context(monkeypatch) as ros:
+        flt = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
+        mp = ros.add(
+            MapPublisherNode(
+                context=ros.context, parameter_overrides=[Parameter("out_dir", value=str(tmp_path))]
+            )
+        )
+        probe = ros.node("probe")
+        graph = Inbox(probe, String, "ptm_graph", common.LATCHED_QOS)
+        markers = Inbox(probe, MarkerArray, "ptm_markers", common.LATCHED_QOS)
+        path = Inbox(probe, PathMsg, "ptm_path", common.LATCHED_QOS)
+        diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 10)
+        pub = probe.create_publisher(String, "landmark_visits", common.STREAM_QOS)
+        ros.spin(flt, mp, probe)
+        wait_for(lambda: pub.get_subscription_count() > 0)
+        pub.publish(String(data="{not json"))
+        pub.publish(String(data=json.dumps({"schema": "ptm_ros.visit/9"})))
+        for v in sim_visits:
+            pub.publish(String(data=visit_to_json(v)))
+        pub.publish(String(data=visit_to_json(sim_visits[2])))  # a duplicate
+        pub.publish(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": len(sim_visits)})))
+
+        def final_graph():
+            msg = graph.last()
+            return msg is not None and json.loads(msg.data)["stream"]["complete"] and json.loads(msg.data)
+
+        doc = wait_for(final_graph, timeout=60.0)
+        ptm = from_json_dict(doc)
+        session = FilterSession(config)
+        for v in sim_visits:
+            session.add(v)
+        assert [t.labels for t in ptm.topologies] == list(session.inference().probabilities)
+        assert [t.probability for t in ptm.topologies] == list(session.inference().probabilities.values())
+        assert all(0.0 <= e["probability"] <= 1.0 for e in doc["edges"])
+        assert doc["diagnostics"]["invalid"] == 2 and doc["diagnostics"]["duplicates"] == 1
+        assert capfd.readouterr().err.count("dropped a malformed landmark_visits message") == 1  # logged once
+
+        wait_for(lambda: markers.last() is not None and len(markers.last().markers) == 1 + 4 * 3)
+        check_markers(markers.last(), ptm, 3)
+        wait_for(lambda: path.last() is not None and len(path.last().poses) == len(sim_visits))
+
+        def statuses():
+            names = {s.name: s for msg in diagnostics.items for s in msg.status}
+            ok = any("topology_filter" in n for n in names) and any("map_publisher" in n for n in names)
+            return ok and names
+
+        names = wait_for(statuses, timeout=10.0)
+        filt = next(s for n, s in names.items() if "topology_filter" in n)
+        assert {kv.key for kv in filt.values} >= {"visits", "particles", "ess", "update_ms", "invalid"}
+
+        reply = ros.call(probe, Trigger, "/map_publisher/save_ptm")
+        assert reply.success and json.loads(reply.message)["complete"] is True
+        assert json.loads((tmp_path / "ptm.json").read_text()) == doc
+        reply = ros.call(probe, Trigger, "/topology_filter/save_ptm")
+        assert reply.success and load_config(tmp_path / "filter" / "config.yaml") == config
+        saved = from_json_dict(json.loads((tmp_path / "filter" / "ptm.json").read_text()))
+        assert saved.topologies == ptm.topologies
+        reply = ros.call(probe, Trigger, "/topology_filter/reset")
+        assert reply.success and "forgot" in reply.message
+        assert not flt.session.visits
+
+
+def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_visits, monkeypatch):
+    """Visit stream anomalies, fed straight to the node's callback (no DDS traffic needed)."""
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    from ptm_ros.nodes.topology_filter import TopologyFilterNode
+
+    def msg(v):
+        return String(data=visit_to_json(v))
+
+    overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=20)]
+    with ros_context(monkeypatch) as ros:
+        node = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
+        v = sim_visits
+        node._on_visit(msg(v[0]))
+        node._on_visit(msg(v[1]))
+        node._on_visit(msg(v[3]))  # visit 2 never arrives
+        node._on_visit(msg(v[1]))  # a duplicate
+        bad = replace(v[4], signature=np.zeros(3))  # a signature the appearance model cannot use
+        node._on_visit(msg(bad))
+        assert node.counters["gaps"] == 1 and node.counters["duplicates"] == 1
+        assert node.counters["rejected"] == 1 and len(node.session.visits) == 3
+        assert [u.stamp for u in node.session.visits] == [v[0].stamp, v[1].stamp, v[3].stamp]
+        assert not node.complete
+        node._on_visit(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": 5})))
+        assert node.complete  # every announced visit was consumed, mapped or not
+        node._on_visit(msg(v[0]))  # the detector restarted: a new map
+        assert len(node.session.visits) == 1 and not node.complete and node.counters["resets"] == 1
+        reply = node._on_reset(Trigger.Request(), Trigger.Response())
+        assert reply.success and reply.message == "forgot 1 visits" and node.session.filter is None
+        node._on_visit(msg(v[5]))  # after a reset, numbering starts again from the next visit
+        assert [u.index for u in node.session.visits] == [0] and node.session.visits[0].stamp == v[5].stamp
+
+
+def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypatch, capfd):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+
+    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode
+
+    stamps = (5_000_000_000 + np.arange(200) * 100_000_000) / 1e9  # whole ns, as messages carry them
+    poses = [(0.1 * k, 0.02 * math.sin(0.1 * k), 0.05) for k in range(200)]
+    bad = {30: (math.nan, 0.0, 0.0), 77: (1.0, math.inf, 0.0)}
+    stream = [(s, bad.get(k, p)) for k, (s, p) in enumerate(zip(stamps, poses, strict=True))]
+    offline = make_extractor(PtmConfig(), "equidistant", use_scans=False, use_images=False)
+    expected = [v for s, p in stream for v in offline.on_odometry(float(s), p)] + offline.flush()
+    assert len(expected) >= 5
+
+    overrides = [Parameter("use_scans", value=False), Parameter("use_images", value=False)]
+    with ros_context(monkeypatch) as ros:
+        det = ros.add(LandmarkDetectorNode(context=ros.context, parameter_overrides=overrides))
+        probe = ros.node("probe")
+        visits = Inbox(probe, String, "landmark_visits", common.STREAM_QOS)
+        poses_in = Inbox(probe, PoseStamped, "landmark_poses", common.DISPLAY_QOS)
+        diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 10)
+        odom = probe.create_publisher(Odometry, "odom", common.REPLAY_QOS)
+        end = probe.create_publisher(String, "end_of_input", common.LATCHED_QOS)
+        ros.spin(det, probe)
+        wait_for(lambda: odom.get_subscription_count() > 0 and end.get_subscription_count() > 0)
+        for s, p in stream:
+            odom.publish(odometry_msg(float(s), p, frame="wheel_odom"))
+        counts = {"/odom": len(stream), "/imu": 4}  # a topic the detector does not read is ignored
+        end.publish(String(data=json.dumps({"schema": common.END_OF_INPUT_SCHEMA, "counts": counts})))
+        wait_for(lambda: visits.items and json.loads(visits.items[-1].data)["schema"] == common.END_SCHEMA)
+        got = [parse_visit_message(m.data) for m in visits.items]
+        assert got[-1] == len(expected)
+        assert got[:-1] == expected  # the offline extractor's visits, poses and stamps bit for bit
+        wait_for(lambda: len(poses_in.items) == len(expected))
+        for ps, v in zip(poses_in.items, expected, strict=True):
+            assert ps.header.frame_id == "wheel_odom" and common.header_stamp(ps.header) == v.stamp
+            assert (ps.pose.position.x, ps.pose.position.y) == v.pose[:2]
+        diag = det.diagnostics()
+        assert diag["extractor"]["skipped"] == {"odometry-non-finite": 2}
+        assert diag["received"] == {"/odom": len(stream), "/scan": 0, "/panorama": 0} and diag["finished"]
+
+        def detector_status():
+            for msg in diagnostics.items:
+                for st in msg.status:
+                    values = {kv.key: kv.value for kv in st.values}
+                    if "landmark_detector" in st.name and values.get("finished") == "True":
+                        return values
+            return None
+
+        values = wait_for(detector_status, timeout=10.0)
+        assert values["extractor.skipped.odometry-non-finite"] == "2" and values["published_visits"] == str(
+            len(got) - 1
+        )
+        # two bad messages, one warning
+        assert capfd.readouterr().err.count("skipped a message: odometry-non-finite") == 1
+
+
+def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monkeypatch):
+    from nav_msgs.msg import Odometry
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Image, LaserScan
+    from std_msgs.msg import String
+
+    rng = np.random.default_rng(5)
+    bag = tmp_path / "small"
+    with BagWriter(bag) as w:
+        for k in range(40):
+            w.write_odometry(100.0 + 0.05 * k, (0.1 * k, 0.0, 0.01 * k))
+            if k % 4 == 0:
+                w.write_scan(
+                    100.0 + 0.05 * k + 0.01,
+                    rng.uniform(0.5, 9.0, 60).astype(np.float32),
+                    angle_min=-1.0,
+                    angle_increment=0.03,
+                    range_min=0.1,
+                    range_max=10.0,
+                )
+        for k in range(3):
+            w.write_image(100.3 + k, rng.integers(0, 255, (8, 32), dtype=np.uint8))
+    recorded: dict[str, list[bytes]] = {}
+    for raw in iter_raw(bag):
+        recorded.setdefault(raw.topic, []).append(raw.rawdata)
+    last_ns = max(raw.log_time_ns for raw in iter_raw(bag))
+
+    with ros_context(monkeypatch) as ros:
+        probe = ros.node("probe")
+        got: dict[str, list[bytes]] = {t: [] for t in recorded}
+        for topic, kind in (("/odom", Odometry), ("/scan", LaserScan), ("/panorama", Image)):
+            probe.create_subscription(kind, topic, got[topic].append, common.REPLAY_QOS, raw=True)
+        clock = Inbox(probe, Clock, "/clock", common.REPLAY_QOS)
+        end = Inbox(probe, String, "end_of_input", common.LATCHED_QOS)
+        ros.spin(probe)
+        proc = subprocess.run(
+            [sys.executable, "-m", "ptm_ros.nodes.bag_player", str(bag), "--rate", "0", "--wait", "30"],
+            env=dds_env(ros.domain_id),
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+        assert proc.returncode == 0, proc.stderr
+        doc = json.loads(wait_for(end.last).data)
+        assert doc["schema"] == common.END_OF_INPUT_SCHEMA
+        assert doc["counts"] == {t: len(v) for t, v in recorded.items()}
+        wait_for(lambda: all(len(got[t]) == len(recorded[t]) for t in recorded))
+        assert got == recorded  # every message, in order, byte for byte
+        ticks = [c.clock.sec * 1_000_000_000 + c.clock.nanosec for c in clock.items]
+        assert ticks == sorted(ticks) and ticks[-1] == last_ns
+
+
+# ----------------------------------------------------------------------------- node processes: start-up
+
+
+@pytest.mark.parametrize(
+    ("node", "ros_args", "match"),
+    [
+        ("topology_filter", ["-p", "inference.particles:=0"], "particles and top must be >= 1"),
+        ("landmark_detector", ["-p", "sensor_qos:=fast"], "sensor_qos must be one of"),
+        ("map_publisher", ["-p", "out_dir:=3"], "out_dir"),
+        ("map_publisher", ["-p", "inference.particlez:=3"], "unknown parameter(s) ['inference.particlez']"),
+    ],
+)
+def test_bad_parameter_makes_the_node_exit_non_zero(node, ros_args, match):
+    env = dds_env(next_domain_id())
+    proc = subprocess.run(
+        [sys.executable, "-m", f"ptm_ros.nodes.{node}", "--ros-args", *ros_args],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "invalid parameters" in proc.stderr and match in proc.stderr
+
+
+def test_player_rejects_bad_arguments(tmp_path, capsys, sim_bag):
+    from ptm_ros.nodes import bag_player
+
+    assert bag_player.main([str(tmp_path / "none"), "--rate", "1"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert bag_player.main([str(sim_bag), "--topics", "/nope"]) == 2
+    assert "no topic /nope" in capsys.readouterr().err
+    assert bag_player.main([str(sim_bag), "--rate", "-1"]) == 2
+    topics = bag_player.bag_topics(sim_bag)
+    counts: dict[str, int] = {}
+    for raw in iter_raw(sim_bag):
+        counts[raw.topic] = counts.get(raw.topic, 0) + 1
+    assert {t: topics[t].count for t in topics} == counts
+    assert topics["/odom"].msgtype == "nav_msgs/msg/Odometry"
+    assert bag_player.message_class("nav_msgs/msg/Odometry").__name__ == "Odometry"
+    with pytest.raises(DataError, match="not available"):
+        bag_player.message_class("nope_msgs/msg/Nothing")
