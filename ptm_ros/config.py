@@ -97,8 +97,22 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     return from_dict(PtmConfig, data)
 
 
-#: ROS parameters every node accepts that are not ptm_ros configuration.
-ROS_ONLY_PARAMETERS = frozenset({"use_sim_time"})
+#: Node-level ROS parameters that are not ptm_ros model configuration (``ptm_ros.nodes.common`` declares
+#: them); a parameter file's sections may carry them and ``ptm-run`` ignores them.
+ROS_ONLY_PARAMETERS = frozenset(
+    {
+        "use_sim_time",
+        "out_dir",
+        "sensor_qos",
+        "use_scans",
+        "use_images",
+        "stall_s",
+        "end_timeout",
+        "marker_topologies",
+        "refit_max_visits",
+        "frame_id",
+    }
+)
 
 
 def unwrap_ros_parameters(doc: dict[str, Any]) -> dict[str, Any]:

@@ -62,3 +62,10 @@ def test_overrides_and_round_trip(tmp_path):
     cfg = load_config(None, {"inference": {"method": "exact", "top": 5}, "detector": {"kind": "equidistant"}})
     assert cfg.inference.method == "exact" and cfg.inference.top == 5
     assert load_config(save_config(cfg, tmp_path / "c.yaml")) == cfg
+
+
+def test_node_only_parameters_are_known_to_the_loader():
+    common = pytest.importorskip("ptm_ros.nodes.common", reason="rclpy not installed")
+    from ptm_ros.config import ROS_ONLY_PARAMETERS
+
+    assert set(common.NODE_PARAMETERS) <= ROS_ONLY_PARAMETERS
