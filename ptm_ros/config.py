@@ -15,6 +15,7 @@ from ptm_ros.configio import from_dict, load_yaml, to_dict
 from ptm_ros.detectors import EquidistantConfig
 from ptm_ros.errors import ConfigError
 from ptm_ros.laser import LaserConfig
+from ptm_ros.mcmc import McmcConfig
 from ptm_ros.posterior import ModelConfig
 
 METHODS = ("exact", "rbpf", "mcmc")
@@ -57,6 +58,7 @@ class InferenceConfig:
     seed: int = 0
     top: int = 50  # topologies written to ptm.json
     max_exact_visits: int = 9  # exact enumeration refuses larger N (B_9 = 21 147; B_12 = 4.2 million)
+    mcmc: McmcConfig = field(default_factory=McmcConfig)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

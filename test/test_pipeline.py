@@ -92,3 +92,19 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     out = capsys.readouterr().out
     assert code == 0, out
     assert "most probable topologies" in out and "#1 p = " in out and "MAP F1" in out
+
+
+def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
+    """The three estimators over the same visits and model: MCMC's visited-set estimate and the filter
+    (particles >= the number of topologies it can hold) against enumeration."""
+    from ptm_ros.posterior import total_variation
+
+    model = {"use_laser": False, "odometry": {"n_samples": 0}}
+    ptms = {}
+    for method in ("exact", "mcmc", "rbpf"):
+        cfg = small_config(model=model, inference={"method": method, "top": 10_000, "particles": 10_000})
+        ptms[method] = run_offline(tjunction_bag, tmp_path / method, cfg, write_report=False).ptm
+    dist = {m: {t.labels: t.probability for t in p.topologies} for m, p in ptms.items()}
+    assert total_variation(dist["exact"], dist["mcmc"]) < 0.01
+    assert total_variation(dist["exact"], dist["rbpf"]) < 0.05  # EKF linearisation vs batch Laplace
+    assert ptms["mcmc"].inference["converged"] is True

@@ -144,21 +144,56 @@ def infer(
         logp = exact_posterior(model, progress=progress)
         probs = normalize_log(logp)
         ranked = dict(top_k(probs, inf.top))
-        positions = {}
-        for lab in ranked:
-            res = model.terms(lab).metric_result
-            if res is not None:
-                positions[lab] = res.place_positions
         return Inference(
             probabilities=ranked,
-            positions=positions,
+            positions=_metric_positions(model, ranked),
             log_posteriors={lab: logp[lab] for lab in ranked},
             details={"n_topologies_evaluated": len(logp)},
         )
     if inf.method == "rbpf":
         return _infer_rbpf(visits, model, config, registrar, progress)
-    msg = f"inference method {inf.method!r} is not available in this version; use 'exact' or 'rbpf'"
+    if inf.method == "mcmc":
+        return _infer_mcmc(model, config)
+    msg = f"inference method {inf.method!r} is not available"
     raise ConfigError(msg)
+
+
+def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[Labels, np.ndarray]:
+    """Optimised place positions of some topologies (from the cached metric likelihood)."""
+    out = {}
+    for lab in labels:
+        res = model.terms(lab).metric_result
+        if res is not None:
+            out[lab] = res.place_positions
+    return out
+
+
+def _infer_mcmc(model: PosteriorModel, config: PtmConfig) -> Inference:
+    """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged."""
+    from ptm_ros.mcmc import run_mcmc
+
+    inf = config.inference
+    res = run_mcmc(model, inf.mcmc, inf.seed)
+    ranked = dict(top_k(res.probabilities, inf.top))
+    d = res.diagnostics
+    return Inference(
+        probabilities=ranked,
+        positions=_metric_positions(model, ranked),
+        log_posteriors={lab: res.log_posteriors[lab] for lab in ranked},
+        details={
+            "estimate": inf.mcmc.estimate,
+            "iterations": d.iterations,
+            "chains": d.chains,
+            "betas": list(d.betas),
+            "converged": d.converged,
+            "stop_reason": d.stop_reason,
+            "doubling_tv": d.doubling_tv,
+            "chain_tv": d.chain_tv,
+            "n_evaluated": d.n_evaluated,
+            "samples": res.samples,
+            "acceptance": dict(d.acceptance),
+        },
+    )
 
 
 def _infer_rbpf(

@@ -1,0 +1,424 @@
+"""Benchmark of MCMC over topologies (ptm_ros.mcmc): accuracy against enumeration and speed-ups.
+
+Writes ``bench/mcmc.json`` (beside this script, or ``--out``) and prints a table. Three parts:
+
+* ``accuracy``: simulated runs of N = 9 visits (a square driven twice, with and without signatures; a
+  figure-eight whose two lobes look alike) against :func:`ptm_ros.posterior.exact_posterior` (all
+  B_9 = 21 147 topologies): :func:`ptm_ros.mcmc.run_mcmc` with its defaults over seeds, TV of the
+  visited-set and histogram estimates to the exact posterior, wall time, sweeps, convergence.
+* ``speed``: single chains side by side on the same runs, from all-singletons, each with a fresh model
+  (cold posterior cache): sweeps, MH steps, posterior evaluations and wall time until the visited-set
+  estimate is within TV 0.02 of the exact posterior — plain split–merge (Alg. 2) vs the odometry-driven
+  proposal (Alg. 3) vs the data-driven mixture, and the mixture as one chain vs MC³ (Alg. 5) and vs
+  chaining (Alg. 4). Medians over seeds; speed-ups are ratios of medians.
+* ``sim33``: when ``ptm_ros.io.simulator`` is present, the ``multi-loop`` world (33 visits, odometry only,
+  like thesis Fig. 39–40): ``run_mcmc`` defaults (2 chains, MC³ with β = 1, ½) with the default odometry
+  model (importance sampling); convergence by sample doubling, wall time, the true topology's mass and
+  rank; also one chain without a heated replica, the chains in 2 worker processes, and plain
+  split–merge (capped at 60 s).
+
+Exact enumeration is the slow part (~10 ms per topology here); it runs in ``--processes`` worker
+processes and is cached in ``--cache`` (default: a directory under the system temp dir), keyed by the
+visits and model parameters. The model uses the Laplace estimate (``n_samples = 0``) and an LM tolerance
+of 1e-3 nats for the N = 9 runs, the same for the sampler and the enumeration.
+
+Usage: ``PYTHONPATH=. .venv/bin/python bench/bench_mcmc.py [--quick] [--out FILE] [--processes 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import pickle
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ptm_ros.geometry import between, compose, wrap_angle
+from ptm_ros.mcmc import McmcConfig, McmcSampler, run_mcmc
+from ptm_ros.odometry import OdometryConfig
+from ptm_ros.partitions import canonical, enumerate_partitions
+from ptm_ros.posterior import ModelConfig, PosteriorModel, normalize_log, total_variation
+from ptm_ros.visits import Visit
+
+THRESHOLD = 0.02
+ODOMETRY = OdometryConfig(n_samples=0, tolerance=1e-3)
+MODEL = ModelConfig(odometry=ODOMETRY)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Scenes
+# ---------------------------------------------------------------------------------------------------
+
+
+def simulate(route, places, odo, *, seed=0, signatures=None, noise=1.0, sig_noise=0.3):
+    """Visits along ``route`` (place indices) with odometry noise ``noise`` × the model's own."""
+    rng = np.random.default_rng(seed)
+    pts = np.asarray(places, dtype=float)
+    true = []
+    for i, p in enumerate(route):
+        nxt = pts[route[i + 1]] if i + 1 < len(route) else 2 * pts[p] - pts[route[i - 1]]
+        true.append(np.array([*pts[p], math.atan2(*(nxt - pts[p])[::-1])]))
+    visits, u = [], true[0].copy()
+    for i, p in enumerate(route):
+        travel = rotation = 0.0
+        if i > 0:
+            rel = between(true[i - 1], true[i])
+            travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
+            var_xy = odo.a_xy * travel + odo.b_xy
+            var_th = odo.a_th * rotation + odo.c_th * travel + odo.b_th
+            u = compose(u, rel + noise * rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
+        sig = None
+        if signatures is not None:
+            sig = np.abs(signatures[p] + rng.normal(0.0, sig_noise, signatures.shape[1]))
+        visits.append(Visit(i, float(i), tuple(float(v) for v in u), travel, rotation, signature=sig))
+    return visits
+
+
+def scenes() -> dict[str, tuple[list[Visit], tuple[int, ...]]]:
+    """The N = 9 runs: name -> (visits, true labels)."""
+    square = [(0.0, 0.0), (8.0, 0.0), (8.0, 8.0), (0.0, 8.0)]
+    sq_route = [0, 1, 2, 3, 0, 1, 2, 3, 0]
+    eight = [(0.0, 0.0), (8.0, 0.0), (8.0, 8.0), (0.0, 8.0), (-8.0, 0.0), (-8.0, -8.0), (0.0, -8.0)]
+    eight_route = [0, 1, 2, 3, 0, 4, 5, 6, 0]
+    sig_rng = np.random.default_rng(42)
+    sq_sig = sig_rng.uniform(1.0, 3.0, size=(4, 4))
+    eight_sig = sig_rng.uniform(1.0, 3.0, size=(7, 4))
+    eight_sig[4:7] = eight_sig[1:4]  # the two lobes look alike (perceptual aliasing)
+    return {
+        "square": (simulate(sq_route, square, ODOMETRY, seed=0, noise=3.0), canonical(sq_route)),
+        "square+signatures": (
+            simulate(sq_route, square, ODOMETRY, seed=1, noise=4.0, signatures=sq_sig),
+            canonical(sq_route),
+        ),
+        "figure-eight+aliasing": (
+            simulate(eight_route, eight, ODOMETRY, seed=2, noise=1.0, signatures=eight_sig),
+            canonical(eight_route),
+        ),
+    }
+
+
+# ---------------------------------------------------------------------------------------------------
+# Exact posterior (parallel, cached)
+# ---------------------------------------------------------------------------------------------------
+
+#: The model the enumeration workers evaluate (inherited through fork, not pickled).
+_WORKER: dict[str, PosteriorModel] = {}
+
+
+def _evaluate(chunk: list[tuple[int, ...]]) -> list[float]:
+    model = _WORKER["model"]
+    return [model.log_posterior(lab) for lab in chunk]
+
+
+def _cache_key(visits, config: ModelConfig) -> str:
+    h = hashlib.sha256(repr(config).encode())
+    for v in visits:
+        h.update(repr((v.pose, v.travel, v.rotation)).encode())
+        if v.signature is not None:
+            h.update(np.asarray(v.signature).tobytes())
+    return h.hexdigest()[:20]
+
+
+def exact_posterior_cached(visits, config: ModelConfig, processes: int, cache: Path) -> dict:
+    """Normalised exact posterior of all topologies, enumerated in worker processes and cached."""
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / f"exact-{_cache_key(visits, config)}.pkl"
+    if path.is_file():
+        with path.open("rb") as f:
+            return pickle.load(f)
+    labels = list(enumerate_partitions(len(visits)))
+    _WORKER["model"] = PosteriorModel(visits, config)
+    if processes > 1:
+        chunks = [labels[i : i + 500] for i in range(0, len(labels), 500)]
+        with mp.get_context("fork").Pool(processes) as pool:
+            values = [x for part in pool.map(_evaluate, chunks) for x in part]
+    else:
+        values = _evaluate(labels)
+    _WORKER.clear()
+    out = normalize_log(dict(zip(labels, values, strict=True)))
+    with path.open("wb") as f:
+        pickle.dump(out, f)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# Parts
+# ---------------------------------------------------------------------------------------------------
+
+
+def accuracy(runs, exact, seeds) -> list[dict[str, Any]]:
+    rows = []
+    for name, (visits, truth) in runs.items():
+        for seed in seeds:
+            model = PosteriorModel(visits, MODEL)
+            res = run_mcmc(model, McmcConfig(), seed)
+            d = res.diagnostics
+            rows.append(
+                {
+                    "scene": name,
+                    "seed": seed,
+                    "tv_visited": total_variation(res.visited, exact[name]),
+                    "tv_histogram": total_variation(res.histogram, exact[name]),
+                    "wall_s": res.wall_s,
+                    "sweeps": d.iterations,
+                    "evaluated": d.n_evaluated,
+                    "converged": d.converged,
+                    "doubling_tv": d.doubling_tv,
+                    "chain_tv": d.chain_tv,
+                    "p_true_exact": exact[name].get(truth, 0.0),
+                    "p_true_mcmc": res.probabilities.get(truth, 0.0),
+                }
+            )
+    return rows
+
+
+METHODS: dict[str, dict[str, Any]] = {
+    "split-merge": {"proposal": "split-merge", "betas": (1.0,)},
+    "odometry": {"proposal": "odometry", "betas": (1.0,)},
+    "data-driven": {"proposal": "auto", "betas": (1.0,)},
+    "data-driven+MC3": {"proposal": "auto", "betas": (1.0, 0.5)},
+    "data-driven+chaining": {"proposal": "auto", "betas": (1.0,), "max_chaining": 3},
+}
+
+
+def time_to_threshold(visits, exact, method, *, seed, cap_sweeps, cap_s, step=5) -> dict[str, Any]:
+    """One chain from all-singletons until TV(visited estimate, exact) <= THRESHOLD (or the caps)."""
+    cfg = McmcConfig(chains=1, max_iterations=cap_sweeps, max_seconds=cap_s, **METHODS[method])
+    model = PosteriorModel(visits, MODEL)
+    with McmcSampler(model, cfg, seed) as sampler:
+        tv = total_variation(sampler.estimate("visited"), exact)
+        while tv > THRESHOLD and sampler.iterations < cap_sweeps and sampler.wall_s < cap_s:
+            sampler.advance(sampler.iterations + step)
+            tv = total_variation(sampler.estimate("visited"), exact)
+        evaluated = sampler.check("visited").n_evaluated
+        return {
+            "method": method,
+            "seed": seed,
+            "reached": tv <= THRESHOLD,
+            "tv": tv,
+            "sweeps": sampler.iterations,
+            "mh_steps": sampler.iterations * len(cfg.betas),
+            "evaluated": evaluated,
+            "wall_s": sampler.wall_s,
+        }
+
+
+def _ratio(summary: dict[str, dict[str, float]], a: str, b: str, key: str) -> float:
+    """How many times more ``key`` method a needed than method b."""
+    return summary[a][key] / max(summary[b][key], 1e-9)
+
+
+PAIRS = {
+    "odometry vs split-merge": ("split-merge", "odometry"),
+    "data-driven vs split-merge": ("split-merge", "data-driven"),
+    "MC3 vs single chain": ("data-driven", "data-driven+MC3"),
+    "chaining vs single proposal": ("data-driven", "data-driven+chaining"),
+}
+
+
+def speed(runs, exact, seeds, cap_sweeps, cap_s) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, (visits, _) in runs.items():
+        rows = [
+            time_to_threshold(visits, exact[name], method, seed=seed, cap_sweeps=cap_sweeps, cap_s=cap_s)
+            for method in METHODS
+            for seed in seeds
+        ]
+        summary = {}
+        for method in METHODS:
+            mine = [r for r in rows if r["method"] == method]
+            summary[method] = {
+                "reached": sum(r["reached"] for r in mine),
+                "runs": len(mine),
+                "median_sweeps": statistics.median(r["sweeps"] for r in mine),
+                "median_mh_steps": statistics.median(r["mh_steps"] for r in mine),
+                "median_evaluated": statistics.median(r["evaluated"] for r in mine),
+                "median_wall_s": statistics.median(r["wall_s"] for r in mine),
+            }
+
+        out[name] = {
+            "runs": rows,
+            "summary": summary,
+            "speedup_wall": {k: _ratio(summary, a, b, "median_wall_s") for k, (a, b) in PAIRS.items()},
+            "speedup_sweeps": {k: _ratio(summary, a, b, "median_sweeps") for k, (a, b) in PAIRS.items()},
+        }
+    return out
+
+
+def sim33_visits(seed: int):
+    """33 visits of the simulator's multi-loop world (odometry at the passages), and the true labels."""
+    from ptm_ros.io.simulator import CameraConfig, SimConfig, simulate
+    from ptm_ros.io.worlds import get_world
+
+    run = simulate(
+        get_world("multi-loop"), SimConfig(camera=CameraConfig(enabled=False)), np.random.default_rng(seed)
+    )
+    stamps, odom = run.odom_stamps, run.odom_poses
+    dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(odom[:, :2], axis=0).T))])
+    turn = np.concatenate([[0.0], np.cumsum(np.abs(wrap_angle(np.diff(odom[:, 2]))))])
+    visits, prev = [], None
+    for n, passage in enumerate(run.passages):
+        k = int(np.argmin(np.abs(stamps - passage.stamp)))
+        travel = 0.0 if prev is None else float(dist[k] - dist[prev])
+        rotation = 0.0 if prev is None else float(turn[k] - turn[prev])
+        visits.append(Visit(n, float(stamps[k]), tuple(float(v) for v in odom[k]), travel, rotation))
+        prev = k
+    return visits, canonical([p.place for p in run.passages])
+
+
+def sim33(seeds, methods) -> list[dict[str, Any]] | None:
+    try:
+        import ptm_ros.io.simulator  # noqa: F401
+    except ImportError:
+        return None
+    rows = []
+    for seed in seeds:
+        visits, truth = sim33_visits(seed)
+        for method, cfg in methods.items():
+            model = PosteriorModel(visits, ModelConfig())
+            res = run_mcmc(model, cfg, seed)
+            d = res.diagnostics
+            ranked = list(res.probabilities)
+            rows.append(
+                {
+                    "seed": seed,
+                    "method": method,
+                    "visits": len(visits),
+                    "converged": d.converged,
+                    "stop_reason": d.stop_reason,
+                    "doubling_tv": d.doubling_tv,
+                    "chain_tv": d.chain_tv,
+                    "wall_s": res.wall_s,
+                    "sweeps": d.iterations,
+                    "evaluated": d.n_evaluated,
+                    "acceptance": d.acceptance,
+                    "p_true": res.probabilities.get(truth, 0.0),
+                    "rank_true": ranked.index(truth) + 1 if truth in res.probabilities else None,
+                    "top4": [p for _, p in list(res.probabilities.items())[:4]],
+                    "places_true": max(truth) + 1,
+                    "places_map": max(ranked[0]) + 1,
+                }
+            )
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------------
+# Main
+# ---------------------------------------------------------------------------------------------------
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer seeds")
+    parser.add_argument("--out", type=Path, default=Path(__file__).with_name("mcmc.json"))
+    parser.add_argument("--processes", type=int, default=2, help="workers for exact enumeration")
+    parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "ptm_ros_bench_mcmc")
+    parser.add_argument("--skip", nargs="*", default=[], choices=["accuracy", "speed", "sim33"])
+    args = parser.parse_args()
+    seeds = range(2 if args.quick else 5)
+
+    t0 = time.monotonic()
+    runs = scenes()
+    exact = {}
+    for name, (visits, _) in runs.items():
+        t = time.monotonic()
+        exact[name] = exact_posterior_cached(visits, MODEL, args.processes, args.cache)
+        print(f"exact posterior {name}: {len(exact[name])} topologies, {time.monotonic() - t:.1f} s")
+
+    report: dict[str, Any] = {
+        "machine": {
+            "python": platform.python_version(),
+            "processor": platform.processor(),
+            "cpus": mp.cpu_count(),
+        },
+        "threshold": THRESHOLD,
+        "model": dataclasses.asdict(MODEL),
+        "mcmc_defaults": dataclasses.asdict(McmcConfig()),
+        "scenes": {
+            name: {
+                "visits": len(v),
+                "truth": list(truth),
+                "p_truth": exact[name].get(truth, 0.0),
+                "p_max": max(exact[name].values()),
+                "topologies_above_1e-3": sum(p > 1e-3 for p in exact[name].values()),
+            }
+            for name, (v, truth) in runs.items()
+        },
+    }
+    if "accuracy" not in args.skip:
+        report["accuracy"] = accuracy(runs, exact, seeds)
+    if "speed" not in args.skip:
+        report["speed"] = speed(runs, exact, seeds, cap_sweeps=20_000, cap_s=120.0)
+    if "sim33" not in args.skip:
+        report["sim33"] = sim33(
+            range(1 if args.quick else 3),
+            {
+                "default": McmcConfig(),
+                "single-chain": McmcConfig(betas=(1.0,)),
+                "2-processes": McmcConfig(processes=2),
+                "split-merge": McmcConfig(proposal="split-merge", max_seconds=60.0),
+            },
+        )
+    report["total_wall_s"] = time.monotonic() - t0
+    args.out.write_text(json.dumps(report, indent=1, default=float) + "\n")
+    print_tables(report)
+    print(f"wrote {args.out} ({report['total_wall_s']:.0f} s)")
+
+
+def print_tables(report: dict[str, Any]) -> None:
+    print("\nScenes (exact posterior):")
+    for name, s in report["scenes"].items():
+        print(f"  {name:24s} N={s['visits']}  P(truth)={s['p_truth']:.3f}  max={s['p_max']:.3f}")
+    if "accuracy" in report:
+        print(f"\nAccuracy of run_mcmc defaults (TV to exact; target <= {THRESHOLD}):")
+        print(
+            f"  {'scene':24s} {'TV visited':>10s} {'TV hist':>8s} {'wall s':>7s} {'sweeps':>7s} {'conv':>5s}"
+        )
+        for name in report["scenes"]:
+            rows = [r for r in report["accuracy"] if r["scene"] == name]
+            print(
+                f"  {name:24s} {max(r['tv_visited'] for r in rows):10.4f} "
+                f"{statistics.median(r['tv_histogram'] for r in rows):8.4f} "
+                f"{statistics.median(r['wall_s'] for r in rows):7.2f} "
+                f"{statistics.median(r['sweeps'] for r in rows):7.0f} "
+                f"{sum(r['converged'] for r in rows)}/{len(rows)}"
+            )
+        print("  (TV visited: worst seed; the others: medians)")
+    if "speed" in report:
+        print(f"\nTime to TV <= {THRESHOLD} from all-singletons, one chain (medians over seeds):")
+        print(f"  {'scene':24s} {'method':22s} {'reached':>7s} {'sweeps':>7s} {'evals':>6s} {'wall s':>7s}")
+        for name, part in report["speed"].items():
+            for method, s in part["summary"].items():
+                print(
+                    f"  {name:24s} {method:22s} {s['reached']:>3d}/{s['runs']:<3d} {s['median_sweeps']:7.0f} "
+                    f"{s['median_evaluated']:6.0f} {s['median_wall_s']:7.2f}"
+                )
+            sw = part["speedup_wall"]
+            print("  " + "; ".join(f"{k}: ×{v:.2f}" for k, v in sw.items()) + " (wall)")
+    if report.get("sim33"):
+        print("\nmulti-loop simulator run (33 visits, odometry only):")
+        print(
+            f"  {'seed':>4s} {'method':12s} {'conv':>5s} {'doubling':>8s} {'chains':>7s} {'wall s':>7s} "
+            f"{'sweeps':>7s} {'evals':>6s} {'P(true)':>8s} {'rank':>5s}"
+        )
+        for r in report["sim33"]:
+            chain = "-" if r["chain_tv"] is None else f"{r['chain_tv']:.4f}"
+            print(
+                f"  {r['seed']:4d} {r['method']:12s} {r['converged']!s:>5s} {r['doubling_tv']:8.4f} "
+                f"{chain:>7s} {r['wall_s']:7.2f} {r['sweeps']:7d} {r['evaluated']:6d} {r['p_true']:8.3f} "
+                f"{r['rank_true']!s:>5s}"
+            )
+
+
+if __name__ == "__main__":
+    main()
