@@ -47,7 +47,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from ptm_ros.config import PtmConfig
+from ptm_ros.config import ROS_ONLY_PARAMETERS, PtmConfig
 from ptm_ros.configio import from_dict
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.io.bag import (
@@ -349,20 +349,7 @@ def declare_config(node: Node, root: type = PtmConfig) -> Any:
 
 #: Every node-specific parameter of the suite (not configuration). One ``/**`` parameter file serves all
 #: nodes, so each node accepts the others' parameters too; any other name is a typo and is rejected.
-NODE_PARAMETERS = frozenset(
-    {
-        "use_sim_time",
-        "out_dir",
-        "sensor_qos",
-        "use_scans",
-        "use_images",
-        "stall_s",
-        "end_timeout",
-        "marker_topologies",
-        "refit_max_visits",
-        "frame_id",
-    }
-)
+NODE_PARAMETERS = ROS_ONLY_PARAMETERS  # node-level parameters, not model configuration
 
 
 def check_parameter_names(node: Node, root: type = PtmConfig) -> None:

@@ -63,10 +63,10 @@ from ptm_ros.nodes.common import (
     run_node,
     time_msg,
 )
-from ptm_ros.posterior import PosteriorModel, top_k
+from ptm_ros.posterior import PosteriorModel
 from ptm_ros.ptm import Ptm, Topology, to_json_dict
 from ptm_ros.rbpf import FilterState, RbpfConfig, TopologyFilter
-from ptm_ros.tools.pipeline import Inference, build_ptm, make_registrar
+from ptm_ros.tools.pipeline import Inference, build_ptm, make_registrar, rbpf_inference
 from ptm_ros.visits import Visit
 
 NODE_NAME = "topology_filter"
@@ -207,25 +207,7 @@ class FilterSession:
         if flt is None:
             msg = "no visit has been processed yet"
             raise DataError(msg)
-        inf = self.config.inference
-        probs = flt.ptm_weights()
-        logw = flt.log_weights()
-        ranked = dict(top_k(probs, inf.top))
-        updates = np.array([h.update_s for h in flt.history])
-        return Inference(
-            probabilities=ranked,
-            positions={lab: flt.place_positions(lab) for lab in ranked},
-            log_posteriors={lab: logw[lab] for lab in ranked},
-            details={
-                "resample": inf.resample,
-                "n_topologies": flt.n_topologies,
-                "ess": flt.history[-1].ess,
-                "log_evidence": flt.log_evidence,
-                "update_ms_median": float(np.median(updates) * 1e3),
-                "update_ms_p95": float(np.percentile(updates, 95) * 1e3),
-                "replays": self.replays,
-            },
-        )
+        return rbpf_inference(flt, self.config, replays=self.replays)
 
     def to_ptm(self, *, frame_id: str = "odom", **extra: Any) -> Ptm:
         """The current PTM (as :func:`ptm_ros.tools.pipeline.build_ptm` writes it)."""

@@ -217,6 +217,91 @@ def _infer_rbpf(
         seed=inf.seed,
         progress=progress,
     )
+    return rbpf_inference(flt, config)
+
+
+def rbpf_inference(flt: Any, config: PtmConfig, **details: Any) -> Inference:
+    """A particle filter's current ensemble as an :class:`Inference` (used by ``ptm-run`` and the node)."""
+    inf = config.inference
+    probs = flt.ptm_weights()
+    logw = flt.log_weights()
+    ranked = dict(top_k(probs, inf.top))
+    updates = np.array([h.update_s for h in flt.history])
+    return Inference(
+        probabilities=ranked,
+        positions={lab: flt.place_positions(lab) for lab in ranked},
+        log_posteriors={lab: logw[lab] for lab in ranked},
+        details={
+            "resample": inf.resample,
+            "n_topologies": flt.n_topologies,
+            "ess": flt.history[-1].ess if flt.history else 0.0,
+            "log_evidence": flt.log_evidence,
+            "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
+            "update_ms_p95": float(np.percentile(updates, 95) * 1e3) if len(updates) else 0.0,
+            **details,
+        },
+    )
+
+
+def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[Labels, np.ndarray]:
+    """Optimised place positions of some topologies (from the cached metric likelihood)."""
+    out = {}
+    for lab in labels:
+        res = model.terms(lab).metric_result
+        if res is not None:
+            out[lab] = res.place_positions
+    return out
+
+
+def _infer_mcmc(model: PosteriorModel, config: PtmConfig) -> Inference:
+    """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged."""
+    from ptm_ros.mcmc import run_mcmc
+
+    inf = config.inference
+    res = run_mcmc(model, inf.mcmc, inf.seed)
+    ranked = dict(top_k(res.probabilities, inf.top))
+    d = res.diagnostics
+    return Inference(
+        probabilities=ranked,
+        positions=_metric_positions(model, ranked),
+        log_posteriors={lab: res.log_posteriors[lab] for lab in ranked},
+        details={
+            "estimate": inf.mcmc.estimate,
+            "iterations": d.iterations,
+            "chains": d.chains,
+            "betas": list(d.betas),
+            "converged": d.converged,
+            "stop_reason": d.stop_reason,
+            "doubling_tv": d.doubling_tv,
+            "chain_tv": d.chain_tv,
+            "n_evaluated": d.n_evaluated,
+            "samples": res.samples,
+            "acceptance": dict(d.acceptance),
+        },
+    )
+
+
+def _infer_rbpf(
+    visits: Sequence[Visit],
+    model: PosteriorModel,
+    config: PtmConfig,
+    registrar: Registrar | None,
+    progress: Progress | None,
+) -> Inference:
+    """The Rao-Blackwellized particle filter over the whole run (thesis Algorithm 8)."""
+    from ptm_ros.rbpf import RbpfConfig, run_filter
+
+    inf = config.inference
+    flt = run_filter(
+        visits,
+        RbpfConfig(particles=inf.particles, resample=inf.resample),
+        model.prior,
+        config.model.odometry,
+        appearance=model.appearance,
+        registrar=registrar,
+        seed=inf.seed,
+        progress=progress,
+    )
     probs = flt.ptm_weights()
     logw = flt.log_weights()
     ranked = dict(top_k(probs, inf.top))
