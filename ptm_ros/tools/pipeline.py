@@ -387,7 +387,7 @@ def run_offline(
     )
     diag: dict[str, Any] = {}
     visits = detect_visits(run, config, diag)
-    registrar = make_registrar(visits, config, diag) if config.model.use_laser else None
+    registrar = cached(make_registrar(visits, config, diag)) if config.model.use_laser else None
     result = infer(visits, config, registrar=registrar, progress=progress)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
@@ -412,9 +412,36 @@ def run_offline(
     if write_report:
         from ptm_ros.report import write_report as _write_report
 
-        traj = run.odometry.poses if run.odometry is not None else None
+        traj = map_trajectory(run, visits, ptm.map_topology.labels, config, registrar)
         report = _write_report(out, ptm, trajectory=traj, score=score, title=f"PTM of {bag.name}")
     return RunResult(ptm=ptm, ptm_path=ptm_path, report_path=report, score=score, diagnostics=diag)
+
+
+def cached(registrar: Registrar) -> Registrar:
+    """A registrar that registers each pair once (shared by the estimator and the smoothing)."""
+    memo: dict[tuple[int, int], Any] = {}
+
+    def reg(i: int, j: int) -> Any:
+        if (i, j) not in memo:
+            memo[(i, j)] = registrar(i, j)
+        return memo[(i, j)]
+
+    return reg
+
+
+def map_trajectory(
+    run: RunData, visits: Sequence[Visit], labels: Labels, config: PtmConfig, registrar: Registrar | None
+) -> np.ndarray:
+    """The odometry trajectory smoothed for a topology: visit poses optimised under its same-place and
+    laser constraints (:func:`ptm_ros.odometry.optimize_poses`), the path between deformed to fit
+    (:func:`ptm_ros.smoothing.smoothed_trajectory`)."""
+    from ptm_ros.odometry import optimize_poses
+    from ptm_ros.smoothing import smoothed_trajectory
+
+    odom = run.odometry
+    model = PosteriorModel(visits, config.model, registrar=registrar)
+    poses, _, _ = optimize_poses(labels, visits, config.model.odometry, model.loops(labels))
+    return smoothed_trajectory(odom.stamps, odom.poses, [v.stamp for v in visits], poses)
 
 
 def score_against(ptm: Ptm, ground_truth: str | Path) -> Any:
