@@ -6,6 +6,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 DEMO_BAG ?= bags/demo
 DEMO_OUT ?= out/demo
+DEMO_PARAMS ?= config/demo.yaml
 
 # DDS for tests and the demo: localhost only, a per-run domain, fast discovery announcements.
 ROS_ENV = AMENT_PREFIX_PATH=$(abspath $(VENV)) \
@@ -32,7 +33,7 @@ test: install
 
 # The node suite over DDS on the bundled bag (separate processes, launch-free), then the score.
 demo: install
-	$(ROS_ENV) $(VENV)/bin/ptm-bringup --bag $(DEMO_BAG) --rate 0 --out $(DEMO_OUT)
+	$(ROS_ENV) $(VENV)/bin/ptm-bringup --bag $(DEMO_BAG) --rate 0 --params $(DEMO_PARAMS) --out $(DEMO_OUT)
 
 bench: install
 	$(ROS_ENV) $(PY) bench/run_all.py

@@ -17,6 +17,7 @@ from ptm_ros.errors import ConfigError
 from ptm_ros.laser import LaserConfig
 from ptm_ros.mcmc import McmcConfig
 from ptm_ros.posterior import ModelConfig
+from ptm_ros.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
 
 METHODS = ("exact", "rbpf", "mcmc")
 DETECTORS = ("equidistant", "laser-surprise", "appearance-surprise")
@@ -37,6 +38,9 @@ class DetectorConfig:
 
     kind: str | None = None
     equidistant: EquidistantConfig = field(default_factory=EquidistantConfig)
+    laser_surprise: LaserSurpriseConfig = field(default_factory=LaserSurpriseConfig)
+    appearance_surprise: AppearanceSurpriseConfig = field(default_factory=AppearanceSurpriseConfig)
+    vocabulary: str | None = None  # .npz of a SIFT vocabulary (ptm_ros.vocabulary) for words models
     image_max_dt: float = 1.0  # s: a visit takes the signature of the panorama nearest in time, within this
 
     def __post_init__(self) -> None:

@@ -27,7 +27,10 @@ def tjunction_bag(tmp_path_factory):
 
 
 def small_config(**over) -> PtmConfig:
-    base = {"detector": {"equidistant": {"spacing": 5.0}}, "inference": {"method": "exact"}}
+    base = {
+        "detector": {"kind": "equidistant", "equidistant": {"spacing": 5.0}},
+        "inference": {"method": "exact"},
+    }
     base.update(over)
     return load_config(None, base)
 
@@ -85,7 +88,9 @@ def test_cli_reports_errors_with_exit_code(tmp_path, capsys):
 
 def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     params = tmp_path / "p.yaml"
-    params.write_text("detector: {equidistant: {spacing: 5.0}}\nmodel: {use_laser: false}\n")
+    params.write_text(
+        "detector: {kind: equidistant, equidistant: {spacing: 5.0}}\nmodel: {use_laser: false}\n"
+    )
     code = run_cli.main(
         [str(tjunction_bag), "--out", str(tmp_path / "o"), "--params", str(params), "--quiet"]
     )

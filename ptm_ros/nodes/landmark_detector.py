@@ -108,7 +108,7 @@ class LandmarkDetectorNode(Node):
             "(replay: exact whatever the delivery timing)",
             minimum=0.0,
         )
-        kind = detector_kind(None, self.config)  # type: ignore[arg-type]  # depends on the config only
+        kind = detector_kind(self.config, has_scans=use_scans, has_images=use_images)
         self.extractor = make_extractor(self.config, kind, use_scans=use_scans, use_images=use_images)
         self.extractor.config = replace(self.extractor.config, stall_s=stall if stall > 0.0 else math.inf)
         self.frame_id = "odom"

@@ -31,18 +31,43 @@ from ptm_ros.visits import Visit
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 
 
-def detector_kind(run: RunData, config: PtmConfig) -> str:
-    """The detector to use: the configured one, else the default for the bag's sensors."""
-    kind = config.detector.kind or "equidistant"
-    if kind != "equidistant":
-        msg = f"detector {kind!r} is not available in this version; use 'equidistant'"
-        raise ConfigError(msg)
-    return kind
+def detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) -> str:
+    """The detector to use: the configured one, else the default for the sensors present: laser
+    surprise with scans, equidistant otherwise (appearance surprise needs a vocabulary: ask for it).
+    (The detector node decides with its ``use_scans`` / ``use_images`` parameters, ``ptm-run`` with the
+    bag's topics, so both pick the same.)"""
+    if config.detector.kind is not None:
+        return config.detector.kind
+    if has_scans and config.model.use_laser:
+        return "laser-surprise"
+    return "equidistant"
+
+
+def run_sensors(run: RunData) -> dict[str, bool]:
+    """Which sensor streams a recorded run has (keyword arguments of :func:`detector_kind`)."""
+    return {
+        "has_scans": run.scans is not None and len(run.scans.stamps) > 0,
+        "has_images": run.images is not None and len(run.images.images) > 0,
+    }
 
 
 def make_detector(kind: str, config: PtmConfig) -> Any:
-    """The streaming detector object of a kind (see :mod:`ptm_ros.detectors`)."""
-    return EquidistantDetector(config.detector.equidistant)
+    """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`)."""
+    det = config.detector
+    if kind == "laser-surprise":
+        from ptm_ros.surprise import LaserSurpriseDetector
+
+        return LaserSurpriseDetector(det.laser_surprise)
+    if kind == "appearance-surprise":
+        from ptm_ros.surprise import AppearanceSurpriseDetector
+        from ptm_ros.vocabulary import Vocabulary
+
+        vocabulary = Vocabulary.load(det.vocabulary) if det.vocabulary else None
+        if det.appearance_surprise.model == "words" and vocabulary is None:
+            msg = "appearance-surprise with model 'words' needs detector.vocabulary (a .npz vocabulary)"
+            raise ConfigError(msg)
+        return AppearanceSurpriseDetector(det.appearance_surprise, vocabulary)
+    return EquidistantDetector(det.equidistant)
 
 
 def make_extractor(config: PtmConfig, kind: str, *, use_scans: bool, use_images: bool) -> VisitExtractor:
@@ -77,9 +102,13 @@ def detect_visits(run: RunData, config: PtmConfig, diagnostics: dict[str, Any] |
     if odom is None or len(odom.stamps) == 0:
         msg = f"bag {run.path} has no odometry"
         raise DataError(msg)
-    has_scans = run.scans is not None and len(run.scans.stamps) > 0
-    has_images = run.images is not None and len(run.images.images) > 0
-    extractor = make_extractor(config, detector_kind(run, config), use_scans=has_scans, use_images=has_images)
+    sensors = run_sensors(run)
+    extractor = make_extractor(
+        config,
+        detector_kind(config, **sensors),
+        use_scans=sensors["has_scans"],
+        use_images=sensors["has_images"],
+    )
     visits: list[Visit] = []
     for _, topic, k in merged_messages(run):
         if topic == ODOM:
@@ -313,7 +342,7 @@ def run_offline(
     result = infer(visits, config, registrar=registrar, progress=progress)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
-    used = replace(config, detector=replace(config.detector, kind=detector_kind(run, config)))
+    used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **run_sensors(run))))
     ptm = build_ptm(
         visits,
         result,
