@@ -96,21 +96,27 @@ Registrar = Callable[[int, int], "RelativePose | None"]
 def interpolate_poses(stamps: ArrayLike, poses: ArrayLike, query: ArrayLike) -> FloatArray:
     """Poses at the ``query`` times: linear in x, y and along the shortest arc in yaw.
 
-    ``stamps`` ``(T,)`` must be non-decreasing; queries outside ``[stamps[0], stamps[-1]]`` take the end
-    pose (callers decide how far outside is acceptable).
+    ``stamps`` ``(T,)`` must be non-decreasing; a query equal to a knot returns that knot's pose exactly
+    (yaw unwrapped as given); queries outside ``[stamps[0], stamps[-1]]`` take the end pose (callers
+    decide how far outside is acceptable). Interpolated yaws are wrapped to ``[-pi, pi)``.
     """
     t = np.asarray(stamps, dtype=float).reshape(-1)
     p = np.asarray(poses, dtype=float).reshape(-1, 3)
-    q = np.atleast_1d(np.asarray(query, dtype=float))
+    q = np.atleast_1d(np.asarray(query, dtype=float)).reshape(-1)
     if len(t) == 0 or len(t) != len(p):
         msg = f"need matching non-empty stamps and poses, got {len(t)} and {len(p)}"
         raise ValueError(msg)
     if len(t) == 1:
         return np.repeat(p, len(q), axis=0)
+    q = np.clip(q, t[0], t[-1])
     hi = np.clip(np.searchsorted(t, q, side="right"), 1, len(t) - 1)
     lo = hi - 1
     span = t[hi] - t[lo]
-    frac = np.clip(np.divide(q - t[lo], span, out=np.zeros_like(q), where=span > 0), 0.0, 1.0)
+    frac = np.divide(q - t[lo], span, out=np.zeros_like(q), where=span > 0)
     xy = p[lo, :2] + frac[:, None] * (p[hi, :2] - p[lo, :2])
     yaw = wrap_angle(p[lo, 2] + frac * wrap_angle(p[hi, 2] - p[lo, 2]))
-    return np.column_stack([xy, yaw])
+    out = np.column_stack([xy, yaw])
+    k = np.searchsorted(t, q, side="left")
+    exact = t[np.minimum(k, len(t) - 1)] == q
+    out[exact] = p[k[exact]]
+    return out

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import DataError
-from ptm_ros.geometry import wrap_angle
+from ptm_ros.geometry import interpolate_poses
 
 FloatArray = NDArray[np.float64]
 SIM_SCHEMA = "ptm_ros.ground_truth/1"
@@ -297,16 +297,5 @@ def interpolate_pose(
             f"(tolerance {tolerance} s), first {float(bad[0])!r}"
         )
         raise DataError(msg)
-    q = np.clip(q, t[0], t[-1])
-    out = np.empty((q.size, 3))
-    k = np.searchsorted(t, q, side="left")
-    exact = (k < t.size) & (t[np.minimum(k, t.size - 1)] == q)
-    out[exact] = P[k[exact]]
-    inner = ~exact
-    if np.any(inner):
-        i = np.clip(np.searchsorted(t, q[inner], side="right") - 1, 0, t.size - 2)
-        a = (q[inner] - t[i]) / (t[i + 1] - t[i])
-        p0, p1 = P[i], P[i + 1]
-        out[inner, :2] = p0[:, :2] + a[:, None] * (p1[:, :2] - p0[:, :2])
-        out[inner, 2] = wrap_angle(p0[:, 2] + a * wrap_angle(p1[:, 2] - p0[:, 2]))
+    out = interpolate_poses(t, P, q)
     return out.reshape((*shape, 3))

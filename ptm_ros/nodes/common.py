@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose
 from numpy.typing import NDArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
@@ -488,6 +488,23 @@ def diagnostic_status(
         hardware_id=hardware_id,
         values=key_values(values),
     )
+
+
+def publish_diagnostics(
+    node: Any,
+    publisher: Any,
+    title: str,
+    *,
+    hardware_id: str,
+    message: str,
+    values: Mapping[str, Any],
+    warn: bool,
+) -> None:
+    """Publish one ``diagnostic_msgs/DiagnosticArray`` with a single status named ``<node>: <title>``."""
+    msg = DiagnosticArray()
+    msg.header.stamp = node.get_clock().now().to_msg()
+    msg.status = [diagnostic_status(f"{node.get_name()}: {title}", hardware_id, message, values, warn=warn)]
+    publisher.publish(msg)
 
 
 class OnceLogger:

@@ -61,11 +61,11 @@ from ptm_ros.nodes.common import (
     check_parameter_names,
     declare_config,
     declare_node_parameter,
-    diagnostic_status,
     header_stamp,
     image_array,
     odometry_sample,
     pose_msg,
+    publish_diagnostics,
     run_node,
     scan_fields,
     sensor_qos,
@@ -271,18 +271,15 @@ class LandmarkDetectorNode(Node):
     def _publish_diagnostics(self) -> None:
         values = self.diagnostics()
         bad = sum(self.extractor.diagnostics.skipped.values()) + sum(self.counters.values())
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [
-            diagnostic_status(
-                f"{self.get_name()}: landmark visits",
-                NODE_NAME,
-                f"{self.published} visits, {bad} messages skipped",
-                values,
-                warn=bad > 0,
-            )
-        ]
-        self._diag_pub.publish(msg)
+        publish_diagnostics(
+            self,
+            self._diag_pub,
+            "landmark visits",
+            hardware_id=NODE_NAME,
+            message=f"{self.published} visits, {bad} messages skipped",
+            values=values,
+            warn=bad > 0,
+        )
 
 
 def main(args: Sequence[str] | None = None) -> int:

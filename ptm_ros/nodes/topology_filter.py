@@ -59,7 +59,7 @@ from ptm_ros.nodes.common import (
     check_parameter_names,
     declare_config,
     declare_node_parameter,
-    diagnostic_status,
+    publish_diagnostics,
     run_node,
     time_msg,
 )
@@ -480,18 +480,15 @@ class TopologyFilterNode(Node):
     def _publish_diagnostics(self) -> None:
         values = self.diagnostics()
         bad = values["invalid"] + values["rejected"] + values["gaps"]
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [
-            diagnostic_status(
-                f"{self.get_name()}: RBPF",
-                NODE_NAME,
-                f"{values['visits']} visits, {values['particles']} topologies, ESS {values['ess']:.1f}",
-                values,
-                warn=bad > 0,
-            )
-        ]
-        self._diag_pub.publish(msg)
+        publish_diagnostics(
+            self,
+            self._diag_pub,
+            "RBPF",
+            hardware_id=NODE_NAME,
+            message=f"{values['visits']} visits, {values['particles']} topologies, ESS {values['ess']:.1f}",
+            values=values,
+            warn=bad > 0,
+        )
 
     # ------------------------------------------------------------------------------ services
 
