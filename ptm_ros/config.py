@@ -15,6 +15,7 @@ from ptm_ros.configio import from_dict, load_yaml, to_dict
 from ptm_ros.detectors import EquidistantConfig
 from ptm_ros.errors import ConfigError
 from ptm_ros.laser import LaserConfig
+from ptm_ros.laser_odometry import LaserOdometryConfig
 from ptm_ros.mcmc import McmcConfig
 from ptm_ros.posterior import ModelConfig
 from ptm_ros.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
@@ -85,6 +86,7 @@ class PtmConfig:
 
     model: ModelConfig = field(default_factory=ModelConfig)
     laser: LaserConfig = field(default_factory=LaserConfig)
+    laser_odometry: LaserOdometryConfig = field(default_factory=LaserOdometryConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     inference: InferenceConfig = field(default_factory=InferenceConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)

@@ -86,11 +86,25 @@ class RelativePose:
     j: int
     mean: FloatArray
     cov: FloatArray
+    log_bayes: float = 0.0  # evidence of the match's fitness for "one place" (see NoMatch)
 
 
-#: Laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None when the registration failed
-#: its fitness check ("no information"). Callers cache results per pair.
-Registrar = Callable[[int, int], "RelativePose | None"]
+@dataclass(frozen=True)
+class NoMatch:
+    """Patches of visits ``i < j`` that were registered and did not match (no relative pose).
+
+    ``log_bayes`` = log p(fitness | one place) − log p(fitness | different places) of the best alignment
+    found (:func:`ptm_ros.laser.fitness_log_bayes`): usually negative, evidence against the same place.
+    """
+
+    i: int
+    j: int
+    log_bayes: float
+
+
+#: Laser outcome for visits ``i < j``: a :class:`RelativePose` measurement of ``between(x_i, x_j)``, a
+#: :class:`NoMatch`, or None when nothing could be registered ("no information"). Callers cache per pair.
+Registrar = Callable[[int, int], "RelativePose | NoMatch | None"]
 
 
 def interpolate_poses(stamps: ArrayLike, poses: ArrayLike, query: ArrayLike) -> FloatArray:

@@ -2,8 +2,10 @@
 
 :class:`VisitExtractor` turns odometry, laser scans and panoramas into :class:`~ptm_ros.visits.Visit`
 objects, each carrying what the topology inference needs: the odometry pose of the visit (an odometry
-sample, unchanged), the travel and rotation since the previous visit, the Fourier signature of the
-panorama nearest in time and the local laser patch of the passage through the place.
+sample; with scans, corrected by :class:`ptm_ros.laser_odometry.LaserOdometry` as the stream is
+processed: every odometry sample is carried by the correction of the latest scan before it), the
+travel and rotation since the previous visit, the Fourier signature of the panorama nearest in time and
+the local laser patch of the passage through the place.
 
 Determinism. The offline pipeline (``ptm-run``) and the detector node must produce *identical* visits
 although over DDS the three topics interleave differently. The extractor therefore re-sequences its
@@ -45,6 +47,7 @@ from ptm_ros.detectors import EquidistantDetector
 from ptm_ros.errors import DataError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
 from ptm_ros.laser import LaserConfig, passage_patch, scan_to_points
+from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
 from ptm_ros.visits import Visit
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
@@ -74,6 +77,7 @@ class ExtractorDiagnostics:
     visits_without_panorama: int = 0
     visits_without_patch: int = 0
     stalled_topics: int = 0
+    laser_odometry: dict[str, int] = field(default_factory=dict)  # LaserOdometryCounters when enabled
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -108,12 +112,18 @@ class VisitExtractor:
         laser: LaserConfig | None = None,
         appearance: AppearanceConfig | None = None,
         config: ExtractorConfig | None = None,
+        laser_odometry: LaserOdometryConfig | None = None,
     ) -> None:
         self.detector = detector if detector is not None else EquidistantDetector()
         self.laser = laser or LaserConfig()
         self.appearance = appearance or AppearanceConfig()
         self.config = config or ExtractorConfig()
         self.diagnostics = ExtractorDiagnostics()
+        lo_cfg = laser_odometry or LaserOdometryConfig()
+        self.laser_odometry = (
+            LaserOdometry(lo_cfg, self.laser) if self.config.use_scans and lo_cfg.enabled else None
+        )
+        self._wheel: NDArray[np.float64] | None = None  # latest wheel odometry pose
         self._queue: list[tuple[float, int, int, Any]] = []
         self._seq = 0
         self._watermark = {ODOM: -math.inf, SCAN: -math.inf, IMAGE: -math.inf}
@@ -132,6 +142,7 @@ class VisitExtractor:
         self._last_visit_k: int | None = None
         self._processed = -math.inf
         self._count = 0
+        self._flushing = False  # set by flush(): firings after the last odometry then resolve anyway
 
     # ------------------------------------------------------------------------------------ input
 
@@ -223,7 +234,9 @@ class VisitExtractor:
         when = getattr(self.detector, "last_landmark_stamp", None)
         self._requests.append(float(when) if when is not None else stamp)
 
-    def _process_odometry(self, stamp: float, pose: NDArray[np.float64]) -> None:
+    def _process_odometry(self, stamp: float, wheel: NDArray[np.float64]) -> None:
+        self._wheel = wheel
+        pose = self.laser_odometry.correct(wheel) if self.laser_odometry is not None else wheel
         self._odom_t.append(stamp)
         self._odom_p.append(pose)
         try:
@@ -242,6 +255,9 @@ class VisitExtractor:
             self.diagnostics.skip("scan-malformed")
             return
         self.diagnostics.scan_beams_dropped += res.dropped
+        if self.laser_odometry is not None and self._wheel is not None:
+            self.laser_odometry.on_scan(self._wheel, res.points)
+            self.diagnostics.laser_odometry = asdict(self.laser_odometry.counters)
         if self.config.use_scans:
             self._scans.append((stamp, res.points))
         if hasattr(self.detector, "on_scan"):

@@ -9,7 +9,9 @@ the unnormalised log posterior of any topology:
   visit of its place), computed lazily by a *registrar* and cached per pair. The data are the outcomes
   of all pairs; a pair the topology does not chain has an uninformative outcome density 1/V_reg, so up
   to a constant each chained valid registration contributes log N(z; ·) + log V_reg (a likelihood
-  ratio), and pairs never registered need not be computed;
+  ratio), and pairs never registered need not be computed; every chained registration (valid or not)
+  also contributes the likelihood ratio of its fitness, one place vs different places
+  (:func:`ptm_ros.laser.fitness_log_bayes`);
 * appearance likelihood: :mod:`ptm_ros.appearance` (eq. 22–28, 54–57), a product over blocks cached
   per block, because a topology's blocks recur across MCMC moves and particles.
 
@@ -37,7 +39,7 @@ from ptm_ros.appearance import (
     fit_appearance_model,
 )
 from ptm_ros.errors import ModelError
-from ptm_ros.geometry import Registrar, RelativePose
+from ptm_ros.geometry import NoMatch, Registrar, RelativePose
 from ptm_ros.odometry import MetricResult, OdometryConfig, metric_log_likelihood
 from ptm_ros.partitions import MAX_ENUMERATION, Labels, blocks, enumerate_partitions, is_canonical
 from ptm_ros.priors import PriorConfig, make_prior
@@ -101,7 +103,7 @@ class PosteriorModel:
             self.appearance = fit_appearance_model(self.visits, self.config.appearance)
         self.registrar = registrar if self.config.use_laser else None
         self._block_cache: dict[tuple[int, ...], float] = {}
-        self._pair_cache: dict[tuple[int, int], RelativePose | None] = {}
+        self._pair_cache: dict[tuple[int, int], RelativePose | NoMatch | None] = {}
         self._terms_cache: dict[Labels, PosteriorTerms] = {}
 
     @property
@@ -115,8 +117,8 @@ class PosteriorModel:
             raise ModelError(msg)
         return lab
 
-    def registration(self, i: int, j: int) -> RelativePose | None:
-        """The cached laser measurement between visits i < j (None: no registrar or no information)."""
+    def registration(self, i: int, j: int) -> RelativePose | NoMatch | None:
+        """The cached laser outcome between visits i < j (None: no registrar or no information)."""
         if self.registrar is None:
             return None
         key = (i, j)
@@ -126,13 +128,14 @@ class PosteriorModel:
 
     def loops(self, labels: Labels) -> tuple[RelativePose, ...]:
         """Laser measurements used by a topology: each visit against the previous visit of its place."""
-        out = []
-        for block in blocks(labels):
-            for a, b in pairwise(block):
-                meas = self.registration(a, b)
-                if meas is not None:
-                    out.append(meas)
-        return tuple(out)
+        return tuple(z for z in self._chained(labels) if isinstance(z, RelativePose))
+
+    def laser_evidence(self, labels: Labels) -> float:
+        """Σ of the fitness evidence (``log_bayes``) of the laser outcomes of the chained pairs."""
+        return float(sum(z.log_bayes for z in self._chained(labels) if z is not None))
+
+    def _chained(self, labels: Labels) -> list[RelativePose | NoMatch | None]:
+        return [self.registration(a, b) for block in blocks(labels) for a, b in pairwise(block)]
 
     def terms(self, labels: Sequence[int]) -> PosteriorTerms:
         """All parts of the unnormalised log posterior of a topology (cached)."""
@@ -149,6 +152,7 @@ class PosteriorModel:
             # likelihood ratio of each used registration against "not the same place" (uniform over
             # V_reg), so that every topology explains the same data (see the module docstring)
             metric = result.log_likelihood + len(loops) * math.log(self.config.odometry.registration_volume)
+            metric += self.laser_evidence(lab)
         app = 0.0
         if self.appearance is not None:
             app = appearance_log_likelihood(lab, self.visits, self.appearance, cache=self._block_cache)

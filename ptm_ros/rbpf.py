@@ -89,7 +89,9 @@ The laser factor is known only after selection (registrations are expensive, so 
 revisits are registered). As in :class:`~ptm_ros.posterior.PosteriorModel`, the data are the outcomes of
 all pairs, and a pair the topology does not chain has the uninformative density ``1/V_reg``; so, up to a
 constant common to all topologies, a used registration contributes the likelihood ratio
-:math:`N(z; \cdot) \cdot V_{reg}` and pairs never chained need not be registered. The log evidence
+:math:`N(z; \cdot) \cdot V_{reg}` and pairs never chained need not be registered; every registered
+chained pair (valid match or :class:`~ptm_ros.geometry.NoMatch`) adds its fitness evidence
+``log_bayes`` (:func:`ptm_ros.laser.fitness_log_bayes`). The log evidence
 carries the same constant (it is relative to "every registered pair uninformative").
 
 Thesis corrections:
@@ -121,7 +123,7 @@ from scipy.special import gammaln
 
 from ptm_ros.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import Registrar, RelativePose, between, compose, wrap_angle
+from ptm_ros.geometry import NoMatch, Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.odometry import OdometryConfig, odometry_covariances
 from ptm_ros.partitions import Labels
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
@@ -514,7 +516,7 @@ class TopologyFilter:
         self._stride = 5 if registrar is not None else 2
         self._rng = np.random.default_rng(seed)
         self._visits: list[Visit] = []
-        self._pairs: dict[tuple[int, int], RelativePose | None] = {}
+        self._pairs: dict[tuple[int, int], RelativePose | NoMatch | None] = {}
         self._particles: _Particles | None = None
         self._history: list[FilterState] = []
         self._log_evidence = 0.0
@@ -667,7 +669,7 @@ class TopologyFilter:
         return particles, increment
 
     def _step(
-        self, visits: tuple[Visit, ...], pairs: dict[tuple[int, int], RelativePose | None]
+        self, visits: tuple[Visit, ...], pairs: dict[tuple[int, int], RelativePose | NoMatch | None]
     ) -> tuple[_Particles, float]:
         st = self._particles
         assert st is not None
@@ -747,17 +749,22 @@ class TopologyFilter:
         is_new = kk == st.n_places[par]
 
         # registrations of the selected revisits, pair (last(k), n)
+        # (and the fitness evidence of every registered pair, valid match or not)
         z_of: dict[int, RelativePose] = {}
+        fitness = np.zeros(len(sel))
         if self.registrar is not None:
             for r in np.flatnonzero(~is_new):
                 i = int(st.last[par[r], kk[r]])
                 z = self._registration(i, n, pairs)
                 if z is not None:
+                    fitness[r] = z.log_bayes
+                if isinstance(z, RelativePose):
                     z_of[int(r)] = z
         with_z = np.array(sorted(z_of), dtype=np.intp)
         no_z = np.flatnonzero(~is_new & ~np.isin(np.arange(len(sel)), with_z))
         order = np.concatenate([with_z, no_z, np.flatnonzero(is_new)])
         par, kk, is_new, sel_lw, proxy = par[order], kk[order], is_new[order], sel_lw[order], proxy[order]
+        fitness = fitness[order]
         n_z, n_rev, n_child = len(with_z), len(with_z) + len(no_z), len(order)
 
         # 4. build and update the children's states
@@ -825,7 +832,7 @@ class TopologyFilter:
         counts[ar, kk] += 1
         last[ar, kk] = n
         penalty = _separation(mean, counts, stride, cfg)
-        lw = sel_lw + laser_ll + proxy - (penalty - st.penalty[par])  # the proxy was in sel_lw
+        lw = sel_lw + laser_ll + fitness + proxy - (penalty - st.penalty[par])  # the proxy was in sel_lw
         lse = float(logsumexp(lw))
         increment = lse_children + lse
         labels = tuple(st.labels[p] + (int(k),) for p, k in zip(par.tolist(), kk.tolist(), strict=True))
@@ -865,8 +872,8 @@ class TopologyFilter:
         return lp_rev, lp_new
 
     def _registration(
-        self, i: int, j: int, pairs: dict[tuple[int, int], RelativePose | None]
-    ) -> RelativePose | None:
+        self, i: int, j: int, pairs: dict[tuple[int, int], RelativePose | NoMatch | None]
+    ) -> RelativePose | NoMatch | None:
         """The registrar's measurement of pair ``(i, j)``, cached in ``pairs`` and validated."""
         key = (i, j)
         if key in pairs:
@@ -902,10 +909,7 @@ class TopologyFilter:
             "rng": self._rng.bit_generator.state,
             "log_evidence": self._log_evidence,
             "visits": [_visit_dict(v) for v in self._visits],
-            "registrations": [
-                [i, j, None if z is None else z.mean.tolist(), None if z is None else z.cov.tolist()]
-                for (i, j), z in self._pairs.items()
-            ],
+            "registrations": [_registration_row(i, j, z) for (i, j), z in self._pairs.items()],
             "history": [[getattr(h, f.name) for f in fields(FilterState)] for h in self._history],
         }
         if st is not None:
@@ -947,13 +951,8 @@ class TopologyFilter:
         flt._rng.bit_generator.state = state["rng"]
         flt._log_evidence = float(state["log_evidence"])
         flt._visits = [_visit_from_dict(d) for d in state["visits"]]
-        for i, j, m, c in state["registrations"]:
-            z = (
-                None
-                if m is None
-                else RelativePose(int(i), int(j), np.asarray(m, float), np.asarray(c, float))
-            )
-            flt._pairs[(int(i), int(j))] = z
+        for row in state["registrations"]:
+            flt._pairs[(int(row[0]), int(row[1]))] = _registration_from_row(row)
         flt._history = [FilterState(*row) for row in state["history"]]
         if "labels" in state:
             labels = tuple(tuple(int(v) for v in lab) for lab in state["labels"])
@@ -1069,10 +1068,33 @@ def _check_visit(visit: Visit, n: int) -> None:
             raise ModelError(msg)
 
 
-def _check_registration(z: RelativePose, i: int, j: int) -> RelativePose:
+def _registration_row(i: int, j: int, z: RelativePose | NoMatch | None) -> list[Any]:
+    """``[i, j, mean, cov, log_bayes]`` (mean/cov None for a NoMatch; everything None for no outcome)."""
+    if z is None:
+        return [i, j, None, None, None]
+    if isinstance(z, NoMatch):
+        return [i, j, None, None, z.log_bayes]
+    return [i, j, z.mean.tolist(), z.cov.tolist(), z.log_bayes]
+
+
+def _registration_from_row(row: Sequence[Any]) -> RelativePose | NoMatch | None:
+    """Inverse of :func:`_registration_row` (rows of 4 entries, saved before ``log_bayes``, read too)."""
+    i, j, m, c = row[:4]
+    lb = row[4] if len(row) > 4 else 0.0
+    if m is not None:
+        return RelativePose(int(i), int(j), np.asarray(m, float), np.asarray(c, float), float(lb))
+    return None if lb is None or len(row) == 4 else NoMatch(int(i), int(j), float(lb))
+
+
+def _check_registration(z: RelativePose | NoMatch, i: int, j: int) -> RelativePose | NoMatch:
     if (int(z.i), int(z.j)) != (i, j):
         msg = f"the registrar answered pair ({z.i}, {z.j}) when asked for ({i}, {j})"
         raise ModelError(msg)
+    if not math.isfinite(z.log_bayes):
+        msg = f"registration ({i}, {j}): log_bayes must be finite, got {z.log_bayes}"
+        raise ModelError(msg)
+    if isinstance(z, NoMatch):
+        return z
     mean = np.asarray(z.mean, dtype=float)
     cov = np.asarray(z.cov, dtype=float)
     finite = bool(np.all(np.isfinite(mean)) and np.all(np.isfinite(cov)))
@@ -1082,7 +1104,7 @@ def _check_registration(z: RelativePose, i: int, j: int) -> RelativePose:
     if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-12) or np.any(np.linalg.eigvalsh(cov) <= 0.0):
         msg = f"registration ({i}, {j}): covariance must be symmetric positive definite"
         raise ModelError(msg)
-    return RelativePose(i, j, mean, cov)
+    return RelativePose(i, j, mean, cov, float(z.log_bayes))
 
 
 def _extend_blocks(blocks: tuple[tuple[int, ...], ...], k: int, n: int) -> tuple[tuple[int, ...], ...]:

@@ -11,8 +11,21 @@
   faint spokes, and an edge between the places of consecutive visits.
 * ``ptm_scores.png`` (only with a score) — precision / recall / F1 of the MAP topology and of the
   posterior, and the masses.
+* ``ptm_surprise.png`` (only with a surprise trace) — the landmark detector's Bayesian surprise (thesis
+  Ch. 4.7.3, Fig. 62): actual surprise per measurement against time, the predicted surprise mean with
+  its band ``mean ± k·std`` shaded (the upper edge is the detector's threshold), the measurements that
+  fired a landmark marked.
+* ``ptm_srq.png`` (only when ``ptm.inference[SRQ_KEY]`` holds MCMC cold-chain states) — the scaled
+  regeneration quantile plot of every chain (thesis Ch. 3.6, Fig. 42; :mod:`ptm_ros.convergence`), all
+  chains at one atom: the state most visited over all chains.
 * ``report.md`` and ``report.html`` — the summary, the score table, the figures (relative links, extra
   figures copied beside them) and the top topologies as a table.
+
+``ptm.inference["cold_chain_states"]`` (:data:`SRQ_KEY`): one list per independent chain of the cold
+(``β = 1``) replica's state after each sweep, thinned by a fixed stride (every ``k``-th sweep, ``k`` in
+``ptm.inference["cold_chain_thin"]`` when known), states as integers (ids of topologies, the same id
+for the same topology in every chain) or label lists. A thinned chain is again a Markov chain with the
+same atoms, so its SRQ plot is valid.
 
 Matplotlib is imported lazily and drawn through its Agg canvas (no display, no pyplot state); large
 PTMs stay quick because bars, tables and panels are capped and points/lines are drawn as collections.
@@ -23,7 +36,7 @@ from __future__ import annotations
 import html
 import math
 import shutil
-from collections.abc import Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ptm_ros.convergence import most_visited, srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import Score
 from ptm_ros.partitions import num_places
@@ -40,11 +54,19 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
+    from ptm_ros.surprise import SurpriseTrace
+
 HISTOGRAM = "ptm_histogram.png"
 TOPOLOGIES = "ptm_topologies.png"
 SCORES = "ptm_scores.png"
+SURPRISE = "ptm_surprise.png"
+SRQ = "ptm_srq.png"
 REPORT_MD = "report.md"
 REPORT_HTML = "report.html"
+#: Key of ``Ptm.inference`` holding the MCMC cold-chain states drawn as the SRQ plot (module docstring).
+SRQ_KEY = "cold_chain_states"
+#: Key of ``Ptm.inference`` holding the thinning stride of those states (sweeps per kept state).
+SRQ_THIN_KEY = "cold_chain_thin"
 
 _DIGITS = "0123456789abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
 _GOLDEN = 0.618033988749895
@@ -60,6 +82,8 @@ class ReportConfig:
         max_rows: topologies in the markdown/HTML table.
         max_label_chars: longest label string shown before it is shortened with "…".
         dpi: resolution of the PNGs.
+        surprise_log_scale: draw the surprise on a log axis (it spans orders of magnitude: the band
+            sits near the predicted mean while a change of place can be 10-100 times above it).
     """
 
     top_k: int = 4
@@ -67,6 +91,7 @@ class ReportConfig:
     max_rows: int = 20
     max_label_chars: int = 40
     dpi: int = 100
+    surprise_log_scale: bool = True
 
     def __post_init__(self) -> None:
         for name in ("top_k", "max_bars", "max_rows", "dpi"):
@@ -261,11 +286,245 @@ def draw_scores(score: Score, path: Path, *, config: ReportConfig) -> Path:
     return path
 
 
+def fired_indices(trace: SurpriseTrace) -> NDArray[np.intp]:
+    """``(L,)`` indices of the trace's measurements at which its landmarks were declared.
+
+    A landmark's stamp is that of its surprise maximum (:class:`ptm_ros.surprise.BandTrigger`); among
+    measurements sharing that stamp the most surprising one is taken.
+
+    Raises:
+        DataError: a landmark stamp that is not the stamp of any measurement of the trace.
+    """
+    stamps = np.asarray(trace.stamps, dtype=float)
+    surprise = np.asarray(trace.surprise, dtype=float)
+    out = np.empty(len(trace.landmarks), dtype=np.intp)
+    for k, stamp in enumerate(np.asarray(trace.landmarks, dtype=float).tolist()):
+        tol = 1e-9 * max(1.0, abs(stamp))
+        lo = int(np.searchsorted(stamps, stamp - tol, side="left"))
+        hi = int(np.searchsorted(stamps, stamp + tol, side="right"))
+        if hi <= lo:
+            msg = f"landmark stamp {stamp:.9f} is not the stamp of a measurement of the surprise trace"
+            raise DataError(msg)
+        out[k] = lo + int(np.argmax(surprise[lo:hi]))
+    return out
+
+
+def _check_trace(trace: SurpriseTrace) -> None:
+    n = len(trace.stamps)
+    if n == 0:
+        msg = "the surprise trace is empty"
+        raise DataError(msg)
+    fields = ("surprise", "predicted_mean", "predicted_std", "upper")
+    shapes = {name: np.shape(getattr(trace, name)) for name in ("stamps", *fields)}
+    if any(shape != (n,) for shape in shapes.values()):
+        msg = f"surprise trace fields must all be (T,) arrays, got shapes {shapes}"
+        raise DataError(msg)
+    stamps = np.asarray(trace.stamps, dtype=float)
+    if not np.all(np.isfinite(stamps)) or np.any(np.diff(stamps) < 0.0):
+        msg = "surprise trace stamps must be finite and non-decreasing"
+        raise DataError(msg)
+
+
+def _band_sigmas(trace: SurpriseTrace) -> float | None:
+    """``k`` of the band ``upper = mean + k·std`` (median over measurements with ``std > 0``)."""
+    std = np.asarray(trace.predicted_std, dtype=float)
+    ok = std > 0.0
+    if not ok.any():
+        return None
+    width = np.asarray(trace.upper, dtype=float) - np.asarray(trace.predicted_mean, dtype=float)
+    return float(np.median(width[ok] / std[ok]))
+
+
+def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
+    """The surprise figure (thesis Fig. 62) of a detector's trace, not yet saved.
+
+    Time runs from the first measurement. The band is ``[max(0, mean - k·std), mean + k·std]``; its top
+    (dashed) is the detector's threshold. On a log axis (:attr:`ReportConfig.surprise_log_scale`)
+    values are floored at half the smallest positive one. Artists carry ids for inspection (``gid``):
+    ``"surprise"`` (actual), ``"predicted_mean"``, ``"upper"``, ``"band"`` and ``"landmarks"`` (a
+    scatter at ``(time, surprise)`` of :func:`fired_indices`).
+    """
+    _check_trace(trace)
+    stamps = np.asarray(trace.stamps, dtype=float)
+    surprise = np.asarray(trace.surprise, dtype=float)
+    mean = np.asarray(trace.predicted_mean, dtype=float)
+    upper = np.asarray(trace.upper, dtype=float)
+    lower = 2.0 * mean - upper  # mean - k·std
+    fired = fired_indices(trace)
+    t = stamps - stamps[0]
+    positive = np.concatenate([surprise, mean, upper])
+    positive = positive[np.isfinite(positive) & (positive > 0.0)]
+    log_scale = config.surprise_log_scale and positive.size > 0
+    floor = 0.5 * float(positive.min()) if log_scale else -math.inf
+
+    def shown(v: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.maximum(v, floor)
+
+    fig = _new_figure(10.0, 4.2)
+    ax = fig.add_subplot()
+    k = _band_sigmas(trace)
+    band = "band: predicted mean ± " + (f"{k:.3g}σ" if k is not None else "k·σ")
+    ax.fill_between(
+        t,
+        shown(np.maximum(lower, 0.0)),
+        shown(upper),
+        color="tab:orange",
+        alpha=0.25,
+        lw=0,
+        label=band,
+        gid="band",
+    )
+    ax.plot(t, shown(upper), color="tab:orange", lw=0.6, ls="--", label="threshold (band top)", gid="upper")
+    ax.plot(
+        t, shown(mean), color="tab:orange", lw=1.0, label="predicted surprise (mean)", gid="predicted_mean"
+    )
+    ax.plot(t, shown(surprise), color="tab:blue", lw=0.8, label="actual surprise", gid="surprise")
+    if fired.size:
+        ax.vlines(
+            t[fired],
+            floor if log_scale else 0.0,
+            shown(surprise[fired]),
+            color="tab:red",
+            lw=0.5,
+            alpha=0.5,
+        )
+    ax.scatter(
+        t[fired],
+        shown(surprise[fired]),
+        s=30,
+        marker="o",
+        facecolors="none",
+        edgecolors="tab:red",
+        linewidths=1.2,
+        zorder=5,
+        label=f"landmarks ({fired.size})",
+        gid="landmarks",
+    )
+    if log_scale:
+        ax.set_yscale("log")
+        ax.set_ylim(bottom=floor)
+    else:
+        ax.set_ylim(bottom=0.0)
+    ax.set_xlim(float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1.0)
+    ax.set_xlabel(f"time [s] since the first measurement (stamp {stamps[0]:.3f})")
+    ax.set_ylabel("surprise KL(after ‖ before) [nats]")
+    fig.legend(loc="outside lower center", ncols=5, fontsize=8)
+    ax.set_title(
+        f"Bayesian surprise (thesis Fig. 62): {len(t)} measurements, {fired.size} landmarks\n"
+        "a landmark fires at the first maximum of each run above the band",
+        fontsize=9,
+    )
+    return fig
+
+
+def draw_surprise(trace: SurpriseTrace, path: Path, *, config: ReportConfig) -> Path:
+    """Write the surprise figure (:func:`surprise_figure`) of a detector's trace to ``path``."""
+    fig = surprise_figure(trace, config=config)
+    fig.savefig(path, dpi=config.dpi)
+    return path
+
+
+SrqPoints = tuple[ArrayLike, ArrayLike]
+
+
+def srq_figure(points_by_chain: Mapping[str, SrqPoints], *, note: str = "") -> Figure:
+    """The SRQ plot (thesis Fig. 42) of several chains, not yet saved.
+
+    ``points_by_chain``: chain name → ``(x, y)`` from :func:`ptm_ros.convergence.srq_points`. Each
+    chain is a line from the origin through its points (``gid`` = the chain's name), the unit-slope
+    line is dashed (``gid`` ``"diagonal"``); ``note`` is added to the title.
+    """
+    if not points_by_chain:
+        msg = "the SRQ plot needs at least one chain"
+        raise DataError(msg)
+    fig = _new_figure(6.0, 6.0)
+    ax = fig.add_subplot()
+    ax.plot([0.0, 1.0], [0.0, 1.0], color="black", ls="--", lw=0.8, label="unit slope", gid="diagonal")
+    for name, (x, y) in points_by_chain.items():
+        dev = srq_deviation(x, y)
+        xs = np.concatenate([[0.0], np.asarray(x, dtype=float)])
+        ys = np.concatenate([[0.0], np.asarray(y, dtype=float)])
+        marker = "." if len(xs) <= 200 else None
+        ax.plot(
+            xs,
+            ys,
+            lw=1.0,
+            marker=marker,
+            ms=3,
+            label=f"{name}: R = {len(xs) - 1}, max |y − x| = {dev:.3f}",
+            gid=name,
+        )
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_aspect("equal")
+    ax.set_xlabel(r"regeneration count  $i\,/\,R$")
+    ax.set_ylabel(r"regeneration time  $T_i\,/\,T_R$")
+    ax.legend(loc="upper left", fontsize=8)
+    title = "Scaled regeneration quantiles (thesis Fig. 42)\nnear the unit slope: the chain mixes"
+    ax.set_title(title + (f"\n{note}" if note else ""), fontsize=9)
+    return fig
+
+
+def draw_srq(
+    points_by_chain: Mapping[str, SrqPoints], path: Path, *, config: ReportConfig, note: str = ""
+) -> Path:
+    """Write the SRQ plot (:func:`srq_figure`) of several chains to ``path``."""
+    fig = srq_figure(points_by_chain, note=note)
+    fig.savefig(path, dpi=config.dpi)
+    return path
+
+
+def _hashable(state: Any) -> Hashable:
+    if isinstance(state, np.ndarray):
+        return tuple(state.tolist())
+    return tuple(state) if isinstance(state, list) else state
+
+
+def chain_states(ptm: Ptm) -> list[list[Hashable]] | None:
+    """The MCMC cold-chain states of ``ptm.inference[SRQ_KEY]`` (one list per chain), None if absent.
+
+    Label lists become tuples (hashable); numpy arrays are accepted as from an in-memory result.
+
+    Raises:
+        DataError: the key holds something other than non-empty sequences of states, one per chain.
+    """
+    raw = ptm.inference.get(SRQ_KEY)
+    if raw is None:
+        return None
+    rows = raw.tolist() if isinstance(raw, np.ndarray) else raw
+    if isinstance(rows, str | bytes) or not isinstance(rows, Sequence) or not rows:
+        msg = f"ptm.inference[{SRQ_KEY!r}] must be a non-empty list with one state list per chain"
+        raise DataError(msg)
+    chains = []
+    for k, row in enumerate(rows):
+        seq = row.tolist() if isinstance(row, np.ndarray) else row
+        if isinstance(seq, str | bytes) or not isinstance(seq, Sequence) or not seq:
+            got = type(seq).__name__
+            msg = f"ptm.inference[{SRQ_KEY!r}][{k}] must be a non-empty list of states, got {got}"
+            raise DataError(msg)
+        chains.append([_hashable(s) for s in seq])
+    return chains
+
+
+def chain_srq(chains: Sequence[Sequence[Hashable]]) -> tuple[dict[str, SrqPoints], list[int]]:
+    """SRQ points (``"chain k"`` → ``(x, y)``) of every chain at one atom, the state most visited over
+    all chains, and the chains that never visit it (trapped away from the mode: no points)."""
+    atom = most_visited([s for chain in chains for s in chain])
+    points: dict[str, SrqPoints] = {}
+    missing = []
+    for k, chain in enumerate(chains):
+        if atom in set(chain):
+            points[f"chain {k}"] = srq_points(chain, atom)
+        else:
+            missing.append(k)
+    return points, missing
+
+
 def _fmt(v: float | None) -> str:
     return "—" if v is None else f"{v:.3f}"
 
 
-def _summary(ptm: Ptm) -> list[str]:
+def _summary(ptm: Ptm, notes: Sequence[str] = ()) -> list[str]:
     inf = dict(ptm.inference)
     method = str(inf.pop("method", "unknown"))
     details = ", ".join(f"{k} {v}" for k, v in inf.items() if isinstance(v, (int, float, str, bool)))
@@ -280,7 +539,7 @@ def _summary(ptm: Ptm) -> list[str]:
     wall = ptm.timing.get("wall_s")
     if isinstance(wall, (int, float)):
         lines.append(f"wall time: {wall:.2f} s")
-    return lines
+    return lines + list(notes)
 
 
 def _score_rows(score: Score) -> list[tuple[str, str, str]]:
@@ -329,10 +588,16 @@ def _table_title(ptm: Ptm, config: ReportConfig) -> str:
 
 
 def _markdown(
-    title: str, ptm: Ptm, score: Score | None, figures: list[tuple[str, str]], config: ReportConfig
+    title: str,
+    ptm: Ptm,
+    score: Score | None,
+    figures: list[tuple[str, str]],
+    config: ReportConfig,
+    *,
+    notes: Sequence[str] = (),
 ) -> str:
     out = [f"# {title}", ""]
-    out += [f"- {line}" for line in _summary(ptm)]
+    out += [f"- {line}" for line in _summary(ptm, notes)]
     if score is not None:
         out += ["", "## Ground truth", "", "| | MAP topology | posterior |", "|---|---|---|"]
         out += [f"| {a} | {b} | {c} |" for a, b, c in _score_rows(score)]
@@ -347,7 +612,13 @@ def _markdown(
 
 
 def _html(
-    title: str, ptm: Ptm, score: Score | None, figures: list[tuple[str, str]], config: ReportConfig
+    title: str,
+    ptm: Ptm,
+    score: Score | None,
+    figures: list[tuple[str, str]],
+    config: ReportConfig,
+    *,
+    notes: Sequence[str] = (),
 ) -> str:
     e = html.escape
     out = [
@@ -358,7 +629,7 @@ def _html(
         "table{border-collapse:collapse}td,th{border:1px solid #999;padding:2px 8px}"
         "img{max-width:100%}code{font-size:90%}</style></head><body>",
         f"<h1>{e(title)}</h1>",
-        "<ul>" + "".join(f"<li>{e(line)}</li>" for line in _summary(ptm)) + "</ul>",
+        "<ul>" + "".join(f"<li>{e(line)}</li>" for line in _summary(ptm, notes)) + "</ul>",
     ]
     if score is not None:
         out.append("<h2>Ground truth</h2><table><tr><th></th><th>MAP topology</th><th>posterior</th></tr>")
@@ -397,6 +668,7 @@ def write_report(
     *,
     trajectory: ArrayLike | None = None,
     score: Score | None = None,
+    surprise_trace: SurpriseTrace | None = None,
     extra_figures: Sequence[str | Path] = (),
     title: str = "Probabilistic topological map",
     config: ReportConfig | None = None,
@@ -404,8 +676,10 @@ def write_report(
     """Write the figures, ``report.md`` and ``report.html`` into ``out_dir``; returns the HTML path.
 
     ``trajectory`` ``(T, 3)`` (or ``(T, 2)``) odometry or smoothed poses drawn under the topologies;
-    ``score`` from :func:`ptm_ros.evaluation.score_ptm` on this PTM; ``extra_figures`` image files to
-    include (copied into ``out_dir`` unless already there).
+    ``score`` from :func:`ptm_ros.evaluation.score_ptm` on this PTM; ``surprise_trace`` the landmark
+    detector's :attr:`~ptm_ros.surprise.LaserSurpriseDetector.trace` (drawn unless empty); the SRQ plot
+    is drawn when ``ptm.inference`` holds :data:`SRQ_KEY`; ``extra_figures`` image files to include
+    (copied into ``out_dir`` unless already there).
     """
     config = config or ReportConfig()
     if not ptm.topologies:
@@ -425,6 +699,7 @@ def write_report(
             f"this PTM has {len(ptm.landmarks)} and {len(ptm.topologies)})"
         )
         raise DataError(msg)
+    chains = chain_states(ptm)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figures = [
@@ -436,9 +711,27 @@ def write_report(
     ]
     if score is not None:
         figures.append(("Scores against ground truth", draw_scores(score, out / SCORES, config=config).name))
-    taken = {HISTOGRAM, TOPOLOGIES, SCORES, REPORT_MD, REPORT_HTML}
+    notes: list[str] = []
+    if surprise_trace is not None and len(surprise_trace.stamps):
+        draw_surprise(surprise_trace, out / SURPRISE, config=config)
+        figures.append(("Bayesian surprise of the landmark detector (thesis Fig. 62)", SURPRISE))
+        notes.append(
+            f"landmark detector: {len(surprise_trace.stamps)} measurements, "
+            f"{len(surprise_trace.landmarks)} landmarks declared by surprise"
+        )
+    if chains is not None:
+        points, missing = chain_srq(chains)
+        trapped = f"never visited by chain {', '.join(map(str, missing))}" if missing else ""
+        thin = ptm.inference.get(SRQ_THIN_KEY)
+        every = f"states, one per {thin} sweeps" if isinstance(thin, int) and thin > 1 else "states"
+        note = f"atom: the state most visited over all chains ({sum(map(len, chains))} {every})"
+        draw_srq(points, out / SRQ, config=config, note=note + (f"; {trapped}" if trapped else ""))
+        figures.append(("Scaled regeneration quantiles of the MCMC chains (thesis Fig. 42)", SRQ))
+        devs = ", ".join(f"{name} {srq_deviation(x, y):.3f}" for name, (x, y) in points.items())
+        notes.append(f"SRQ max |y − x| (0 = ideal mixing): {devs}" + (f"; atom {trapped}" if trapped else ""))
+    taken = {HISTOGRAM, TOPOLOGIES, SCORES, SURPRISE, SRQ, REPORT_MD, REPORT_HTML}
     figures += [(Path(f).stem, _place_extra(f, out, taken, k)) for k, f in enumerate(extra_figures)]
-    (out / REPORT_MD).write_text(_markdown(title, ptm, score, figures, config), encoding="utf-8")
+    (out / REPORT_MD).write_text(_markdown(title, ptm, score, figures, config, notes=notes), encoding="utf-8")
     html_path = out / REPORT_HTML
-    html_path.write_text(_html(title, ptm, score, figures, config), encoding="utf-8")
+    html_path.write_text(_html(title, ptm, score, figures, config, notes=notes), encoding="utf-8")
     return html_path

@@ -4,7 +4,8 @@ A :class:`Visit` is one passage of the robot through a landmark ("special place"
 inference only ever sees a sequence of visits; the sensors behind them are abstracted into the
 measurements each model needs:
 
-* odometry: the raw odometry pose of the visit plus the distance and absolute rotation travelled since
+* odometry: the odometry pose of the visit (wheel odometry, corrected by scan matching when the run has
+  scans: :mod:`ptm_ros.laser_odometry`) plus the distance and absolute rotation travelled since
   the previous visit (for the odometry noise model, :mod:`ptm_ros.odometry`);
 * appearance: a Fourier signature (:mod:`ptm_ros.appearance`) and/or a bag-of-words histogram;
 * laser: a local map patch, points in the visit's own frame (:mod:`ptm_ros.laser`).
@@ -28,7 +29,7 @@ class Visit:
     Attributes:
         index: position in the visit sequence (0-based).
         stamp: time of the visit (s), from the message header stamps.
-        pose: raw odometry pose ``(x, y, yaw)`` of the visit in the odometry frame, unchanged.
+        pose: odometry pose ``(x, y, yaw)`` of the visit in the odometry frame (laser-corrected if enabled).
         travel: odometry path length since the previous visit (m); 0 for the first visit.
         rotation: accumulated absolute heading change since the previous visit (rad); 0 for the first.
         signature: Fourier signature of the panorama at the visit, shape ``(K,)``, or None.

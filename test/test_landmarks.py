@@ -9,11 +9,12 @@ import pytest
 
 from ptm_ros.detectors import EquidistantConfig, EquidistantDetector
 from ptm_ros.errors import DataError
-from ptm_ros.geometry import path_length
+from ptm_ros.geometry import between, path_length, wrap_angle
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
 from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, visit_from_json, visit_to_json
 from ptm_ros.laser import LaserConfig
+from ptm_ros.laser_odometry import LaserOdometryConfig
 
 
 @pytest.fixture(scope="module")
@@ -29,11 +30,12 @@ def messages(sim):
     return odom, scans, images, cfg
 
 
-def run_extractor(streams, cfg, order, spacing=4.0):
+def run_extractor(streams, cfg, order, spacing=4.0, laser_odometry=None):
     ext = VisitExtractor(
         EquidistantDetector(EquidistantConfig(spacing=spacing)),
         laser=LaserConfig(),
         config=ExtractorConfig(),
+        laser_odometry=laser_odometry,
     )
     out = []
     for kind, t, payload in order:
@@ -90,12 +92,12 @@ def test_visits_do_not_depend_on_arrival_order(sim):
 def test_visit_content(sim):
     odom, scans, images, cfg = messages(sim)
     merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
-    visits, ext = run_extractor(None, cfg, merged)
+    visits, ext = run_extractor(None, cfg, merged, laser_odometry=LaserOdometryConfig(enabled=False))
     stamps = list(sim.odom_stamps)
     prev = None
     for v in visits:
         k = stamps.index(v.stamp)
-        assert v.pose == tuple(sim.odom_poses[k])  # an odometry sample, unchanged
+        assert v.pose == tuple(sim.odom_poses[k])  # an odometry sample, unchanged without laser odometry
         assert v.signature is not None and v.patch is not None
         # the patch is expressed in the visit frame: its points surround the origin within the max range
         assert np.all(np.hypot(*v.patch.T) <= LaserConfig().max_range + LaserConfig().patch_radius)
@@ -104,6 +106,29 @@ def test_visit_content(sim):
             assert 4.0 <= v.travel < 4.2
         prev = k
     assert ext.diagnostics.visits == len(visits)
+
+
+def test_laser_odometry_corrects_the_visit_poses(sim):
+    """With scans, visit poses are the odometry corrected by scan matching: the relative poses between
+    consecutive visits are closer to the truth than the wheel odometry's, and the firing stamps agree."""
+    odom, scans, images, cfg = messages(sim)
+    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
+    corrected, ext = run_extractor(None, cfg, merged)
+    raw, _ = run_extractor(None, cfg, merged, laser_odometry=LaserOdometryConfig(enabled=False))
+    assert ext.diagnostics.laser_odometry["matched"] > 0.9 * len(scans)
+    stamps = list(sim.odom_stamps)
+
+    def errors(visits):
+        k = [stamps.index(v.stamp) for v in visits]
+        est = between(np.array([v.pose for v in visits[:-1]]), np.array([v.pose for v in visits[1:]]))
+        true = between(sim.true_poses[k[:-1]], sim.true_poses[k[1:]])
+        return np.hypot(*(est[:, :2] - true[:, :2]).T), np.abs(wrap_angle(est[:, 2] - true[:, 2]))
+
+    xy_c, th_c = errors(corrected)
+    xy_r, th_r = errors(raw)
+    assert len(corrected) >= 4
+    assert np.sqrt(np.mean(xy_c**2)) < 0.7 * np.sqrt(np.mean(xy_r**2))
+    assert np.sqrt(np.mean(th_c**2)) < np.sqrt(np.mean(th_r**2))
 
 
 def test_bad_input_is_counted_not_raised():

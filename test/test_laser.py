@@ -555,3 +555,52 @@ if __name__ == "__main__":  # figures for the report: python test/test_laser.py 
             "median d2",
             np.round(np.median(errors[:, 3]), 2),
         )
+
+
+# ------------------------------------------------------------------------------- fitness evidence
+
+
+def test_fitness_densities_are_normalised_and_the_ratio_matches_them():
+    """Both mixture densities integrate to 1 over [0, 1] (quadrature), and the log ratio is theirs."""
+    from scipy.integrate import quad
+    from scipy.stats import beta
+
+    from ptm_ros.laser import fitness_log_bayes
+
+    cfg = LaserConfig()
+    eps = cfg.fitness_outlier
+
+    def same(f):
+        return (1 - eps) * beta.pdf(f, cfg.fitness_same_a, cfg.fitness_same_b) + eps
+
+    def diff(f):
+        return (1 - eps) * beta.pdf(f, cfg.fitness_different_a, cfg.fitness_different_b) + eps
+
+    assert abs(quad(same, 0, 1)[0] - 1) < 1e-8
+    assert abs(quad(diff, 0, 1, points=[0.1, 0.2, 0.3])[0] - 1) < 1e-8
+    for f in (0.0, 0.1, 0.15, 0.28, 0.5, 0.9, 1.0):
+        expected = math.log(same(f) / diff(f))
+        assert math.isclose(fitness_log_bayes(f, cfg), expected, rel_tol=1e-12, abs_tol=1e-12)
+    assert fitness_log_bayes(0.15) < -1.5 and fitness_log_bayes(0.5) > 2.5  # the fitted shape
+    assert fitness_log_bayes(math.nan) == fitness_log_bayes(0.0)  # nothing overlapped
+
+
+def test_laser_outcome_kinds():
+    """A valid registration gives a RelativePose with the fitness evidence, an invalid one a NoMatch (or
+    None when the fitness model is off)."""
+    from dataclasses import replace as dc_replace
+
+    from ptm_ros.geometry import NoMatch, RelativePose
+    from ptm_ros.laser import fitness_log_bayes, laser_outcome
+
+    source, target = patch_pair(JUNCTION, TRUE, np.random.default_rng(5))
+    good = register_patches(source, target)
+    assert good.valid, good.reason
+    z = laser_outcome(good, 2, 5, LaserConfig())
+    assert isinstance(z, RelativePose) and (z.i, z.j) == (2, 5)
+    assert z.log_bayes == fitness_log_bayes(good.inlier_fraction)
+    bad = dc_replace(good, valid=False, reason="forced", inlier_fraction=0.12)
+    nm = laser_outcome(bad, 2, 5, LaserConfig())
+    assert isinstance(nm, NoMatch) and nm.log_bayes == fitness_log_bayes(0.12) < 0
+    assert laser_outcome(bad, 2, 5, LaserConfig(use_fitness=False)) is None
+    assert laser_outcome(good, 2, 5, LaserConfig(use_fitness=False)).log_bayes == 0.0

@@ -38,16 +38,24 @@ def small_config(**over) -> PtmConfig:
 def test_visits_follow_the_odometry(tjunction_bag):
     run = read_run(tjunction_bag)
     diag = {}
-    visits = detect_visits(run, small_config(), diag)
+    visits = detect_visits(run, small_config(laser_odometry={"enabled": False}), diag)
     assert 4 <= len(visits) <= 8
     stamps = run.odometry.stamps
     for v in visits:
         k = int(np.flatnonzero(stamps == v.stamp)[0])  # a visit sits exactly on an odometry message
-        assert v.pose == tuple(run.odometry.poses[k])  # pose unchanged from the input odometry
+        assert v.pose == tuple(run.odometry.poses[k])  # pose unchanged without laser odometry
         assert v.signature is not None and v.patch is not None and len(v.patch) > 30
     travel = sum(v.travel for v in visits[1:])
     assert 5.0 * (len(visits) - 1) <= travel < 5.0 * (len(visits) - 1) + 0.2
     assert diag["visits_without_panorama"] == 0 and diag["visits"] == len(visits)
+    # with laser odometry (the default) the scans are matched and the poses move off the wheel odometry
+    # (the equidistant firings follow the corrected travel, so stamps may shift by a sample or two)
+    corrected = detect_visits(run, small_config(), diag)
+    assert abs(len(corrected) - len(visits)) <= 1
+    assert diag["laser_odometry"]["matched"] >= 0.9 * len(run.scans.stamps)
+    assert any(
+        v.pose != tuple(run.odometry.poses[int(np.flatnonzero(stamps == v.stamp)[0])]) for v in corrected
+    )
 
 
 def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path):

@@ -17,7 +17,7 @@ from ptm_ros.appearance import (
     fit_appearance_model,
 )
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, compose
+from ptm_ros.geometry import NoMatch, RelativePose, between, compose
 from ptm_ros.odometry import OdometryConfig, metric_log_likelihood
 from ptm_ros.partitions import bell, canonical
 from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
@@ -64,14 +64,17 @@ def simulate(route, places, odo, seed=0, signatures=False, sig_noise=0.1):
     return visits, np.array(true)
 
 
-def truth_registrar(true, route, sd=(0.05, 0.05, 0.01), seed=0):
-    """Laser measurements between visits of the same true place (noisy truth), None otherwise."""
+def truth_registrar(true, route, sd=(0.05, 0.05, 0.01), seed=0, fitness=False):
+    """Laser measurements between visits of the same true place (noisy truth), None otherwise; with
+    ``fitness``, matches carry a fitness evidence and other pairs are NoMatch outcomes with a negative one
+    (varying by pair)."""
 
     def registrar(i, j):
         if route[i] != route[j]:
-            return None
+            return NoMatch(i, j, -1.0 - 0.3 * ((i + j) % 3)) if fitness else None
         rng = np.random.default_rng([seed, i, j])
-        return RelativePose(i, j, between(true[i], true[j]) + rng.normal(0.0, sd), np.diag(np.square(sd)))
+        mean = between(true[i], true[j]) + rng.normal(0.0, sd)
+        return RelativePose(i, j, mean, np.diag(np.square(sd)), 2.5 if fitness else 0.0)
 
     return registrar
 
@@ -470,12 +473,27 @@ def test_deterministic_under_a_seed(long_run):
     assert np.array_equal(again.place_positions(labels), flt.place_positions(labels))
 
 
+def test_full_filter_equals_exact_posterior_with_fitness_evidence():
+    """Fitness evidence of matches and of failed matches (NoMatch) enters the filter's weights as in the
+    batch posterior (PosteriorModel.laser_evidence)."""
+    visits, true = simulate(ROUTE6, SQUARE, ODO, seed=1)
+    reg = truth_registrar(true, ROUTE6, fitness=True)
+    logp, model = exact(visits, ODO, registrar=reg)
+    plain, _ = exact(visits, ODO, registrar=truth_registrar(true, ROUTE6))
+    top = max(logp, key=logp.get)
+    merged_wrong = next(lab for lab in logp if lab[1] == lab[0])  # visits 0 and 1 are different places
+    assert math.isclose(logp[merged_wrong] - plain[merged_wrong], model.laser_evidence(merged_wrong))
+    assert model.laser_evidence(merged_wrong) < 0.0 < model.laser_evidence(top)
+    flt = full_filter(visits, ODO, registrar=reg)
+    assert total_variation(normalize_log(logp), flt.ptm_weights()) <= 0.02
+
+
 def test_state_dict_round_trip_continues_identically():
     places, route = grid_route(20, seed=1)
     odo = OdometryConfig(n_samples=0, a_xy=0.1**2)
     visits, true = simulate(route, places, odo, seed=1, signatures=True)
     model = PosteriorModel(visits, ModelConfig(odometry=odo)).appearance
-    reg = truth_registrar(true, route)
+    reg = truth_registrar(true, route, fitness=True)
     args = (RbpfConfig(particles=8), make_prior(PRIOR), odo)
     a = TopologyFilter(*args, appearance=model, registrar=reg, seed=3)
     for v in visits[:10]:

@@ -3,29 +3,44 @@
 from __future__ import annotations
 
 import re
+from functools import cache
 from html.parser import HTMLParser
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
+from ptm_ros.convergence import srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import score_ptm
-from ptm_ros.ptm import Landmark, Ptm, Topology, make_ptm
+from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
 from ptm_ros.report import (
     HISTOGRAM,
     REPORT_HTML,
     REPORT_MD,
     SCORES,
+    SRQ,
+    SRQ_KEY,
+    SRQ_THIN_KEY,
+    SURPRISE,
     TOPOLOGIES,
     ReportConfig,
+    chain_srq,
+    chain_states,
+    draw_srq,
+    fired_indices,
     label_string,
     place_edges,
     place_positions,
+    srq_figure,
+    surprise_figure,
     write_report,
 )
+from ptm_ros.surprise import LaserSurpriseConfig, LaserSurpriseDetector, SurpriseTrace
 
 # A square loop driven twice: corners A B C D A B C D (odometry drifts a little).
 TRUE_XY = np.array([[0, 0], [10, 0], [10, 10], [0, 10]] * 2, dtype=float)
@@ -174,3 +189,172 @@ def test_errors(tmp_path: Path) -> None:
         ReportConfig(top_k=0)
     with pytest.raises(ConfigError, match="max_label_chars"):
         ReportConfig(max_label_chars=2)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Surprise figure (thesis Fig. 62) and SRQ plot (Fig. 42)
+# ---------------------------------------------------------------------------------------------------
+
+
+@cache
+def step_trace() -> SurpriseTrace:
+    """A laser surprise detector fed a 3-D statistic with two steps (scans 200 and 400, 10 Hz)."""
+    rng = np.random.default_rng(0)
+    z = rng.normal(0.0, 0.01, (600, 3))
+    z[200:] += 0.2
+    z[400:, 0] -= 0.3
+    detector = LaserSurpriseDetector(LaserSurpriseConfig(samples=200))
+    for i, zi in enumerate(z):
+        detector.on_statistic(1000.0 + 0.1 * i, zi)
+    return detector.trace
+
+
+def artist(ax: Axes, gid: str) -> Any:
+    """The one artist of ``ax`` with this ``gid``."""
+    found = [a for a in ax.get_children() if a.get_gid() == gid]
+    assert len(found) == 1, gid
+    return found[0]
+
+
+def test_fired_indices() -> None:
+    trace = step_trace()
+    assert trace.landmarks.tolist() == pytest.approx([1020.0, 1040.0])  # the detector fired at both steps
+    assert fired_indices(trace).tolist() == [200, 400]
+    # equal stamps: the most surprising measurement of that stamp
+    dup = SurpriseTrace(
+        stamps=np.array([0.0, 1.0, 1.0, 2.0]),
+        surprise=np.array([0.1, 0.5, 3.0, 0.2]),
+        predicted_mean=np.full(4, 0.3),
+        predicted_std=np.full(4, 0.1),
+        upper=np.full(4, 0.8),
+        landmarks=np.array([1.0]),
+    )
+    assert fired_indices(dup).tolist() == [2]
+    bad = SurpriseTrace(
+        dup.stamps, dup.surprise, dup.predicted_mean, dup.predicted_std, dup.upper, np.array([1.5])
+    )
+    with pytest.raises(DataError, match=r"landmark stamp 1\.5"):
+        fired_indices(bad)
+
+
+def test_surprise_figure_draws_the_trace_band_and_landmarks() -> None:
+    trace = step_trace()
+    fig = surprise_figure(trace, config=ReportConfig())
+    (ax,) = fig.axes
+    t = trace.stamps - trace.stamps[0]
+    assert ax.get_yscale() == "log"
+    line = artist(ax, "surprise")
+    assert line.get_xdata() == pytest.approx(t)
+    assert line.get_ydata() == pytest.approx(trace.surprise)
+    assert artist(ax, "predicted_mean").get_ydata() == pytest.approx(trace.predicted_mean)
+    assert artist(ax, "upper").get_ydata() == pytest.approx(trace.upper)
+    # the landmark markers sit on the surprise at the measurements whose stamps the detector declared
+    idx = np.flatnonzero(np.isin(trace.stamps, trace.landmarks))
+    assert idx.tolist() == [200, 400]
+    offsets = np.asarray(artist(ax, "landmarks").get_offsets())
+    assert offsets == pytest.approx(np.column_stack([t[idx], trace.surprise[idx]]))
+    assert np.all(trace.surprise[idx] > trace.upper[idx])  # they fired above the band
+    # the band: top = the detector's threshold, bottom = max(0, mean - k·std) floored on the log axis
+    band = np.concatenate([p.vertices for p in artist(ax, "band").get_paths()])
+    assert band[:, 1].max() == pytest.approx(trace.upper.max())
+    k = (trace.upper - trace.predicted_mean) / trace.predicted_std
+    assert k == pytest.approx(np.full(k.shape, 5.0))  # LaserSurpriseConfig.band_sigmas
+    assert "5σ" in artist(ax, "band").get_label()
+    linear = surprise_figure(trace, config=ReportConfig(surprise_log_scale=False))
+    assert linear.axes[0].get_yscale() == "linear"
+
+
+def test_report_with_surprise_trace(tmp_path: Path) -> None:
+    trace = step_trace()
+    html_path = write_report(tmp_path, loop_ptm(), surprise_trace=trace)
+    img = imread(tmp_path / SURPRISE)
+    assert img.shape[0] > 200 and img.shape[1] > 500
+    # the red landmark rings are in the picture (tab:red = #d62728)
+    red = (np.abs(img[..., 0] - 0xD6 / 255) < 0.05) & (np.abs(img[..., 1] - 0x27 / 255) < 0.05)
+    assert red.sum() > 20
+    assert SURPRISE in html_links(html_path)
+    md = (tmp_path / REPORT_MD).read_text(encoding="utf-8")
+    assert f"]({SURPRISE})" in md
+    assert "landmark detector: 600 measurements, 2 landmarks declared by surprise" in md
+    empty = SurpriseTrace(*(np.zeros(0) for _ in range(6)))
+    write_report(tmp_path / "empty", loop_ptm(), surprise_trace=empty)  # nothing to draw: no figure
+    assert not (tmp_path / "empty" / SURPRISE).exists()
+    with pytest.raises(DataError, match="empty"):
+        surprise_figure(empty, config=ReportConfig())
+    ragged = SurpriseTrace(
+        trace.stamps,
+        trace.surprise[:-1],
+        *(getattr(trace, f) for f in ("predicted_mean", "predicted_std", "upper", "landmarks")),
+    )
+    with pytest.raises(DataError, match="shapes"):
+        write_report(tmp_path, loop_ptm(), surprise_trace=ragged)
+
+
+def mcmc_ptm(chains: list[list[object]], **inference: object) -> Ptm:
+    ptm = loop_ptm()
+    return Ptm(ptm.landmarks, ptm.topologies, inference={"method": "mcmc", SRQ_KEY: chains, **inference})
+
+
+def test_srq_figure_lines() -> None:
+    chains = [["a", "b", "a", "a", "c", "a"], ["c", "a", "c", "c", "a", "b"]]
+    points, missing = chain_srq(chains)
+    assert missing == []
+    # pooled counts: a 6, c 4, b 2 -> the atom is "a" in both chains
+    assert points["chain 0"][1] == pytest.approx([1 / 6, 3 / 6, 4 / 6, 1.0])
+    assert points["chain 1"][0] == pytest.approx([0.5, 1.0])
+    assert points["chain 1"][1] == pytest.approx([2 / 5, 1.0])
+    fig = srq_figure(points, note="hello")
+    (ax,) = fig.axes
+    line = artist(ax, "chain 0")
+    assert line.get_xdata() == pytest.approx([0.0, 0.25, 0.5, 0.75, 1.0])
+    assert line.get_ydata() == pytest.approx([0.0, 1 / 6, 3 / 6, 4 / 6, 1.0])
+    assert artist(ax, "diagonal").get_ydata() == pytest.approx([0.0, 1.0])
+    assert "max |y − x| = 0.100" in artist(ax, "chain 1").get_label()
+    assert "hello" in ax.get_title()
+    with pytest.raises(DataError, match="at least one chain"):
+        srq_figure({})
+
+
+def test_report_draws_srq_from_inference_after_json_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    good = rng.integers(0, 3, 6000).tolist()
+    stuck = np.concatenate([rng.integers(0, 3, 3000), rng.integers(0, 6, 3000)]).tolist()
+    ptm = load_ptm(save_ptm(mcmc_ptm([good, stuck], **{SRQ_THIN_KEY: 4}), tmp_path / "ptm.json"))
+    assert ptm.inference[SRQ_KEY] == [good, stuck]  # plain JSON lists
+    html_path = write_report(tmp_path / "r", ptm)
+    assert imread(tmp_path / "r" / SRQ).shape[0] > 300
+    assert SRQ in html_links(html_path)
+    md = (tmp_path / "r" / REPORT_MD).read_text(encoding="utf-8")
+    atom = int(np.argmax(np.bincount(good + stuck)))
+    devs = [srq_deviation(*srq_points(c, atom)) for c in (good, stuck)]
+    # i.i.d.: R ≈ 2000, within 2.7·CV/√R ≈ 0.05 but with probability 1e-6; stuck: ≈ 1/6 (test_convergence)
+    assert devs[0] < 0.06 < 0.12 < devs[1]
+    assert f"SRQ max |y − x| (0 = ideal mixing): chain 0 {devs[0]:.3f}, chain 1 {devs[1]:.3f}" in md
+    assert "method: mcmc" in md and "cold_chain_states" not in md  # the states stay out of the summary
+
+
+def test_srq_states_as_labels_and_a_chain_missing_the_atom(tmp_path: Path) -> None:
+    a, b, c = [0, 1, 2, 0], [0, 1, 0, 1], [0, 0, 0, 0]
+    ptm = mcmc_ptm([[a, b, a, a], [c, c, b]])
+    chains = chain_states(ptm)
+    assert chains == [[tuple(a), tuple(b), tuple(a), tuple(a)], [tuple(c), tuple(c), tuple(b)]]
+    assert chains is not None
+    points, missing = chain_srq(chains)
+    assert list(points) == ["chain 0"] and missing == [1]
+    write_report(tmp_path, ptm)
+    md = (tmp_path / REPORT_MD).read_text(encoding="utf-8")
+    assert "chain 0 0.083; atom never visited by chain 1" in md  # T = 1, 3, 4: max |y - x| = 1/12
+    assert chain_states(loop_ptm()) is None
+    for bad, match in (
+        ("abc", "one state list per chain"),
+        ([], "one state list per chain"),
+        ([[1], []], r"\[1\]"),
+    ):
+        with pytest.raises(DataError, match=match):
+            write_report(tmp_path, mcmc_ptm(bad))  # type: ignore[arg-type]
+
+
+def test_draw_srq_writes_a_file(tmp_path: Path) -> None:
+    x, y = srq_points([0, 1, 0, 0, 1, 0])
+    path = draw_srq({"chain 0": (x, y)}, tmp_path / "srq.png", config=ReportConfig(dpi=50))
+    assert path == tmp_path / "srq.png" and imread(path).shape[0] == 300  # 6 in at 50 dpi

@@ -78,7 +78,11 @@ def make_extractor(config: PtmConfig, kind: str, *, use_scans: bool, use_images:
         image_max_dt=config.detector.image_max_dt,
     )
     return VisitExtractor(
-        make_detector(kind, config), laser=config.laser, appearance=config.model.appearance, config=ext
+        make_detector(kind, config),
+        laser=config.laser,
+        appearance=config.model.appearance,
+        config=ext,
+        laser_odometry=config.laser_odometry,
     )
 
 

@@ -1,0 +1,99 @@
+"""Laser odometry: the scan-to-map correction removes a heading bias of the wheel odometry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.geometry import between, interpolate_poses, path_length, wrap_angle
+from ptm_ros.io.simulator import OdometryNoiseConfig, SimConfig, simulate
+from ptm_ros.io.worlds import get_world
+from ptm_ros.laser import scan_to_points
+from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
+
+
+@pytest.fixture(scope="module")
+def biased_run():
+    """A T-junction run whose wheel odometry turns 0.05 rad too little per metre (like Intel's)."""
+    noise = OdometryNoiseConfig(bias_init=0.05, bias_walk=0.0)
+    return simulate(get_world("t-junction"), SimConfig(odometry=noise), np.random.default_rng(3), visits=4)
+
+
+def corrected_scan_poses(run, config=None):
+    lo = LaserOdometry(config or LaserOdometryConfig())
+    cfg = run.config.laser
+    wheel = interpolate_poses(run.odom_stamps, run.odom_poses, run.scan_stamps)
+    out = []
+    for w, ranges in zip(wheel, run.scan_ranges, strict=True):
+        pts = scan_to_points(ranges, cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max).points
+        out.append(lo.on_scan(w, pts))
+    return wheel, np.array(out), lo
+
+
+def heading_drift_per_metre(est, true):
+    """Accumulated heading error over the run divided by the distance travelled (rad/m)."""
+    d_est = np.sum(wrap_angle(np.diff(est[:, 2])))
+    d_true = np.sum(wrap_angle(np.diff(true[:, 2])))
+    return (d_est - d_true) / path_length(true)
+
+
+def test_the_heading_bias_is_removed(biased_run):
+    wheel, corrected, lo = corrected_scan_poses(biased_run)
+    true = interpolate_poses(biased_run.odom_stamps, biased_run.true_poses, biased_run.scan_stamps)
+    raw_drift = heading_drift_per_metre(wheel, true)
+    lo_drift = heading_drift_per_metre(corrected, true)
+    assert abs(raw_drift) > 0.03  # the simulated bias is there
+    assert abs(lo_drift) < 0.1 * abs(raw_drift)
+    assert lo.counters.matched > 0.9 * len(wheel)
+    # end-to-end position error (the start pose is shared): far smaller than the wheel odometry's
+    start = between(true[0], true[-1])
+    err_lo = np.hypot(*(between(corrected[0], corrected[-1])[:2] - start[:2]))
+    err_raw = np.hypot(*(between(wheel[0], wheel[-1])[:2] - start[:2]))
+    assert err_lo < 0.2 * err_raw
+
+
+def test_identity_before_any_scan_and_too_few_points():
+    lo = LaserOdometry()
+    pose = np.array([1.0, 2.0, 0.3])
+    assert np.array_equal(lo.correct(pose), pose)
+    out = lo.on_scan(pose, np.zeros((3, 2)))  # 3 points: no match, no keyframe
+    assert np.allclose(out, pose)
+    assert lo.counters.too_few_points == 1 and lo.counters.keyframes == 0
+    with pytest.raises(ModelError, match="3 finite numbers"):
+        lo.on_scan([0.0, math.nan, 0.0], np.zeros((20, 2)))
+
+
+def test_a_teleport_is_rejected_not_followed(biased_run):
+    """A wheel-odometry jump the scans cannot explain keeps the correction (counted as rejected)."""
+    cfg = biased_run.config.laser
+    wheel = interpolate_poses(biased_run.odom_stamps, biased_run.odom_poses, biased_run.scan_stamps)
+    lo = LaserOdometry()
+    for w, ranges in zip(wheel[:40], biased_run.scan_ranges[:40], strict=True):
+        pts = scan_to_points(ranges, cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max).points
+        lo.on_scan(w, pts)
+    before = lo.correction
+    rejected = lo.counters.rejected
+    jumped = wheel[40] + np.array([0.0, 0.0, 1.2])  # the wheels claim a 1.2 rad turn in one step
+    pts = scan_to_points(
+        biased_run.scan_ranges[40], cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max
+    ).points
+    lo.on_scan(jumped, pts)
+    assert lo.counters.rejected == rejected + 1
+    assert np.array_equal(lo.correction, before)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("window", 0, "window"),
+        ("voxel", 0.1, "voxel"),
+        ("max_correction_yaw", -1.0, "max_correction_yaw"),
+        ("enabled", 1, "enabled"),
+    ],
+)
+def test_bad_config(field, value, match):
+    with pytest.raises(ConfigError, match=match):
+        LaserOdometryConfig(**{field: value})

@@ -1,0 +1,127 @@
+"""Issue #6: the node suite replaying the bundled bag at 10× real time over DDS loses no landmark visit.
+
+``ptm-bringup --bag bags/demo --rate 10 --params config/demo.yaml`` (separate processes, real DDS): the
+visits the detector publishes, the visits the filter maps and the landmarks of the final ptm.json all
+equal ``ptm-run``'s on the same bag, and so does the ensemble; every message of the bag reaches the
+detector, and no node reports a skipped or dropped message (log, ``/diagnostics``, ptm.json counters).
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from ros_helpers import REPO, Inbox, dds_env, ros_context
+from test_bringup import BRINGUP, assert_no_orphans
+
+from ptm_ros.nodes.bag_player import bag_topics
+from ptm_ros.ptm import load_ptm
+
+PTM_RUN = [sys.executable, "-m", "ptm_ros.tools.run"]
+RATE = 10.0
+NODES = ("landmark_detector", "topology_filter", "map_publisher")
+#: the filter's counters of visit messages it could not use (ptm.json ``diagnostics``; all must stay 0)
+FILTER_DROPS = ("invalid", "rejected", "duplicates", "gaps", "resets")
+
+
+@pytest.fixture(scope="module")
+def demo_bag(tmp_path_factory):
+    """A private copy of ``bags/demo`` (its path marks every process of this test, and no other)."""
+    bag = tmp_path_factory.mktemp("replay") / "demo"
+    shutil.copytree(REPO / "bags" / "demo", bag)
+    return bag
+
+
+def logged_dict(log: str, pattern: str) -> dict[str, int]:
+    """The ``{...}`` literal at the end of the first log line matching ``pattern``."""
+    m = re.search(pattern + r"[^{\n]*(\{[^}\n]*\})", log)
+    assert m is not None, f"no {pattern!r} in the log:\n{log[-3000:]}"
+    return ast.literal_eval(m.group(1))
+
+
+def test_ten_times_real_time_loses_no_visit(demo_bag, tmp_path, monkeypatch):
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from std_msgs.msg import String
+
+    from ptm_ros.nodes.common import STREAM_QOS
+    from ptm_ros.nodes.topology_filter import parse_visit_message
+
+    params = REPO / "config" / "demo.yaml"
+    out = tmp_path / "bringup"
+    sent = {name: t.count for name, t in bag_topics(demo_bag).items()}
+    cmd = [*BRINGUP, "--bag", str(demo_bag), "--rate", f"{RATE:g}", "--params", str(params)]
+    cmd += ["--out", str(out), "--no-report"]
+    # ptm-run on the same bag meanwhile, on the other core (the replay keeps about one core busy)
+    run_cmd = [*PTM_RUN, str(demo_bag), "--out", str(tmp_path / "run"), "--params", str(params)]
+    with ros_context(monkeypatch) as ros:  # a probe on the suite's domain: what went over DDS
+        probe = ros.node("replay_probe")
+        visits_seen = Inbox(probe, String, "/landmark_visits", STREAM_QOS)
+        diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 200)
+        ros.spin(probe)
+        ptm_run = subprocess.Popen(
+            [*run_cmd, "--no-report"],
+            env=dds_env(ros.domain_id),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            proc = subprocess.run(
+                cmd, env=dds_env(ros.domain_id), capture_output=True, text=True, timeout=240, check=False
+            )
+            run_log = ptm_run.communicate(timeout=240)[0].decode(errors="replace")
+        finally:
+            ptm_run.kill()
+            assert_no_orphans(str(out), str(demo_bag))
+        published = [parse_visit_message(m.data) for m in visits_seen.items]
+        statuses = [s for m in diagnostics.items for s in m.status]
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-4000:]
+    assert ptm_run.returncode == 0, run_log[-4000:]
+    offline = load_ptm(tmp_path / "run" / "ptm.json")
+    n = len(offline.landmarks)
+    assert n >= 8
+
+    # every message of the bag was published at 10x and received by the detector before it finished
+    assert f"at rate {RATE:g}" in log
+    assert logged_dict(log, r"\[ptm_bag_player\]: published \d+ messages") == sent
+    assert logged_dict(log, r"\[landmark_detector\]: end of input announced") == sent
+    assert "never arrived" not in log
+    skips = re.findall(r"^\[landmark_detector\] \[WARN\].*skipped.*$", log, re.MULTILINE)
+    assert not skips  # the detector logs the first message it skips of every kind
+
+    # the detector's visits as published over DDS, then its end marker: ptm-run's visits
+    assert published[-1] == n
+    assert [(v.index, v.stamp, v.pose) for v in published[:-1]] == [
+        (lm.index, lm.stamp, lm.pose) for lm in offline.landmarks
+    ]
+    assert f"[landmark_detector]: input finished: {n} landmark visits" in log
+    assert f"[topology_filter]: end of visits reported ({n}); {n} in the map" in log
+
+    # the map publisher's ptm.json: the filter took every visit; the same landmarks and ensemble as ptm-run
+    online = load_ptm(out / "ptm.json")
+    assert online.landmarks == offline.landmarks
+    assert [t.labels for t in online.topologies] == [t.labels for t in offline.topologies]
+    p_on = np.array([t.probability for t in online.topologies])
+    p_off = np.array([t.probability for t in offline.topologies])
+    assert np.max(np.abs(p_on - p_off)) <= 1e-9
+    doc = json.loads((out / "ptm.json").read_text())
+    assert doc["stream"] == {"visits": n, "complete": True}
+    assert doc["diagnostics"]["visits"] == n and doc["diagnostics"]["messages"] == n + 1  # + end marker
+    assert {k: doc["diagnostics"][k] for k in FILTER_DROPS} == dict.fromkeys(FILTER_DROPS, 0)
+
+    # /diagnostics during the replay: every node reported, none skipped or dropped a message
+    by_node = {node: [s for s in statuses if s.name.startswith(f"{node}:")] for node in NODES}
+    assert all(by_node.values()), {k: len(v) for k, v in by_node.items()}
+    for status in by_node["landmark_detector"]:
+        values = {kv.key: kv.value for kv in status.values}
+        assert re.search(r"\b0 messages skipped", status.message), (status.message, values)
+        assert all(int(values[f"received.{t}"]) <= c for t, c in sent.items()), values
+    for status in by_node["topology_filter"] + by_node["map_publisher"]:  # WARN = a dropped message
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == DiagnosticStatus.OK, (status.name, status.message, values)
