@@ -2,11 +2,18 @@
 
 1. Component benchmarks (each writes its own JSON beside this script): the metric likelihood
    (``bench_odometry.py``), log P(T|Z) (``bench_posterior.py``), the particle filter (``bench_rbpf.py``),
-   MCMC (``bench_mcmc.py``) and the surprise detectors (``bench_surprise.py``), when present.
+   MCMC (``bench_mcmc.py``), the surprise detectors (``bench_surprise.py``) and the node suite's CPU and
+   memory over DDS (``bench_nodes.py``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
-   landmark patches (:mod:`ptm_ros.baselines`). Writes ``bench/results.json`` and ``bench/results.md``.
+   landmark patches (:mod:`ptm_ros.baselines`); for the pipeline also the absolute trajectory errors of
+   the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``). Writes
+   ``bench/results.json``, ``bench/results.md`` and the occupancy maps of the real runs,
+   ``bench/maps/<run>.png`` (downscaled to at most 300 kB).
+
+``--only NAME ...`` restricts both parts to the named runs and component scripts (e.g.
+``--only intel``, ``--only bench_nodes.py``).
 
     PYTHONPATH=. .venv/bin/python bench/run_all.py [--skip-components] [--only NAME ...] [--work out/bench]
 """
@@ -19,6 +26,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -29,12 +37,15 @@ import numpy as np
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
 DATASETS = REPO.parent / "shared" / "datasets"
+MAPS = BENCH / "maps"
+MAX_MAP_BYTES = 300_000
 COMPONENTS = (
     "bench_odometry.py",
     "bench_posterior.py",
     "bench_rbpf.py",
     "bench_mcmc.py",
     "bench_surprise.py",
+    "bench_nodes.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (
@@ -111,6 +122,23 @@ def score_row(score) -> dict:
     return {k: s.get(k) for k in keys}
 
 
+def copy_map(src: Path, dst: Path, max_bytes: int = MAX_MAP_BYTES) -> Path:
+    """Copy a PNG, downscaled (area averaging, 80 % per step) until it is at most ``max_bytes``."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dst)
+    if dst.stat().st_size <= max_bytes:
+        return dst
+    import cv2
+
+    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+    scale = 1.0
+    while dst.stat().st_size > max_bytes and scale > 0.1:
+        scale *= 0.8
+        small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(dst), small, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    return dst
+
+
 def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
     from ptm_ros.baselines import GreedyConfig, LoopClosureConfig, greedy_association, robust_loop_closure
     from ptm_ros.config import load_config
@@ -126,7 +154,14 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
     row["map_places"] = len(set(result.ptm.topologies[0].labels))
     row["update_ms_median"] = result.ptm.inference.get("update_ms_median")
     row["update_ms_p95"] = result.ptm.inference.get("update_ms_p95")
+    ate = result.trajectory_error or {}
+    row["ate_smoothed_m"] = ate.get("ate_smoothed_m")
+    row["ate_odometry_m"] = ate.get("ate_odometry_m")
+    row["map_s"] = result.ptm.timing.get("map_s")
     rows = [row]
+    out = {"run": name, "rows": rows}
+    if kind == "real" and "map_png" in result.files:
+        out["map_png"] = copy_map(result.files["map_png"], MAPS / f"{name}.png").relative_to(BENCH).as_posix()
     run = read_run(bag)
     visits = detect_visits(run, config)
     t0 = time.perf_counter()
@@ -160,7 +195,7 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
             "map_places": len(set(labels)),
         }
     )
-    return {"run": name, "rows": rows}
+    return out
 
 
 def fmt(v) -> str:
@@ -189,6 +224,8 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "posterior_f1",
         "consistent_mass",
         "true_topology_mass",
+        "ate_smoothed_m",
+        "ate_odometry_m",
         "wall_s",
         "update_ms_median",
         "update_ms_p95",
@@ -201,7 +238,10 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "",
         "Scores against ground truth (same place < 1.5 m, different > 4 m): `map_f1` of the most probable "
         "topology, `posterior_f1` from expected pair counts, `consistent_mass` = mass with no scored pair "
-        "wrong. Reference methods commit to one topology (probability 1).",
+        "wrong. Reference methods commit to one topology (probability 1). `ate_smoothed_m` / "
+        "`ate_odometry_m`: absolute trajectory error (RMSE after the best rigid 2-D alignment, m) of the "
+        "smoothed trajectory of the most probable topology and of the raw odometry, at the odometry stamps "
+        "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json).",
         "",
         "| " + " | ".join(cols) + " |",
         "|" + "---|" * len(cols),
@@ -209,6 +249,14 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
     for run in runs:
         for r in run["rows"]:
             lines.append("| " + " | ".join(fmt(r.get(c)) for c in cols) + " |")
+    maps = [(run["run"], run["map_png"]) for run in runs if run.get("map_png")]
+    if maps:
+        lines += ["", "## Occupancy maps of the real runs", ""]
+        lines += [
+            "Scans placed along the smoothed trajectory of the most probable topology (`ptm-run`'s map.png)."
+        ]
+        lines += [""] + [f"- [{name}]({path})" for name, path in maps] + [""]
+        lines += [f"![{name}]({path})" for name, path in maps]
     lines += ["", "Component benchmarks (their own JSON files beside this one):", ""]
     lines += [f"- `{c['script']}`: exit {c['exit_code']}, {c['wall_s']:.1f} s" for c in components]
     (BENCH / "results.md").write_text("\n".join(lines) + "\n")

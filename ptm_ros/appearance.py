@@ -569,7 +569,10 @@ class AppearanceConfig:
         include_dc: keep the mean brightness as the first coefficient of each band.
         gain_invariant: divide each band's magnitudes by its mean brightness.
         within_fraction: empirical Bayes, share of each component's variance over all visits expected
-            within a place (see :func:`nig_prior_from_data`).
+            within a place (see :func:`nig_prior_from_data`). Measured on the simulated panoramas (mean
+            squared signature difference of visits < 1.5 m apart over that of visits > 4 m apart):
+            0.29 on the two-loop world (0.81 on the deliberately aliased loop); 0.1 made appearance
+            veto true loop closures there.
         nig_alpha: inverse-gamma shape (> 1; larger = the within-place variance is known more surely).
         nig_kappa: prior pseudo-count of the true appearance; None = ``ρ/(1-ρ)`` (empirical Bayes).
         dcm_alpha: symmetric Dirichlet parameter per word; None = Minka's ML estimate from all visits.
@@ -583,7 +586,7 @@ class AppearanceConfig:
     bands: int = 1
     include_dc: bool = False
     gain_invariant: bool = False
-    within_fraction: float = 0.1
+    within_fraction: float = 0.3
     nig_alpha: float = 5.0
     nig_kappa: float | None = None
     dcm_alpha: float | None = None
@@ -650,11 +653,16 @@ class AppearanceModel:
             object.__setattr__(self, "dcm_alpha", a)
 
 
+_MIN_FIT_VISITS = 2  # visits with the measurement an empirical-Bayes prior needs
+
+
 def fit_appearance_model(visits: Sequence[Visit], config: AppearanceConfig) -> AppearanceModel:
-    """Empirical-Bayes priors from all visits of a run (signatures and/or word histograms as configured).
+    """Empirical-Bayes priors from all visits of a run that carry the measurements (signatures and/or
+    word histograms as configured). A visit without a measurement is a missing measurement: every
+    likelihood of this module leaves it out (its density integrates to 1).
 
     Raises:
-        ModelError: no visits, or a visit lacking the measurement a configured model needs.
+        ModelError: no visits, or fewer than 2 visits carry a measurement a configured model needs.
     """
     if not visits:
         msg = "fit_appearance_model needs at least one visit"
@@ -662,14 +670,21 @@ def fit_appearance_model(visits: Sequence[Visit], config: AppearanceConfig) -> A
     nig = None
     dcm_alpha = None
     if "fourier" in config.models:
+        signatures = _stack_signatures(visits, range(len(visits)))
+        if len(signatures) < _MIN_FIT_VISITS:
+            msg = f"only {len(signatures)} visits carry a Fourier signature; the appearance prior needs 2"
+            raise ModelError(msg)
         nig = nig_prior_from_data(
-            _stack_signatures(visits, range(len(visits))),
+            signatures,
             within_fraction=config.within_fraction,
             alpha=config.nig_alpha,
             kappa=config.nig_kappa,
         )
     if "words" in config.models:
         counts = _stack_words(visits, range(len(visits)), None)
+        if len(counts) < _MIN_FIT_VISITS:
+            msg = f"only {len(counts)} visits carry a bag-of-words histogram; the appearance prior needs 2"
+            raise ModelError(msg)
         if config.dcm_alpha is not None:
             dcm_alpha = np.full(counts.shape[1], config.dcm_alpha)
         else:
@@ -679,25 +694,37 @@ def fit_appearance_model(visits: Sequence[Visit], config: AppearanceConfig) -> A
     return AppearanceModel(nig=nig, dcm_alpha=dcm_alpha)
 
 
-def _stack_signatures(visits: Sequence[Visit], indices: Sequence[int]) -> FloatArray:
+def _stack_signatures(
+    visits: Sequence[Visit], indices: Sequence[int], dim: int | None = None, *, skip_missing: bool = True
+) -> FloatArray:
+    """The ``(n, K)`` signatures of the visits ``indices`` that have one (a visit without a panorama is a
+    missing measurement: its factor integrates to 1, so it is left out); ``skip_missing=False`` raises."""
     rows = []
     for i in indices:
         sig = visits[i].signature
         if sig is None:
+            if skip_missing:
+                continue
             msg = f"visit {i} has no Fourier signature but the appearance model needs one"
             raise ModelError(msg)
         rows.append(np.asarray(sig, dtype=float).reshape(-1))
-    if len({r.size for r in rows}) > 1:
+    if len({r.size for r in rows} | ({dim} if dim is not None else set())) > 1:
         msg = "visits have Fourier signatures of different lengths"
         raise ModelError(msg)
-    return np.array(rows, dtype=float).reshape(len(rows), -1)
+    return np.array(rows, dtype=float).reshape(len(rows), -1 if rows else (dim or 0))
 
 
-def _stack_words(visits: Sequence[Visit], indices: Sequence[int], size: int | None) -> IntArray:
+def _stack_words(
+    visits: Sequence[Visit], indices: Sequence[int], size: int | None, *, skip_missing: bool = True
+) -> IntArray:
+    """The ``(n, V)`` word histograms of the visits ``indices`` that have one (see
+    :func:`_stack_signatures`)."""
     rows = []
     for i in indices:
         words = visits[i].words
         if words is None:
+            if skip_missing:
+                continue
             msg = f"visit {i} has no bag-of-words histogram but the appearance model needs one"
             raise ModelError(msg)
         rows.append(_counts(words, 1))
@@ -714,7 +741,7 @@ def block_log_likelihood(block: Block, visits: Sequence[Visit], model: Appearanc
     """``log p(a_s)`` of the visits of one block (one place), all configured models multiplied."""
     out = 0.0
     if model.nig is not None:
-        out += log_marginal_nig(_stack_signatures(visits, block), model.nig)
+        out += log_marginal_nig(_stack_signatures(visits, block, model.nig.dim), model.nig)
     if model.dcm_alpha is not None:
         out += log_marginal_dcm(_stack_words(visits, block, model.dcm_alpha.size), model.dcm_alpha)
     return out
@@ -761,14 +788,14 @@ def appearance_log_predictive(
         raise ModelError(msg)
     out = 0.0
     if model.nig is not None:
-        sig = _stack_signatures(visits, [new])[0]
-        stats = NigStats.empty(model.nig.dim)
-        if block:
-            stats = NigStats.from_signatures(_stack_signatures(visits, block))
-        out += log_predictive_nig(sig, stats, model.nig)
+        sig = _stack_signatures(visits, [new], model.nig.dim)
+        if len(sig):  # else a missing measurement: no appearance evidence
+            stats = NigStats.from_signatures(_stack_signatures(visits, block, model.nig.dim))
+            out += log_predictive_nig(sig[0], stats, model.nig)
     if model.dcm_alpha is not None:
         size = model.dcm_alpha.size
-        x_new = _stack_words(visits, [new], size)[0]
-        block_sum = _stack_words(visits, block, size).sum(axis=0)
-        out += log_predictive_dcm(x_new, block_sum, model.dcm_alpha)
+        x_new = _stack_words(visits, [new], size)
+        if len(x_new):
+            block_sum = _stack_words(visits, block, size).sum(axis=0)
+            out += log_predictive_dcm(x_new[0], block_sum, model.dcm_alpha)
     return out

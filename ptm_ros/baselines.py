@@ -569,7 +569,7 @@ def robust_loop_closure(
     loops = []
     for i, j in candidates:
         z = register(i, j)
-        if z is None:
+        if not isinstance(z, RelativePose):  # None (nothing registered) or NoMatch: no loop closure
             continue
         if (int(z.i), int(z.j)) != (i, j):
             msg = f"the registrar answered pair ({z.i}, {z.j}) when asked for ({i}, {j})"

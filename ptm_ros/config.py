@@ -17,6 +17,7 @@ from ptm_ros.errors import ConfigError
 from ptm_ros.laser import LaserConfig
 from ptm_ros.laser_odometry import LaserOdometryConfig
 from ptm_ros.mcmc import McmcConfig
+from ptm_ros.occupancy import OccupancyConfig
 from ptm_ros.posterior import ModelConfig
 from ptm_ros.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
 
@@ -90,6 +91,7 @@ class PtmConfig:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     inference: InferenceConfig = field(default_factory=InferenceConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
+    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)  # ptm-run's map.pgm / map.png
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:
@@ -119,6 +121,10 @@ ROS_ONLY_PARAMETERS = frozenset(
         "marker_topologies",
         "refit_max_visits",
         "frame_id",
+        "stamp_jump_s",
+        "jump_confirm",
+        "max_speed",
+        "silence_s",
     }
 )
 

@@ -64,6 +64,7 @@ class ExtractorConfig:
     image_max_dt: float = 1.0  # s
     max_passage_s: float = 120.0  # s: longest passage a patch is built from (bounds memory)
     stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
+    record_corrections: bool = False  # keep (stamp, correction) of every scan (offline smoothing; grows)
 
 
 @dataclass
@@ -91,6 +92,7 @@ class _Pending:
     travel: float
     rotation: float
     first_in: float  # stamp of the odometry sample just before the passage (scans are kept from here)
+    wheel: NDArray[np.float64] | None = None  # input odometry pose of the visit when ``pose`` is corrected
     exit_stamp: float | None = None  # first odometry sample after the visit outside the patch radius
 
 
@@ -124,6 +126,7 @@ class VisitExtractor:
             LaserOdometry(lo_cfg, self.laser) if self.config.use_scans and lo_cfg.enabled else None
         )
         self._wheel: NDArray[np.float64] | None = None  # latest wheel odometry pose
+        self.corrections: list[tuple[float, NDArray[np.float64]]] = []  # if config.record_corrections
         self._queue: list[tuple[float, int, int, Any]] = []
         self._seq = 0
         self._watermark = {ODOM: -math.inf, SCAN: -math.inf, IMAGE: -math.inf}
@@ -133,7 +136,8 @@ class VisitExtractor:
             *([IMAGE] if self.config.use_images else []),
         }
         self._odom_t: list[float] = []
-        self._odom_p: list[NDArray[np.float64]] = []
+        self._odom_p: list[NDArray[np.float64]] = []  # poses used (laser-corrected when enabled)
+        self._odom_w: list[NDArray[np.float64]] = []  # input (wheel) poses
         self._odom_base = 0  # odometry samples dropped from the front of the log
         self._scans: deque[tuple[float, NDArray[np.float64]]] = deque()
         self._images: deque[tuple[float, NDArray[np.float64] | None]] = deque()
@@ -181,6 +185,9 @@ class VisitExtractor:
         """End of data: process everything queued and complete every pending visit."""
         self._flushing = True
         out = self._drain(math.inf)
+        flush = getattr(self.detector, "flush", None)
+        if flush is not None and flush():
+            self._fire(self._processed)
         self._resolve_requests()
         out += self._complete(math.inf)
         return out
@@ -239,6 +246,7 @@ class VisitExtractor:
         pose = self.laser_odometry.correct(wheel) if self.laser_odometry is not None else wheel
         self._odom_t.append(stamp)
         self._odom_p.append(pose)
+        self._odom_w.append(wheel)
         try:
             if hasattr(self.detector, "on_odometry") and self.detector.on_odometry(stamp, pose):
                 self._fire(stamp)
@@ -258,6 +266,8 @@ class VisitExtractor:
         if self.laser_odometry is not None and self._wheel is not None:
             self.laser_odometry.on_scan(self._wheel, res.points)
             self.diagnostics.laser_odometry = asdict(self.laser_odometry.counters)
+            if self.config.record_corrections:
+                self.corrections.append((stamp, self.laser_odometry.correction))
         if self.config.use_scans:
             self._scans.append((stamp, res.points))
         if hasattr(self.detector, "on_scan"):
@@ -323,6 +333,7 @@ class VisitExtractor:
             travel=travel,
             rotation=rotation,
             first_in=t[max(first - 1, 0)],
+            wheel=None if self.laser_odometry is None else self._odom_w[k],
         )
         # the passage may already be over if odometry after k is known
         for j in range(k + 1, len(t)):
@@ -386,6 +397,7 @@ class VisitExtractor:
             rotation=v.rotation,
             signature=signature,
             patch=patch,
+            odom_pose=None if v.wheel is None else (float(v.wheel[0]), float(v.wheel[1]), float(v.wheel[2])),
         )
         self._count += 1
         self.diagnostics.visits += 1
@@ -409,6 +421,7 @@ class VisitExtractor:
         if drop:
             del self._odom_t[:drop]
             del self._odom_p[:drop]
+            del self._odom_w[:drop]
             self._odom_base += drop
         while self._scans and self._scans[0][0] < keep_from:
             self._scans.popleft()
@@ -450,6 +463,7 @@ def visit_to_json(visit: Visit) -> str:
             "index": visit.index,
             "stamp": visit.stamp,
             "pose": list(visit.pose),
+            "odom_pose": None if visit.odom_pose is None else list(visit.odom_pose),
             "travel": visit.travel,
             "rotation": visit.rotation,
             "signature": _encode(visit.signature),
@@ -474,6 +488,7 @@ def visit_from_json(text: str) -> Visit:
             index=int(d["index"]),
             stamp=float(d["stamp"]),
             pose=tuple(float(x) for x in d["pose"]),  # type: ignore[arg-type]
+            odom_pose=None if d.get("odom_pose") is None else tuple(float(x) for x in d["odom_pose"]),  # type: ignore[arg-type]
             travel=float(d["travel"]),
             rotation=float(d["rotation"]),
             signature=_decode(d.get("signature")),

@@ -471,6 +471,15 @@ class ScanMap:
             target=self._target,
         )
 
+    def inlier_fraction(self, points: ArrayLike, pose: ArrayLike) -> float:
+        """Fraction of a scan's points (robot frame, downsampled at half the voxel) within
+        ``inlier_distance`` of the map when the scan is placed at ``pose``."""
+        src = voxel_downsample(_as_points(points, "points"), 0.5 * self.voxel)
+        if len(src) == 0 or len(self._target.pts) == 0:
+            return 0.0
+        dist, _ = self._target.tree.query(transform_points(_as_pose(pose, "pose"), src))
+        return float(np.mean(dist <= self.config.inlier_distance))
+
 
 def align_scan_to_map(
     points: ArrayLike,
@@ -505,8 +514,9 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
     target: _Target | None = None,
 ) -> FloatArray | None:
     """kiss-icp alignment of a scan (downsampled at ``voxel``) onto ``voxel_map`` from ``guess``, then the
-    point-to-plane polish against ``map_points`` (or a prepared ``target`` of them); None with too few
-    points or when ICP diverged."""
+    point-to-plane polish against ``map_points`` (or a prepared ``target`` of them) with the prior at the
+    odometry ``guess`` (directions the planes do not see stay at the odometry); None with too few points
+    or when ICP diverged."""
     src = voxel_downsample(pts, voxel)
     if len(src) < min_points or len(map_points) < min_points:
         return None
@@ -514,7 +524,7 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
     if aligned is None or not refine:
         return aligned
     overlap = _Overlap(pts, map_points, 0.5 * voxel, cfg.inlier_distance, target)
-    aligned, _ = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD)
+    aligned, _ = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
     return aligned
 
 
@@ -1089,7 +1099,11 @@ def _align(icp: object, src: FloatArray, voxel_map: object, pose: FloatArray | N
 
 
 def _point_to_plane(
-    pose: FloatArray, overlap: _Overlap, cfg: LaserConfig, prior_std: FloatArray
+    pose: FloatArray,
+    overlap: _Overlap,
+    cfg: LaserConfig,
+    prior_std: FloatArray,
+    prior_mean: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Gauss–Newton point-to-plane refinement of an ICP ``pose`` (Chen & Medioni, thesis Ch. 3.10.4)
     and its covariance (before flooring).
@@ -1097,14 +1111,16 @@ def _point_to_plane(
     Each source point ``s_k`` (the fitness sample) within ``inlier_distance`` of its nearest target point
     ``m_k`` with a line-like neighbourhood and unit normal ``n_k`` gives the residual
     ``e_k = n_kᵀ (R s_k + t − m_k)`` with gradient ``g_k = (n_x, n_y, (R s_k) × n_k)`` with respect to
-    ``(x, y, yaw)``. A Gaussian prior centred on the ICP pose with standard deviations ``prior_std``
-    keeps the directions the residuals do not see (a corridor's axis) where point-to-point ICP put
-    them. At convergence the covariance is ``(Σ g_k g_kᵀ / σ² + P⁻¹)⁻¹`` with
+    ``(x, y, yaw)``. A Gaussian prior centred on ``prior_mean`` (default: the ICP pose) with standard
+    deviations ``prior_std`` keeps the directions the residuals do not see (a corridor's axis) there:
+    scan-to-map matching passes the odometry guess, because point-to-point ICP slides along a corridor.
+    At convergence the covariance is ``(Σ g_k g_kᵀ / σ² + P⁻¹)⁻¹`` with
     ``σ² = Σ e_k² / (N − 3)``. If the refinement wanders farther than ``distinct_xy``/``distinct_yaw``
     the ICP pose is kept.
     """
     src, tgt, tree = overlap.src_eval, overlap.tgt, overlap.tgt_tree
     prior = np.diag(np.asarray(prior_std, dtype=float) ** -2)
+    centre = pose if prior_mean is None else np.asarray(prior_mean, dtype=float)
     current = pose.copy()
     info = prior
     for _ in range(_GN_ITERATIONS):
@@ -1122,7 +1138,7 @@ def _point_to_plane(
         g = np.column_stack([n, arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]])
         sigma2 = max(float(e @ e) / (len(e) - 3), _MIN_RESIDUAL_VARIANCE)
         info = prior + g.T @ g / sigma2
-        offset = current - pose
+        offset = current - centre
         offset[2] = wrap_angle(offset[2])
         step = -cho_solve(cho_factor(info), g.T @ e / sigma2 + prior @ offset)
         current = np.array(

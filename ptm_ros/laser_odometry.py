@@ -53,6 +53,9 @@ class LaserOdometryConfig:
         max_correction_xy: larger corrections of one scan step are rejected (the step keeps wheel odometry).
         max_correction_yaw: the same for heading.
         min_points: fewer usable points than this in a scan (after downsampling) or in the map: no match.
+        min_inlier_fraction: a match places at least this fraction of the scan's points within the
+            laser ``inlier_distance`` of the local map, else it is rejected (e.g. a wheel-odometry jump
+            that ICP followed into a wrong local optimum).
         refine: polish the ICP pose by point-to-plane Gauss–Newton (:mod:`ptm_ros.laser`).
     """
 
@@ -65,6 +68,7 @@ class LaserOdometryConfig:
     max_correction_xy: float = 0.5
     max_correction_yaw: float = 0.2
     min_points: int = 10
+    min_inlier_fraction: float = 0.5
     refine: bool = True
 
     def __post_init__(self) -> None:
@@ -88,6 +92,11 @@ class LaserOdometryConfig:
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0.0):
                 msg = f"LaserOdometryConfig.{name} must be a finite number > 0, got {value!r}"
                 raise ConfigError(msg)
+        if not 0.0 <= self.min_inlier_fraction <= 1.0:
+            msg = (
+                f"LaserOdometryConfig.min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction!r}"
+            )
+            raise ConfigError(msg)
         if not (isinstance(self.voxel, int | float) and math.isfinite(self.voxel) and self.voxel >= 0.25):
             msg = f"LaserOdometryConfig.voxel must be >= 0.25 m (kiss-icp), got {self.voxel!r}"
             raise ConfigError(msg)
@@ -161,7 +170,8 @@ class LaserOdometry:
             if (
                 step is None
                 or math.hypot(step[0], step[1]) > cfg.max_correction_xy
-                or (abs(step[2]) > cfg.max_correction_yaw)
+                or abs(step[2]) > cfg.max_correction_yaw
+                or self._map.inlier_fraction(pts, aligned) < cfg.min_inlier_fraction
             ):
                 self.counters.rejected += 1
             else:
@@ -179,3 +189,26 @@ class LaserOdometry:
 def _moved(a: FloatArray, b: FloatArray, xy: float, yaw: float) -> bool:
     d = between(a, b)
     return math.hypot(d[0], d[1]) >= xy or abs(d[2]) >= yaw
+
+
+def apply_corrections(
+    stamps: ArrayLike, wheel_poses: ArrayLike, correction_stamps: ArrayLike, corrections: ArrayLike
+) -> FloatArray:
+    """The corrected odometry ``(T, 3)`` of wheel poses at ``stamps``: each carried by the correction of
+    the latest scan stamped strictly before it (the order in which :class:`ptm_ros.landmarks.
+    VisitExtractor` processes equal stamps: odometry first), the identity before the first scan. So at
+    the visits' stamps this reproduces the visits' poses exactly."""
+    t = np.asarray(stamps, dtype=float).reshape(-1)
+    wheel = np.asarray(wheel_poses, dtype=float).reshape(-1, 3)
+    ct = np.asarray(correction_stamps, dtype=float).reshape(-1)
+    c = np.asarray(corrections, dtype=float).reshape(-1, 3)
+    if len(t) != len(wheel) or len(ct) != len(c):
+        msg = f"need matching stamps/poses: {len(t)}/{len(wheel)} odometry, {len(ct)}/{len(c)} corrections"
+        raise ModelError(msg)
+    out = wheel.copy()
+    k = np.searchsorted(ct, t, side="left") - 1
+    carried = k >= 0
+    moved = carried.copy()
+    moved[carried] = np.any(c[k[carried]] != 0.0, axis=1)
+    out[moved] = compose(c[k[moved]], wheel[moved])
+    return out

@@ -13,7 +13,8 @@ the unnormalised log posterior of any topology:
   also contributes the likelihood ratio of its fitness, one place vs different places
   (:func:`ptm_ros.laser.fitness_log_bayes`);
 * appearance likelihood: :mod:`ptm_ros.appearance` (eq. 22–28, 54–57), a product over blocks cached
-  per block, because a topology's blocks recur across MCMC moves and particles.
+  per block, because a topology's blocks recur across MCMC moves and particles; a visit without a
+  panorama is a missing measurement and simply left out.
 
 Whole-topology results are cached too. Importance sampling inside the metric likelihood draws from a
 generator seeded by ``(seed, labels)``, so a topology's value does not depend on evaluation order.
@@ -73,11 +74,13 @@ class PosteriorTerms:
 
 
 def _has_appearance(visits: Sequence[Visit], config: AppearanceConfig) -> bool:
+    """Whether at least two visits carry each configured appearance measurement (visits without one are
+    missing measurements, left out of the appearance likelihood)."""
     need_sig = "fourier" in config.models
     need_words = "words" in config.models
-    return all(
-        (not need_sig or v.signature is not None) and (not need_words or v.words is not None) for v in visits
-    )
+    sigs = sum(v.signature is not None for v in visits)
+    words = sum(v.words is not None for v in visits)
+    return (not need_sig or sigs >= 2) and (not need_words or words >= 2)
 
 
 class PosteriorModel:

@@ -12,21 +12,39 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ptm_ros.errors import DataError
 from ptm_ros.partitions import Labels, canonical, is_canonical
+
+if TYPE_CHECKING:
+    from ptm_ros.visits import Visit
 
 SCHEMA = "ptm_ros.ptm/1"
 
 
 @dataclass(frozen=True)
 class Landmark:
-    """A landmark visit as written to ptm.json: order, header stamp (s) and odometry pose (x, y, yaw)."""
+    """A landmark visit as written to ptm.json: order, header stamp (s), the input odometry pose
+    (x, y, yaw), and the pose the inference used when scan matching corrected the odometry
+    (``corrected_pose``, JSON key of the same name; the frame of the topologies' place positions)."""
 
     index: int
     stamp: float
     pose: tuple[float, float, float]
+    corrected_pose: tuple[float, float, float] | None = None
+
+    @property
+    def map_pose(self) -> tuple[float, float, float]:
+        """The pose in the frame of the place positions: ``corrected_pose`` if any, else ``pose``."""
+        return self.pose if self.corrected_pose is None else self.corrected_pose
+
+    @classmethod
+    def from_visit(cls, visit: Visit) -> Landmark:
+        """The landmark of a visit: its input odometry pose, and its corrected pose when it differs."""
+        pose = tuple(float(x) for x in visit.input_pose)
+        corrected = None if visit.odom_pose is None else tuple(float(x) for x in visit.pose)
+        return cls(int(visit.index), float(visit.stamp), pose, corrected)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -108,13 +126,38 @@ def to_json_dict(ptm: Ptm) -> dict[str, Any]:
     doc: dict[str, Any] = {
         "schema": SCHEMA,
         "frame_id": ptm.frame_id,
-        "landmarks": [{"index": lm.index, "stamp": lm.stamp, "pose": list(lm.pose)} for lm in ptm.landmarks],
+        "landmarks": [_landmark_dict(lm) for lm in ptm.landmarks],
         "topologies": tops,
         "inference": dict(ptm.inference),
         "timing": dict(ptm.timing),
     }
     doc.update(ptm.extra)
     return doc
+
+
+def _landmark_dict(lm: Landmark) -> dict[str, Any]:
+    d: dict[str, Any] = {"index": lm.index, "stamp": lm.stamp, "pose": list(lm.pose)}
+    if lm.corrected_pose is not None:
+        d["corrected_pose"] = list(lm.corrected_pose)
+    return d
+
+
+def _pose(values: Any, what: str) -> tuple[float, float, float]:
+    pose = tuple(float(v) for v in values)
+    if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
+        raise _fail(f"{what} must be 3 finite numbers (x, y, yaw), got {list(pose)}")
+    return pose  # type: ignore[return-value]
+
+
+def _landmark(d: Mapping[str, Any]) -> Landmark:
+    corrected = d.get("corrected_pose")
+    where = f"landmark {d.get('index')}"
+    return Landmark(
+        int(d["index"]),
+        float(d["stamp"]),
+        _pose(d["pose"], f"{where}: pose"),
+        None if corrected is None else _pose(corrected, f"{where}: corrected_pose"),
+    )
 
 
 def _fail(msg: str) -> DataError:
@@ -126,10 +169,7 @@ def from_json_dict(doc: Mapping[str, Any]) -> Ptm:
     if doc.get("schema") != SCHEMA:
         raise _fail(f"schema is {doc.get('schema')!r}, expected {SCHEMA!r}")
     try:
-        landmarks = tuple(
-            Landmark(int(d["index"]), float(d["stamp"]), tuple(float(v) for v in d["pose"]))  # type: ignore[arg-type]
-            for d in doc["landmarks"]
-        )
+        landmarks = tuple(_landmark(d) for d in doc["landmarks"])
         n = len(landmarks)
         topologies = []
         for k, d in enumerate(doc["topologies"]):

@@ -343,7 +343,8 @@ def block_log_predictives(
     over the blocks with the same closed forms: the NIG Student-t predictive (eq. 25–28 corrected, see
     :func:`~ptm_ros.appearance.log_predictive_nig`) and the Pólya predictive of word counts (eq. 54–57,
     :func:`~ptm_ros.appearance.log_predictive_dcm`). Block sufficient statistics come from one
-    ``np.add.reduceat`` over the concatenated blocks. The measurements of visit ``new`` must have been
+    ``np.add.reduceat`` over the concatenated blocks; visits without a measurement (missing) add
+    nothing, and a visit ``new`` without one gets 0. The measurements of visit ``new`` must have been
     validated (e.g. by ``appearance_log_predictive(new, (), …)``); earlier visits' were when they arrived.
     """
     if not blocks:
@@ -355,16 +356,20 @@ def block_log_predictives(
     flat = np.fromiter((i for b in blocks for i in b), dtype=np.intp, count=int(sizes.sum()))
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     out = np.zeros(len(blocks))
-    if model.nig is not None:
+    if model.nig is not None and visits[new].signature is not None:
         prior = model.nig
-        rows = np.array([np.asarray(visits[i].signature, dtype=float) for i in flat]).reshape(len(flat), -1)
+        have = np.array([visits[i].signature is not None for i in flat])
+        zero = np.zeros(prior.dim)
+        sigs = [visits[i].signature for i in flat]
+        rows = np.array([zero if g is None else np.asarray(g, dtype=float) for g in sigs])
+        rows = rows.reshape(len(flat), -1)
         a = np.asarray(visits[new].signature, dtype=float)
         total = np.add.reduceat(rows, starts, axis=0)
         total_sq = np.add.reduceat(rows * rows, starts, axis=0)
-        cnt = sizes[:, None].astype(float)
+        cnt = np.add.reduceat(have.astype(float), starts)[:, None]  # visits with a signature per block
         kappa_n = prior.kappa + cnt
         alpha_n = prior.alpha + 0.5 * cnt
-        mean = total / cnt
+        mean = np.divide(total, cnt, out=np.zeros_like(total), where=cnt > 0)
         scatter = np.maximum(total_sq - total * mean, 0.0)
         beta_n = prior.beta + 0.5 * (scatter + prior.kappa * cnt / kappa_n * np.square(mean - prior.mu))
         mu_n = (prior.kappa * prior.mu + total) / kappa_n
@@ -377,10 +382,13 @@ def block_log_predictives(
             - 0.5 * (nu + 1.0) * np.log1p(np.square(a - mu_n) / (nu * scale_sq)),
             axis=1,
         )
-    if model.dcm_alpha is not None:
+    if model.dcm_alpha is not None and visits[new].words is not None:
         alpha = model.dcm_alpha
         x = np.asarray(visits[new].words, dtype=float)
-        words = np.array([np.asarray(visits[i].words, dtype=float) for i in flat]).reshape(len(flat), -1)
+        none = np.zeros(alpha.size)
+        words = np.array(
+            [none if visits[i].words is None else np.asarray(visits[i].words, dtype=float) for i in flat]
+        ).reshape(len(flat), -1)
         post = alpha + np.add.reduceat(words, starts, axis=0)  # (B, V)
         nz = x > 0
         m = float(x.sum())
@@ -590,7 +598,7 @@ class TopologyFilter:
     def to_ptm(self, *, top: int | None = None, **kwargs: Any) -> Ptm:
         """The current PTM as a :class:`~ptm_ros.ptm.Ptm` (place positions included)."""
         weights = self.ptm_weights()
-        landmarks = [Landmark(v.index, float(v.stamp), tuple(float(x) for x in v.pose)) for v in self._visits]
+        landmarks = [Landmark.from_visit(v) for v in self._visits]
         positions = {lab: self.place_positions(lab).tolist() for lab in weights}
         return make_ptm(landmarks, weights, top=top, positions=positions, **kwargs)
 

@@ -18,8 +18,11 @@
 * ``ptm_srq.png`` (only when ``ptm.inference[SRQ_KEY]`` holds MCMC cold-chain states) — the scaled
   regeneration quantile plot of every chain (thesis Ch. 3.6, Fig. 42; :mod:`ptm_ros.convergence`), all
   chains at one atom: the state most visited over all chains.
-* ``report.md`` and ``report.html`` — the summary, the score table, the figures (relative links, extra
-  figures copied beside them) and the top topologies as a table.
+* the occupancy map (only when ``occupancy_map`` is given: ``ptm-run`` passes its ``map.png``, the grid
+  of the scans placed along the smoothed trajectory of the MAP topology, :mod:`ptm_ros.occupancy`).
+* ``report.md`` and ``report.html`` — the summary (plus the caller's ``notes``, e.g. trajectory errors),
+  the score table, the figures (relative links, the map and extra figures copied beside them unless
+  already there) and the top topologies as a table.
 
 ``ptm.inference["cold_chain_states"]`` (:data:`SRQ_KEY`): one list per independent chain of the cold
 (``β = 1``) replica's state after each sweep, thinned by a fixed stride (every ``k``-th sweep, ``k`` in
@@ -67,6 +70,8 @@ REPORT_HTML = "report.html"
 SRQ_KEY = "cold_chain_states"
 #: Key of ``Ptm.inference`` holding the thinning stride of those states (sweeps per kept state).
 SRQ_THIN_KEY = "cold_chain_thin"
+#: Caption of the occupancy map figure.
+MAP_CAPTION = "Occupancy grid of the scans along the smoothed trajectory of the most probable topology"
 
 _DIGITS = "0123456789abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
 _GOLDEN = 0.618033988749895
@@ -164,7 +169,7 @@ def _new_figure(width: float, height: float) -> Figure:
 
 
 def _visit_xy(ptm: Ptm) -> NDArray[np.float64]:
-    return np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
+    return np.array([lm.map_pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
 
 
 def _tick(rank: int, topology: Topology, config: ReportConfig) -> str:
@@ -650,12 +655,13 @@ def _html(
     return "\n".join(out) + "\n"
 
 
-def _place_extra(src: str | Path, out_dir: Path, taken: set[str], k: int) -> str:
+def _place_extra(src: str | Path, out_dir: Path, taken: set[str], prefix: str) -> str:
+    """Copy a figure into ``out_dir`` (unless it is there already) under a name not yet ``taken``."""
     src = Path(src)
     if not src.is_file():
-        msg = f"extra figure {src} does not exist"
+        msg = f"figure {src} does not exist"
         raise DataError(msg)
-    name = src.name if src.name not in taken else f"extra{k}_{src.name}"
+    name = src.name if src.name not in taken else f"{prefix}_{src.name}"
     if src.resolve() != (out_dir / name).resolve():
         shutil.copyfile(src, out_dir / name)
     taken.add(name)
@@ -669,7 +675,9 @@ def write_report(
     trajectory: ArrayLike | None = None,
     score: Score | None = None,
     surprise_trace: SurpriseTrace | None = None,
+    occupancy_map: str | Path | None = None,
     extra_figures: Sequence[str | Path] = (),
+    notes: Sequence[str] = (),
     title: str = "Probabilistic topological map",
     config: ReportConfig | None = None,
 ) -> Path:
@@ -678,8 +686,9 @@ def write_report(
     ``trajectory`` ``(T, 3)`` (or ``(T, 2)``) odometry or smoothed poses drawn under the topologies;
     ``score`` from :func:`ptm_ros.evaluation.score_ptm` on this PTM; ``surprise_trace`` the landmark
     detector's :attr:`~ptm_ros.surprise.LaserSurpriseDetector.trace` (drawn unless empty); the SRQ plot
-    is drawn when ``ptm.inference`` holds :data:`SRQ_KEY`; ``extra_figures`` image files to include
-    (copied into ``out_dir`` unless already there).
+    is drawn when ``ptm.inference`` holds :data:`SRQ_KEY`; ``occupancy_map`` an image of the metric map
+    (shown with :data:`MAP_CAPTION`) and ``extra_figures`` image files to include (both copied into
+    ``out_dir`` unless already there); ``notes`` extra summary lines.
     """
     config = config or ReportConfig()
     if not ptm.topologies:
@@ -711,7 +720,7 @@ def write_report(
     ]
     if score is not None:
         figures.append(("Scores against ground truth", draw_scores(score, out / SCORES, config=config).name))
-    notes: list[str] = []
+    notes = list(notes)
     if surprise_trace is not None and len(surprise_trace.stamps):
         draw_surprise(surprise_trace, out / SURPRISE, config=config)
         figures.append(("Bayesian surprise of the landmark detector (thesis Fig. 62)", SURPRISE))
@@ -730,7 +739,9 @@ def write_report(
         devs = ", ".join(f"{name} {srq_deviation(x, y):.3f}" for name, (x, y) in points.items())
         notes.append(f"SRQ max |y − x| (0 = ideal mixing): {devs}" + (f"; atom {trapped}" if trapped else ""))
     taken = {HISTOGRAM, TOPOLOGIES, SCORES, SURPRISE, SRQ, REPORT_MD, REPORT_HTML}
-    figures += [(Path(f).stem, _place_extra(f, out, taken, k)) for k, f in enumerate(extra_figures)]
+    if occupancy_map is not None:
+        figures.append((MAP_CAPTION, _place_extra(occupancy_map, out, taken, "map")))
+    figures += [(Path(f).stem, _place_extra(f, out, taken, f"extra{k}")) for k, f in enumerate(extra_figures)]
     (out / REPORT_MD).write_text(_markdown(title, ptm, score, figures, config, notes=notes), encoding="utf-8")
     html_path = out / REPORT_HTML
     html_path.write_text(_html(title, ptm, score, figures, config, notes=notes), encoding="utf-8")

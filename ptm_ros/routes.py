@@ -64,7 +64,7 @@ def node_positions(ptm: Ptm) -> np.ndarray:
         pos = np.asarray(top.positions, dtype=float).reshape(m, 2)
     else:
         labels = np.asarray(top.labels, dtype=np.intp)
-        xy = np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
+        xy = np.array([lm.map_pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
         if len(xy) != len(labels):
             msg = f"{len(labels)} labels for {len(xy)} landmarks"
             raise DataError(msg)

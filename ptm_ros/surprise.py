@@ -61,6 +61,7 @@ thesis Fig. 62 style figure.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -776,15 +777,28 @@ class _SurpriseDetector:
         return math.exp(-1.0 / memory - per_metre)
 
     def _record(self, stamp: float, step: SurpriseStep) -> bool:
+        fired = self._observe(stamp, step)
+        if fired is None:
+            return False
+        self._declare(fired)
+        return True
+
+    def _observe(self, stamp: float, step: SurpriseStep) -> float | None:
+        """Record one measurement in the trace; the stamp of the surprise maximum the band trigger
+        declares, else None."""
         travel = self._odometry.travel if self._odometry_seen else None
         fired = self._trigger.step(stamp, step, travel)
         upper = self._trigger.upper(step)
         self._rows.append((stamp, step.surprise, step.predicted_mean, step.predicted_std, upper))
-        if fired is None:
-            return False
-        self._landmarks.append(fired)
-        self.last_landmark_stamp = fired
-        return True
+        return fired
+
+    def _declare(self, stamp: float) -> None:
+        self._landmarks.append(stamp)
+        self.last_landmark_stamp = stamp
+
+    def flush(self) -> bool:
+        """End of data: declare a landmark still being localised (True if one was declared)."""
+        return False
 
     def _check_stamp(self, stamp: float) -> None:
         if not math.isfinite(stamp):
@@ -909,6 +923,12 @@ class LaserSurpriseConfig:
         warmup: scans absorbed before a landmark may be declared.
         min_travel: least odometry travel (m) between two landmarks (applies once odometry is fed): a
             junction is two changes (the opening appears, then ends) but one place.
+        localize_distance: the landmark is placed at the most open scan (largest mean log range to the
+            left and right, the ``sides`` statistic) within this odometry travel (m) of the surprise
+            maximum, and declared once the robot has travelled that far past it; 0 = at the maximum.
+            The maximum lies where the change *starts*, which depends on the direction of travel
+            (entering a junction from either side: about one corridor width apart, 1.7 m in the
+            simulated worlds); the most open point of a junction or doorway region does not.
         seed: seed of the detector's random generator when none is passed in.
     """
 
@@ -925,9 +945,15 @@ class LaserSurpriseConfig:
     samples: int = 1000
     warmup: int = 10
     min_travel: float = 2.0
+    localize_distance: float = 1.5
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.localize_distance) and self.localize_distance >= 0.0):
+            msg = (
+                f"LaserSurpriseConfig.localize_distance must be finite and >= 0, got {self.localize_distance}"
+            )
+            raise ConfigError(msg)
         if self.statistic not in STATISTICS:
             msg = f"LaserSurpriseConfig.statistic must be one of {sorted(STATISTICS)}, got {self.statistic!r}"
             raise ConfigError(msg)
@@ -977,6 +1003,9 @@ def _check_common(owner: str, config: LaserSurpriseConfig | AppearanceSurpriseCo
             raise ConfigError(msg)
 
 
+_OPEN_PLATEAU = 0.1  # log m: scans this close to the most open one count as equally open (a junction)
+
+
 class LaserSurpriseDetector(_SurpriseDetector):
     """Declares landmarks where a laser scan statistic is surprising (thesis Ch. 4.8, Fig. 62).
 
@@ -993,6 +1022,8 @@ class LaserSurpriseDetector(_SurpriseDetector):
         self._rng = rng if rng is not None else np.random.default_rng(self.config.seed)
         self._prior: Niw | None = None
         self._stats = GaussianStats.empty(STATISTICS[self.config.statistic])
+        self._recent: deque[tuple[float, float, float]] = deque()  # (stamp, travel, openness)
+        self._pending: tuple[float, float] | None = None  # (stamp, travel) of a maximum being localised
 
     def on_scan(
         self,
@@ -1021,10 +1052,24 @@ class LaserSurpriseDetector(_SurpriseDetector):
             front_half_angle=cfg.front_half_angle,
             side_half_angle=cfg.side_half_angle,
         )
-        return self.on_statistic(stamp, z)
+        openness = None
+        if cfg.localize_distance > 0.0:
+            sides = scan_statistic(
+                ranges,
+                angle_min,
+                angle_increment,
+                range_min,
+                min(range_max, cfg.max_range),
+                kind="sides",
+                side_half_angle=cfg.side_half_angle,
+            )
+            openness = float(np.mean(sides))
+        return self.on_statistic(stamp, z, openness=openness)
 
-    def on_statistic(self, stamp: float, z: ArrayLike) -> bool:
-        """Feed one precomputed ``(d,)`` statistic (:meth:`on_scan` after :func:`scan_statistic`)."""
+    def on_statistic(self, stamp: float, z: ArrayLike, *, openness: float | None = None) -> bool:
+        """Feed one precomputed ``(d,)`` statistic (:meth:`on_scan` after :func:`scan_statistic`) and the
+        scan's openness (mean ``sides`` statistic) for landmark localisation (None: declare at the
+        surprise maximum)."""
         self._check_stamp(stamp)
         v = _vector(z, self._stats.total.size)
         if self._prior is None:
@@ -1032,7 +1077,41 @@ class LaserSurpriseDetector(_SurpriseDetector):
         before = self._stats.decay(self._forgetting(self.config.memory, self.config.memory_distance))
         step = gaussian_surprise_step(self._prior, before, v, self._rng, self.config.samples)
         self._stats = before.add(v)
-        return self._record(stamp, step)
+        fired = self._observe(stamp, step)
+        d = self.config.localize_distance
+        if openness is None or d == 0.0 or not self._odometry_seen:
+            if fired is not None:
+                self._declare(fired)
+            return fired is not None
+        travel = self._odometry.travel
+        self._recent.append((stamp, travel, float(openness)))
+        declared = False
+        if fired is not None:
+            declared = self.flush()  # a new maximum while one is pending: settle the pending one
+            at = next((t for st, t, _ in reversed(self._recent) if st <= fired), travel)
+            self._pending = (fired, at)
+        if self._pending is not None and travel >= self._pending[1] + d:
+            declared = self.flush() or declared
+        while self._recent and self._recent[0][1] < travel - 2.0 * d - self.config.min_travel:
+            self._recent.popleft()
+        return declared
+
+    def flush(self) -> bool:
+        """Declare the landmark being localised (at the middle scan of the most open stretch seen within
+        ``localize_distance`` of its surprise maximum so far); True if there was one."""
+        if self._pending is None:
+            return False
+        _, at = self._pending
+        d = self.config.localize_distance
+        window = [(st, o) for st, t, o in self._recent if abs(t - at) <= d]
+        stamp = self._pending[0]
+        if window:
+            top = max(o for _, o in window)
+            plateau = [st for st, o in window if o >= top - _OPEN_PLATEAU]
+            stamp = plateau[len(plateau) // 2]  # the middle of the most open stretch
+        self._pending = None
+        self._declare(stamp)
+        return True
 
 
 # ---------------------------------------------------------------------------------------------------

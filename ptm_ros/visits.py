@@ -35,6 +35,8 @@ class Visit:
         signature: Fourier signature of the panorama at the visit, shape ``(K,)``, or None.
         words: bag-of-words counts of the panorama, shape ``(V,)`` integers, or None.
         patch: local laser map around the visit, shape ``(P, 2)`` points in the visit's frame, or None.
+        odom_pose: the input odometry pose at the visit when ``pose`` was corrected by scan matching
+            (ptm.json reports it as the landmark pose); None when ``pose`` is the input odometry.
     """
 
     index: int
@@ -45,10 +47,21 @@ class Visit:
     signature: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
     words: NDArray[np.int64] | None = field(default=None, compare=False, repr=False)
     patch: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
+    odom_pose: tuple[float, float, float] | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def input_pose(self) -> tuple[float, float, float]:
+        """The input (wheel) odometry pose of the visit: ``odom_pose`` if set, else ``pose``."""
+        return self.pose if self.odom_pose is None else self.odom_pose
 
     def __post_init__(self) -> None:
         if not np.all(np.isfinite(self.pose)) or len(self.pose) != 3:
             msg = f"visit {self.index}: pose must be 3 finite numbers, got {self.pose}"
+            raise ModelError(msg)
+        if self.odom_pose is not None and (
+            len(self.odom_pose) != 3 or not np.all(np.isfinite(self.odom_pose))
+        ):
+            msg = f"visit {self.index}: odom_pose must be 3 finite numbers, got {self.odom_pose}"
             raise ModelError(msg)
         if not (np.isfinite(self.travel) and self.travel >= 0.0):
             msg = f"visit {self.index}: travel must be finite and >= 0, got {self.travel}"

@@ -463,7 +463,7 @@ def test_fixed_dirichlet_and_missing_measurements():
     assert model.nig is None
     expected = log_marginal_dcm(words, np.full(30, 0.5))
     assert appearance_log_likelihood((0,) * 7, _visits(sigs, words), model) == pytest.approx(expected)
-    with pytest.raises(ModelError, match="visit 0 has no bag-of-words"):
+    with pytest.raises(ModelError, match="only 0 visits carry a bag-of-words"):
         fit_appearance_model(_visits(sigs), AppearanceConfig(models=("words",)))
     visits = _visits(sigs)
     model = fit_appearance_model(visits, AppearanceConfig())
@@ -495,3 +495,36 @@ def test_config_validation(kwargs, match):
 def test_model_needs_a_prior():
     with pytest.raises(ConfigError, match="needs a NIG prior"):
         AppearanceModel()
+
+
+def test_missing_measurements_are_left_out():
+    """A visit without a signature (no panorama near it) is a missing measurement: block likelihoods and
+    predictives equal those of the visits that have one; the prior is fitted on those."""
+    from dataclasses import replace
+
+    from ptm_ros.appearance import (
+        AppearanceConfig,
+        appearance_log_predictive,
+        block_log_likelihood,
+        fit_appearance_model,
+    )
+
+    rng = np.random.default_rng(4)
+    full = [Visit(i, float(i), (0.0, 0.0, 0.0), signature=rng.normal(1.0, 0.3, 4)) for i in range(6)]
+    holes = [replace(v, signature=None) if v.index in (1, 4) else v for v in full]
+    model = fit_appearance_model(holes, AppearanceConfig())
+    kept = [v for v in full if v.index not in (1, 4)]
+    assert math.isclose(
+        block_log_likelihood((0, 1, 2, 4), holes, model),
+        block_log_likelihood((0, 1), kept, model),
+        rel_tol=1e-12,
+    )
+    assert block_log_likelihood((1, 4), holes, model) == 0.0
+    assert appearance_log_predictive(4, (0, 2), holes, model) == 0.0
+    assert math.isclose(
+        appearance_log_predictive(5, (0, 1, 2), holes, model),
+        appearance_log_predictive(3, (0, 1), kept, model),
+        rel_tol=1e-12,
+    )
+    with pytest.raises(ModelError, match="only 1 visits"):
+        fit_appearance_model([full[0], *[replace(v, signature=None) for v in full[1:]]], AppearanceConfig())

@@ -373,3 +373,78 @@ def test_cli_on_intel_ground_truth(
     assert doc["n_visits_without_truth"] == 0
     assert doc["n_true_places"] == len(set(clusters))
     assert doc["map_recall"] == 1.0  # single linkage joins every pair closer than 1.5 m
+
+
+# --------------------------------------------------------------------------- absolute trajectory error
+
+
+def _rigid(xy: np.ndarray, theta: float, t: np.ndarray) -> np.ndarray:
+    c, s = math.cos(theta), math.sin(theta)
+    return xy @ np.array([[c, -s], [s, c]]).T + t
+
+
+def _brute_ate(est: np.ndarray, true: np.ndarray) -> float:
+    """The smallest RMSE over rigid motions by a generic optimiser from several starting angles."""
+    from scipy.optimize import minimize
+
+    def cost(p: np.ndarray) -> float:
+        return float(np.mean(np.sum((_rigid(est, p[0], p[1:]) - true) ** 2, axis=1)))
+
+    best = min(
+        (
+            minimize(
+                cost,
+                [a, 0.0, 0.0],
+                method="Nelder-Mead",
+                options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 20_000},
+            )
+            for a in np.linspace(-math.pi, math.pi, 8, endpoint=False)
+        ),
+        key=lambda r: r.fun,
+    )
+    return math.sqrt(best.fun)
+
+
+def test_ate_is_zero_for_a_rigidly_moved_path_and_recovers_the_motion() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        est = np.cumsum(rng.normal(size=(50, 2)), axis=0)
+        theta, t = rng.uniform(-math.pi, math.pi), rng.normal(scale=20.0, size=2)
+        true = _rigid(est, theta, t)
+        assert evaluation.absolute_trajectory_error(est, true) < 1e-9
+        got_theta, got_t = evaluation.rigid_alignment(est, true)
+        assert math.isclose(math.remainder(got_theta - theta, 2 * math.pi), 0.0, abs_tol=1e-12)
+        np.testing.assert_allclose(got_t, t, atol=1e-9)
+
+
+def test_ate_matches_a_generic_optimiser_on_random_paths() -> None:
+    rng = np.random.default_rng(11)
+    for n in (2, 3, 10, 40):
+        est = rng.normal(scale=5.0, size=(n, 2))
+        true = _rigid(est, rng.uniform(-3, 3), rng.normal(size=2)) + rng.normal(scale=0.7, size=(n, 2))
+        ate = evaluation.absolute_trajectory_error(est, true)
+        assert ate == pytest.approx(_brute_ate(est, true), rel=1e-6, abs=1e-9)
+        # never better than the identity nor worse than the unaligned RMSE
+        assert ate <= math.sqrt(np.mean(np.sum((est - true) ** 2, axis=1))) + 1e-12
+
+
+def test_ate_cannot_align_a_mirror_image() -> None:
+    # A reflection is not a rigid motion: an L-shaped path and its mirror image stay apart.
+    est = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [2.0, 1.0], [2.0, 2.0]])
+    mirror = est * [1.0, -1.0]
+    ate = evaluation.absolute_trajectory_error(est, mirror)
+    assert ate > 0.3
+    assert ate == pytest.approx(_brute_ate(est, mirror), rel=1e-6)
+    assert evaluation.absolute_trajectory_error(est[:1], mirror[:1] + 7.0) == 0.0  # one point: exact
+
+
+def test_ate_errors() -> None:
+    xy = np.zeros((3, 2))
+    with pytest.raises(ModelError, match="same non-zero number"):
+        evaluation.absolute_trajectory_error(xy, xy[:2])
+    with pytest.raises(ModelError, match="same non-zero number"):
+        evaluation.absolute_trajectory_error(xy[:0], xy[:0])
+    with pytest.raises(ModelError, match=r"true_xy must be \(n, 2\)"):
+        evaluation.absolute_trajectory_error(xy, np.zeros((3, 3)))
+    with pytest.raises(ModelError, match="est_xy must be finite"):
+        evaluation.absolute_trajectory_error(np.where(xy == 0, np.nan, xy), xy)

@@ -76,7 +76,7 @@ def test_a_teleport_is_rejected_not_followed(biased_run):
         lo.on_scan(w, pts)
     before = lo.correction
     rejected = lo.counters.rejected
-    jumped = wheel[40] + np.array([0.0, 0.0, 1.2])  # the wheels claim a 1.2 rad turn in one step
+    jumped = wheel[40] + np.array([0.0, 3.0, 1.2])  # the wheels claim a 3 m, 1.2 rad jump in one step
     pts = scan_to_points(
         biased_run.scan_ranges[40], cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max
     ).points
@@ -97,3 +97,37 @@ def test_a_teleport_is_rejected_not_followed(biased_run):
 def test_bad_config(field, value, match):
     with pytest.raises(ConfigError, match=match):
         LaserOdometryConfig(**{field: value})
+
+
+def test_apply_corrections_reproduces_the_extractor_poses():
+    """Carrying the wheel odometry by the recorded corrections gives back, at every visit stamp, exactly the
+    pose the extractor gave the visit (the latest scan strictly before; identity before the first)."""
+    from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
+    from ptm_ros.laser_odometry import apply_corrections
+
+    run = simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(5), visits=3)
+    cfg = run.config.laser
+    ext = VisitExtractor(config=ExtractorConfig(use_images=False, record_corrections=True))
+    msgs = [(t, 0, k) for k, t in enumerate(run.odom_stamps)] + [
+        (t, 1, k) for k, t in enumerate(run.scan_stamps)
+    ]
+    visits = []
+    for t, topic, k in sorted(msgs):
+        if topic == 0:
+            visits += ext.on_odometry(t, run.odom_poses[k])
+        else:
+            visits += ext.on_scan(
+                t, run.scan_ranges[k], cfg.angle_min, cfg.angle_increment, cfg.range_min, cfg.range_max
+            )
+    visits += ext.flush()
+    assert len(visits) >= 3 and len(ext.corrections) == len(run.scan_stamps)
+    stamps = [t for t, _ in ext.corrections]
+    corrected = apply_corrections(run.odom_stamps, run.odom_poses, stamps, [c for _, c in ext.corrections])
+    for v in visits:
+        k = int(np.flatnonzero(run.odom_stamps == v.stamp)[0])
+        assert tuple(corrected[k]) == v.pose
+        assert v.odom_pose == tuple(run.odom_poses[k])
+    before = run.odom_stamps <= stamps[0]
+    assert np.array_equal(corrected[before], run.odom_poses[before])
+    with pytest.raises(ModelError, match="matching"):
+        apply_corrections(run.odom_stamps, run.odom_poses[:-1], stamps, [c for _, c in ext.corrections])

@@ -2,20 +2,28 @@
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
 import math
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize
 
 from ptm_ros.config import PtmConfig, load_config
+from ptm_ros.geometry import between, compose
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
-from ptm_ros.partitions import bell
-from ptm_ros.ptm import load_ptm
+from ptm_ros.occupancy import FREE, OCCUPIED, load_map
+from ptm_ros.partitions import bell, num_places
+from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, to_json_dict
+from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import detect_visits, run_offline
+from ptm_ros.tools.pipeline import cold_chain_details, detect_visits, run_offline
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +43,53 @@ def small_config(**over) -> PtmConfig:
     return load_config(None, base)
 
 
+def segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Distance of each point ``(n, 2)`` to the nearest segment ``(m, 4)``."""
+    a, b = segments[:, :2], segments[:, 2:]
+    ab = b - a
+    t = np.clip(np.einsum("nki,ki->nk", points[:, None] - a, ab) / np.sum(ab**2, axis=1), 0.0, 1.0)
+    return np.min(np.linalg.norm(points[:, None] - (a + t[..., None] * ab), axis=2), axis=1)
+
+
+def brute_ate(est: np.ndarray, true: np.ndarray) -> float:
+    """RMSE after the rigid motion a generic optimiser finds (several starting angles)."""
+
+    def cost(p: np.ndarray) -> float:
+        c, s = math.cos(p[0]), math.sin(p[0])
+        moved = est @ np.array([[c, s], [-s, c]]) + p[1:]
+        return float(np.mean(np.sum((moved - true) ** 2, axis=1)))
+
+    starts = [[a, *(true.mean(0) - est.mean(0))] for a in np.linspace(-3.0, 3.0, 6)]
+    opts = {"xatol": 1e-9, "fatol": 1e-12, "maxiter": 10_000}
+    return math.sqrt(min(minimize(cost, x0, method="Nelder-Mead", options=opts).fun for x0 in starts))
+
+
+def check_route_graph(path: Path, ptm: Ptm) -> None:
+    """The nav2 route graph GeoJSON: nodes = MAP places, directed edges between existing nodes, ids
+    unique over nodes and edges, finite coordinates, probabilities in (0, 1]."""
+    doc = json.loads(path.read_text())
+    assert doc["type"] == "FeatureCollection"
+    nodes = [f for f in doc["features"] if f["geometry"]["type"] == "Point"]
+    edges = [f for f in doc["features"] if f["geometry"]["type"] == "MultiLineString"]
+    assert len(nodes) + len(edges) == len(doc["features"])
+    assert len(nodes) == num_places(ptm.map_topology.labels)
+    ids = [f["properties"]["id"] for f in doc["features"]]
+    assert len(set(ids)) == len(ids) and all(isinstance(i, int) and i >= 0 for i in ids)
+    node_xy = {f["properties"]["id"]: f["geometry"]["coordinates"] for f in nodes}
+    assert all(len(xy) == 2 and all(math.isfinite(v) for v in xy) for xy in node_xy.values())
+    directed = set()
+    for e in edges:
+        p = e["properties"]
+        assert p["startid"] in node_xy and p["endid"] in node_xy and p["startid"] != p["endid"]
+        assert e["geometry"]["coordinates"] == [[node_xy[p["startid"]], node_xy[p["endid"]]]]
+        assert 0.0 < p["metadata"]["probability"] <= 1.0
+        directed.add((p["startid"], p["endid"]))
+    assert all((b, a) in directed for a, b in directed)  # each connection in both directions
+    labels = ptm.map_topology.labels
+    steps = {(a, b) for a, b in itertools.pairwise(labels) if a != b}
+    assert steps <= directed  # every passage of the MAP topology is an edge
+
+
 def test_visits_follow_the_odometry(tjunction_bag):
     run = read_run(tjunction_bag)
     diag = {}
@@ -52,6 +107,15 @@ def test_visits_follow_the_odometry(tjunction_bag):
     # (the equidistant firings follow the corrected travel, so stamps may shift by a sample or two)
     corrected = detect_visits(run, small_config(), diag)
     assert abs(len(corrected) - len(visits)) <= 1
+    for v in corrected:  # ptm.json keeps the input odometry (CONTRACT.md), plus the corrected pose
+        k = int(np.flatnonzero(stamps == v.stamp)[0])
+        assert v.odom_pose == tuple(run.odometry.poses[k])
+        lm = Landmark.from_visit(v)
+        assert lm.pose == v.odom_pose and lm.corrected_pose == v.pose and lm.map_pose == v.pose
+    doc = to_json_dict(make_ptm([Landmark.from_visit(v) for v in corrected], {(0,) * len(corrected): 1.0}))
+    back = from_json_dict(json.loads(json.dumps(doc)))
+    assert [lm.corrected_pose for lm in back.landmarks] == [v.pose for v in corrected]
+    assert [lm.pose for lm in back.landmarks] == [v.odom_pose for v in corrected]
     assert diag["laser_odometry"]["matched"] >= 0.9 * len(run.scans.stamps)
     assert any(
         v.pose != tuple(run.odometry.poses[int(np.flatnonzero(stamps == v.stamp)[0])]) for v in corrected
@@ -83,6 +147,39 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path):
     assert result.score is not None  # the simulator's ground truth beside the bag was found
     s = result.score.as_dict(per_topology=False)
     assert 0.0 <= s["map_f1"] <= 1.0 and s["n_visits"] == n
+    names = {"ptm.json", "config.yaml", "route_graph.geojson", "map.pgm", "map.yaml", "map.png"}
+    assert {p.name for p in result.files.values()} == names
+    assert all(p.parent == tmp_path and p.is_file() for p in result.files.values())
+    check_route_graph(tmp_path / "route_graph.geojson", ptm)
+    # The map, in the odometry frame, moved into the world frame: occupied cells on the simulated walls,
+    # the walls covered, the true path through free cells.
+    truth = json.loads((tjunction_bag / "ground_truth.json").read_text())
+    offset = np.array(truth["odometry_frame_offset"])
+    grid = load_map(tmp_path / "map.yaml")
+    rows, cols = np.nonzero(grid.data == OCCUPIED)
+    xy = np.asarray(grid.origin[:2]) + (np.column_stack([cols, rows]) + 0.5) * grid.resolution
+    occupied = compose(offset, np.column_stack([xy, np.zeros(len(xy))]))[:, :2]
+    walls = get_world("t-junction").segments
+    d = segment_distances(occupied, walls)
+    assert np.median(d) < 0.1 and np.percentile(d, 90) < 0.2, np.percentile(d, [50, 90])
+    a, b = walls[:, :2], walls[:, 2:]
+    samples = np.concatenate([a[k] + np.linspace(0, 1, 20)[:, None] * (b[k] - a[k]) for k in range(len(a))])
+    gaps = np.min(np.linalg.norm(samples[:, None] - occupied[None], axis=2), axis=1)
+    assert np.mean(gaps < 0.25) > 0.9
+    true_poses = np.column_stack([truth["poses"][k] for k in ("x", "y", "yaw")])
+    in_odom = between(offset, true_poses)[:, :2]
+    ij = np.floor((in_odom - grid.origin[:2]) / grid.resolution).astype(int)
+    assert np.mean(grid.data[ij[:, 1], ij[:, 0]] == FREE) > 0.99
+    # Trajectory errors at the odometry stamps (the simulator's truth is at exactly those stamps).
+    ate = doc["trajectory_error"]
+    assert ate == dict(result.trajectory_error) and ate["ground_truth"].endswith("ground_truth.json")
+    odom = read_run(tjunction_bag).odometry
+    assert ate["poses"] == len(odom.stamps) == len(true_poses)
+    assert ate["ate_odometry_m"] == pytest.approx(brute_ate(odom.poses[:, :2], true_poses[:, :2]), rel=1e-5)
+    assert 0.0 < ate["ate_smoothed_m"] < ate["ate_odometry_m"]  # the MAP topology's loops correct drift
+    assert doc["timing"]["map_s"] > 0.0 and doc["timing"]["smoothing_s"] > 0.0
+    md = (tmp_path / "report.md").read_text()
+    assert "(map.png)" in md and "absolute trajectory error" in md
 
 
 def test_cli_reports_errors_with_exit_code(tmp_path, capsys):
@@ -100,11 +197,15 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
         "detector: {kind: equidistant, equidistant: {spacing: 5.0}}\nmodel: {use_laser: false}\n"
     )
     code = run_cli.main(
-        [str(tjunction_bag), "--out", str(tmp_path / "o"), "--params", str(params), "--quiet"]
+        [str(tjunction_bag), "--out", str(tmp_path / "o"), "--params", str(params), "--quiet", "--no-map"]
     )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "most probable topologies" in out and "#1 p = " in out and "MAP F1" in out
+    assert "trajectory error (ATE" in out and "route_graph.geojson" in out
+    written = {p.name for p in (tmp_path / "o").iterdir()}
+    assert {"ptm.json", "route_graph.geojson", "report.html"} <= written
+    assert not written & {"map.pgm", "map.yaml", "map.png"}  # --no-map
 
 
 def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
@@ -121,3 +222,35 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert total_variation(dist["exact"], dist["mcmc"]) < 0.01
     assert total_variation(dist["exact"], dist["rbpf"]) < 0.05  # EKF linearisation vs batch Laplace
     assert ptms["mcmc"].inference["converged"] is True
+
+
+def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_path):
+    """A surprise detector's trace is drawn in the report; MCMC's cold-chain states (when
+    ``McmcResult`` carries them) give the SRQ plot."""
+    from ptm_ros.mcmc import McmcResult
+
+    over = {
+        "model": {"use_laser": False},
+        "inference": {"method": "mcmc"},
+        "detector": {"kind": "laser-surprise"},
+    }
+    cfg = load_config(None, over)
+    result = run_offline(tjunction_bag, tmp_path, cfg)
+    assert result.ptm.extra["detector"] == "laser-surprise"
+    md = (tmp_path / "report.md").read_text()
+    assert (tmp_path / SURPRISE).is_file() and f"({SURPRISE})" in md
+    has_states = "cold_states" in {f.name for f in dataclasses.fields(McmcResult)}
+    assert (SRQ_KEY in result.ptm.inference) == has_states
+    assert (tmp_path / SRQ).is_file() == has_states
+    if has_states:
+        chains = load_ptm(tmp_path / "ptm.json").inference[SRQ_KEY]
+        assert len(chains) == result.ptm.inference["chains"] and all(len(c) > 0 for c in chains)
+
+
+def testcold_chain_details_become_json_values():
+    res = SimpleNamespace(cold_states=[np.array([3, 3, 4]), [(0, 1, 0), (0, 1, 1)]], cold_thin=np.int64(5))
+    got = cold_chain_details(res)
+    assert got == {"cold_chain_states": [[3, 3, 4], [[0, 1, 0], [0, 1, 1]]], "cold_chain_thin": 5}
+    assert json.loads(json.dumps(got)) == got
+    assert cold_chain_details(SimpleNamespace()) == {}  # an McmcResult without the fields
+    assert cold_chain_details(SimpleNamespace(cold_states=[[], []], cold_thin=1)) == {}

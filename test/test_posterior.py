@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from ptm_ros.appearance import AppearanceConfig
+from ptm_ros.appearance import AppearanceConfig, appearance_log_likelihood
 from ptm_ros.errors import ModelError
 from ptm_ros.geometry import compose
 from ptm_ros.odometry import OdometryConfig
@@ -94,12 +94,20 @@ def test_importance_sampled_posterior_close_to_laplace():
     assert again == is_  # deterministic under the seed, independent of evaluation order
 
 
-def test_appearance_used_only_when_every_visit_has_it():
+def test_a_missing_signature_is_left_out_of_the_appearance_term():
     visits = square_loop_visits()
-    visits[2] = Visit(2, 2.0, visits[2].pose, travel=6.0, rotation=1.57)  # no signature
+    full = PosteriorModel(visits, FAST)
+    visits[2] = Visit(2, 2.0, visits[2].pose, travel=6.0, rotation=1.57)  # no panorama at visit 2
     model = PosteriorModel(visits, FAST)
-    assert model.appearance is None
-    assert model.terms((0, 1, 2, 3, 0)).appearance == 0.0
+    assert model.appearance is not None
+    kept = [v for v in visits if v.index != 2]
+    for labels in ((0, 1, 2, 3, 0), (0, 1, 1, 2, 0)):
+        without = tuple(lab for i, lab in enumerate(labels) if i != 2)
+        want = appearance_log_likelihood(without, kept, model.appearance)
+        assert model.terms(labels).appearance == pytest.approx(want, rel=1e-12)
+    assert full.terms((0, 1, 2, 3, 0)).appearance != model.terms((0, 1, 2, 3, 0)).appearance
+    lone = [v if v.index == 0 else Visit(v.index, v.stamp, v.pose, v.travel, v.rotation) for v in visits]
+    assert PosteriorModel(lone, FAST).appearance is None  # one signature: no prior to fit
     words_cfg = ModelConfig(
         appearance=AppearanceConfig(models=("words",)), odometry=OdometryConfig(n_samples=0)
     )

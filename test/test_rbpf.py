@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -80,7 +81,10 @@ def truth_registrar(true, route, sd=(0.05, 0.05, 0.01), seed=0, fitness=False):
 
 
 def exact(visits, odo, registrar=None, appearance=False):
-    cfg = ModelConfig(prior=PRIOR, odometry=odo, use_appearance=appearance)
+    # within_fraction 0.1: the appearance prior these cases were built for (the posterior stays open)
+    cfg = ModelConfig(
+        prior=PRIOR, odometry=odo, appearance=AppearanceConfig(within_fraction=0.1), use_appearance=appearance
+    )
     model = PosteriorModel(visits, cfg, registrar=registrar)
     return exact_posterior(model), model
 
@@ -249,6 +253,20 @@ def test_block_log_predictives_equal_the_appearance_module():
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
     with pytest.raises(ModelError, match="non-empty"):
         block_log_predictives(11, [()], visits, fitted)
+    # missing measurements (a visit without a panorama): left out of the blocks; a new visit without one
+    # gets no appearance evidence
+    holes = list(visits)
+    for i, field in ((3, "signature"), (4, "words"), (6, "signature"), (7, "signature"), (8, "signature")):
+        holes[i] = replace(holes[i], **{field: None})
+    for model in (fitted, AppearanceModel(nig=fitted.nig), AppearanceModel(dcm_alpha=fitted.dcm_alpha)):
+        got = block_log_predictives(11, blocks, holes, model)
+        want = [appearance_log_predictive(11, b, holes, model) for b in blocks]
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    nig_only = AppearanceModel(nig=fitted.nig)  # block (6, 7, 8, 10) has one signature: visit 10's
+    got = block_log_predictives(11, blocks, holes, nig_only)[3]
+    assert got == pytest.approx(appearance_log_predictive(11, (10,), holes, nig_only), rel=1e-12)
+    silent = [*holes[:11], replace(holes[11], signature=None, words=None)]
+    assert np.all(block_log_predictives(11, blocks, silent, fitted) == 0.0)
 
 
 # ------------------------------------------------------------------------- exactness against enumeration
@@ -550,10 +568,10 @@ def test_bad_input_raises_and_leaves_the_filter_usable():
         flt.update(visits[5])
     with pytest.raises(ModelError, match="pose"):
         flt.update(bad_pose(visits[4]))
-    no_sig = copy.copy(visits[4])
-    object.__setattr__(no_sig, "signature", None)
+    bad_sig = copy.copy(visits[4])
+    object.__setattr__(bad_sig, "signature", np.zeros(2))  # wrong length (None would be a missing one)
     with pytest.raises(ModelError, match="signature"):
-        flt.update(no_sig)
+        flt.update(bad_sig)
     with pytest.raises(ModelError, match="registration"):  # visit 4 revisits place 0: a laser pair is asked
         flt.update(visits[4])
     assert (flt.log_weights(), flt.log_evidence, len(flt.history)) == before

@@ -97,8 +97,8 @@ def test_ten_times_real_time_loses_no_visit(demo_bag, tmp_path, monkeypatch):
 
     # the detector's visits as published over DDS, then its end marker: ptm-run's visits
     assert published[-1] == n
-    assert [(v.index, v.stamp, v.pose) for v in published[:-1]] == [
-        (lm.index, lm.stamp, lm.pose) for lm in offline.landmarks
+    assert [(v.index, v.stamp, v.input_pose, v.pose) for v in published[:-1]] == [
+        (lm.index, lm.stamp, lm.pose, lm.map_pose) for lm in offline.landmarks
     ]
     assert f"[landmark_detector]: input finished: {n} landmark visits" in log
     assert f"[topology_filter]: end of visits reported ({n}); {n} in the map" in log

@@ -20,6 +20,7 @@ from ptm_ros.evaluation import score_ptm
 from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
 from ptm_ros.report import (
     HISTOGRAM,
+    MAP_CAPTION,
     REPORT_HTML,
     REPORT_MD,
     SCORES,
@@ -358,3 +359,31 @@ def test_draw_srq_writes_a_file(tmp_path: Path) -> None:
     x, y = srq_points([0, 1, 0, 0, 1, 0])
     path = draw_srq({"chain 0": (x, y)}, tmp_path / "srq.png", config=ReportConfig(dpi=50))
     assert path == tmp_path / "srq.png" and imread(path).shape[0] == 300  # 6 in at 50 dpi
+
+
+def test_report_shows_the_occupancy_map_and_notes(tmp_path: Path) -> None:
+    from ptm_ros.occupancy import build_grid, save_png
+
+    # A scanner at the centre of the loop sees a circle of radius 3 m: a real grid image.
+    angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    grid = build_grid([[5.0, 5.0, 0.0]], [np.full(90, 3.0)], angles[0], angles[1] - angles[0], 10.0)
+    src = save_png(grid, tmp_path / "elsewhere" / "map.png")
+    out = tmp_path / "r"
+    note = "absolute trajectory error: 0.123 m"
+    html_path = write_report(out, loop_ptm(), occupancy_map=src, notes=[note])
+    assert (out / "map.png").read_bytes() == src.read_bytes()  # copied beside the report
+    md = (out / REPORT_MD).read_text(encoding="utf-8")
+    assert f"![{MAP_CAPTION}](map.png)" in md
+    assert f"- {note}" in md
+    html_text = html_path.read_text(encoding="utf-8")
+    assert "map.png" in html_links(html_path) and MAP_CAPTION in html_text and note in html_text
+    # a map already in the output directory is linked where it is; a clashing name is renamed
+    write_report(out, loop_ptm(), occupancy_map=out / "map.png")
+    assert "map.png" in html_links(html_path)
+    clash = tmp_path / "elsewhere" / HISTOGRAM
+    clash.write_bytes(src.read_bytes())
+    write_report(out, loop_ptm(), occupancy_map=clash)
+    assert (out / f"map_{HISTOGRAM}").read_bytes() == src.read_bytes()
+    assert f"map_{HISTOGRAM}" in html_links(html_path)
+    with pytest.raises(DataError, match="does not exist"):
+        write_report(out, loop_ptm(), occupancy_map=tmp_path / "missing.png")

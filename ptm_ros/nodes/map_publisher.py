@@ -12,11 +12,19 @@ refuses, ``success: false``, while it has no document or one without visits, as 
 response message is JSON ``{"path", "visits", "topologies", "complete"}`` (``complete``: the filter had
 every visit of a finished input), which ``ptm-bringup`` uses to know the run is fully mapped.
 ``/diagnostics`` every second: documents received, invalid ones, visits of the latest.
+
+Bad input (issue #9): a document that is not JSON (also nested too deep, or numbers beyond float range),
+not a valid ptm.json, or has non-finite stamps, poses or place positions, positions of the wrong shape
+or a ``stream`` section that is not a mapping with a boolean ``complete`` is dropped (``invalid``); a
+repetition of the latest document is dropped (``duplicates``); the previous document stays in force.
+Each is logged once and counted; a bug reached by some input is caught by the callback's last-resort
+guard (``internal_errors``).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -37,6 +45,7 @@ from ptm_ros.nodes.common import (
     check_parameter_names,
     declare_node_parameter,
     diagnostic_status,
+    guarded,
     pose_msg,
     run_node,
     time_msg,
@@ -57,31 +66,63 @@ def map_path(ptm: Ptm) -> PathMsg:
     if top.positions is not None and len(top.positions) == max(top.labels) + 1:
         places = np.asarray(top.positions, dtype=float)
     for lm, label in zip(ptm.landmarks, top.labels, strict=True):
-        x, y = places[label] if places is not None else lm.pose[:2]
+        x, y = places[label] if places is not None else lm.map_pose[:2]
         ps = PoseStamped()
         ps.header.frame_id = ptm.frame_id
         ps.header.stamp = time_msg(lm.stamp)
-        ps.pose = pose_msg(float(x), float(y), lm.pose[2])
+        ps.pose = pose_msg(float(x), float(y), lm.map_pose[2])
         path.poses.append(ps)
     path.header.stamp = time_msg(ptm.landmarks[-1].stamp)
     return path
+
+
+def check_graph(doc: dict[str, Any], ptm: Ptm) -> None:
+    """What :func:`ptm_ros.ptm.from_json_dict` does not check: finite stamps and (x, y, yaw) poses of the
+    landmarks, finite ``(M, 2)`` place positions of every topology (M its number of places), and the
+    ``stream`` section of a graph document.
+
+    Raises:
+        DataError: naming the offending item.
+    """
+    for lm in ptm.landmarks:
+        if not (math.isfinite(lm.stamp) and len(lm.pose) == 3 and all(map(math.isfinite, lm.pose))):
+            msg = f"landmark {lm.index}: stamp {lm.stamp} and pose {lm.pose} must be finite (x, y, yaw)"
+            raise DataError(msg)
+    for rank, t in enumerate(ptm.topologies):
+        if t.positions is None:
+            continue
+        if len(t.positions) != max(t.labels, default=-1) + 1 or not all(
+            math.isfinite(c) for xy in t.positions for c in xy
+        ):
+            msg = f"topology {rank}: positions must be finite, one (x, y) per place"
+            raise DataError(msg)
+    stream = doc.get("stream", {})
+    if not isinstance(stream, dict) or not isinstance(stream.get("complete", False), bool):
+        msg = f"stream must be a mapping with a boolean 'complete', got {stream!r:.80}"
+        raise DataError(msg)
 
 
 def parse_graph(text: str) -> tuple[dict[str, Any], Ptm]:
     """The JSON document of a ``ptm_graph`` message and its validated :class:`Ptm`.
 
     Raises:
-        DataError: not JSON, or not a valid ptm.json document.
+        DataError: not JSON, or not a valid ptm.json document (:func:`check_graph`).
     """
     try:
         doc = json.loads(text)
-    except json.JSONDecodeError as err:
-        msg = f"ptm_graph message is not JSON: {err}"
+    except (ValueError, OverflowError, RecursionError) as err:
+        msg = f"ptm_graph message is not JSON: {type(err).__name__}: {err}"
         raise DataError(msg) from err
     if not isinstance(doc, dict):
         msg = f"ptm_graph message must be a JSON object, got {type(doc).__name__}"
         raise DataError(msg)
-    return doc, from_json_dict(doc)
+    try:
+        ptm = from_json_dict(doc)
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as err:  # beside DataError
+        msg = f"invalid ptm.json document: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    check_graph(doc, ptm)
+    return doc, ptm
 
 
 class MapPublisherNode(Node):
@@ -95,7 +136,8 @@ class MapPublisherNode(Node):
         )
         self.doc: dict[str, Any] | None = None
         self.ptm: Ptm | None = None
-        self.counters = {"messages": 0, "invalid": 0}
+        self.counters = {"messages": 0, "invalid": 0, "duplicates": 0, "internal_errors": 0}
+        self._text: str | None = None  # the latest document as received
         self._log_once = OnceLogger(self.get_logger())
         self._path_pub = self.create_publisher(PathMsg, "ptm_path", LATCHED_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -108,17 +150,24 @@ class MapPublisherNode(Node):
         """Whether the latest document says the filter had every visit of a finished input."""
         return bool(self.doc is not None and self.doc.get("stream", {}).get("complete", False))
 
+    @guarded
     def _on_graph(self, msg: String) -> None:
         self.counters["messages"] += 1
+        if msg.data == self._text:
+            self.counters["duplicates"] += 1
+            self._log_once("duplicate-graph", "dropped a repeated ptm_graph message")
+            return
         try:
             doc, ptm = parse_graph(msg.data)
         except DataError as err:
             self.counters["invalid"] += 1
             self._log_once("invalid-graph", f"dropped an invalid ptm_graph message: {err}")
             return
-        self.doc, self.ptm = doc, ptm
-        self._path_pub.publish(map_path(ptm))
+        path = map_path(ptm)
+        self.doc, self.ptm, self._text = doc, ptm, msg.data
+        self._path_pub.publish(path)
 
+    @guarded
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if self.doc is None or self.ptm is None:
             response.success, response.message = False, "no ensemble received yet: nothing to save"
@@ -149,6 +198,7 @@ class MapPublisherNode(Node):
         self.get_logger().info(f"wrote {path} ({len(self.ptm.landmarks)} visits)")
         return response
 
+    @guarded
     def _publish_diagnostics(self) -> None:
         values = {
             **self.counters,
@@ -164,7 +214,7 @@ class MapPublisherNode(Node):
                 NODE_NAME,
                 f"{values['visits']} visits, {values['topologies']} topologies",
                 values,
-                warn=self.counters["invalid"] > 0,
+                warn=self.counters["invalid"] + self.counters["internal_errors"] > 0,
             )
         ]
         self._diag_pub.publish(msg)

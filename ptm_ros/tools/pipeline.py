@@ -1,16 +1,33 @@
-"""The offline pipeline behind ``ptm-run``: bag → landmark visits → PTM → ptm.json, report, score.
+"""The offline pipeline behind ``ptm-run``: bag → landmark visits → PTM → ptm.json, maps, report, score.
 
 The science is in the core modules; this module only loops over a recorded run, times, and writes
 files (kiss-icp's ``pipeline.py`` plays the same role). The detector and filter nodes call the same core
 functions on live messages.
+
+Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
+
+* ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
+* ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always;
+* ``map.pgm`` + ``map.yaml`` (nav2 ``map_server``) and ``map.png`` — the occupancy grid
+  (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
+  trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
+  bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
+* ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector).
+
+With a ground truth, ``ptm.json`` carries ``extra["trajectory_error"]`` (:func:`trajectory_errors`):
+``ate_smoothed_m`` and ``ate_odometry_m``, the absolute trajectory errors
+(:func:`ptm_ros.evaluation.absolute_trajectory_error`, RMSE after the best rigid 2-D alignment) of the
+smoothed MAP trajectory and of the bag's raw odometry, both at the odometry stamps inside the ground
+truth's time span (``poses`` of them), and the ground-truth file. ``timing`` adds ``smoothing_s`` and
+``map_s`` to ``wall_s`` (bag reading, detection and inference).
 """
 
 from __future__ import annotations
 
 import heapq
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +36,9 @@ import numpy as np
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.detectors import EquidistantDetector
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.geometry import Registrar
+from ptm_ros.geometry import Registrar, interpolate_poses
 from ptm_ros.io.bag import RunData, read_run
+from ptm_ros.io.groundtruth import GroundTruthTrajectory, interpolate_pose, load_ground_truth
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
 from ptm_ros.laser import patch_registrar
 from ptm_ros.partitions import Labels
@@ -29,6 +47,18 @@ from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
 
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
+
+#: Names of the files :func:`run_offline` writes (keys of :attr:`RunResult.files`).
+OUTPUT_FILES = {
+    "ptm": "ptm.json",
+    "config": "config.yaml",
+    "route_graph": "route_graph.geojson",
+    "map_pgm": "map.pgm",
+    "map_yaml": "map.yaml",
+    "map_png": "map.png",
+}
+#: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
+TRAJECTORY_ERROR_KEY = "trajectory_error"
 
 
 def detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) -> str:
@@ -70,12 +100,16 @@ def make_detector(kind: str, config: PtmConfig) -> Any:
     return EquidistantDetector(det.equidistant)
 
 
-def make_extractor(config: PtmConfig, kind: str, *, use_scans: bool, use_images: bool) -> VisitExtractor:
-    """The streaming visit extractor shared by ``ptm-run`` and the detector node."""
+def make_extractor(
+    config: PtmConfig, kind: str, *, use_scans: bool, use_images: bool, record_corrections: bool = False
+) -> VisitExtractor:
+    """The streaming visit extractor shared by ``ptm-run`` and the detector node (``record_corrections``:
+    keep the laser-odometry corrections for smoothing the whole trajectory offline)."""
     ext = ExtractorConfig(
         use_scans=use_scans and config.model.use_laser,
         use_images=use_images,
         image_max_dt=config.detector.image_max_dt,
+        record_corrections=record_corrections,
     )
     return VisitExtractor(
         make_detector(kind, config),
@@ -96,23 +130,50 @@ def merged_messages(run: RunData) -> Iterator[tuple[float, int, int]]:
     return heapq.merge(*streams)
 
 
-def detect_visits(run: RunData, config: PtmConfig, diagnostics: dict[str, Any] | None = None) -> list[Visit]:
+def run_extractor(run: RunData, config: PtmConfig) -> VisitExtractor:
+    """A fresh visit extractor for a recorded run: the configured detector or the default for its
+    sensors (:func:`detector_kind`), scans and panoramas used when the run has them."""
+    sensors = run_sensors(run)
+    return make_extractor(
+        config,
+        detector_kind(config, **sensors),
+        use_scans=sensors["has_scans"],
+        use_images=sensors["has_images"],
+        record_corrections=True,
+    )
+
+
+def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
+    """The run's odometry as the visits saw it: wheel odometry carried by the extractor's laser-odometry
+    corrections (:func:`ptm_ros.laser_odometry.apply_corrections`); the wheel odometry without them."""
+    from ptm_ros.laser_odometry import apply_corrections
+
+    odom = run.odometry
+    if not extractor.corrections:
+        return np.asarray(odom.poses, dtype=float)
+    stamps = [t for t, _ in extractor.corrections]
+    return apply_corrections(odom.stamps, odom.poses, stamps, [c for _, c in extractor.corrections])
+
+
+def detect_visits(
+    run: RunData,
+    config: PtmConfig,
+    diagnostics: dict[str, Any] | None = None,
+    *,
+    extractor: VisitExtractor | None = None,
+) -> list[Visit]:
     """Landmark visits of a recorded run, with their appearance signatures and laser patches.
 
     Feeds the run's messages in stamp order through :class:`ptm_ros.landmarks.VisitExtractor`, the same
-    object the detector node uses; ``diagnostics`` (if given) receives the extractor's counters.
+    object the detector node uses (``extractor``, a fresh one, else :func:`run_extractor`; pass one to
+    read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters.
     """
     odom = run.odometry
     if odom is None or len(odom.stamps) == 0:
         msg = f"bag {run.path} has no odometry"
         raise DataError(msg)
-    sensors = run_sensors(run)
-    extractor = make_extractor(
-        config,
-        detector_kind(config, **sensors),
-        use_scans=sensors["has_scans"],
-        use_images=sensors["has_images"],
-    )
+    if extractor is None:
+        extractor = run_extractor(run, config)
     visits: list[Visit] = []
     for _, topic, k in merged_messages(run):
         if topic == ODOM:
@@ -225,8 +286,28 @@ def _infer_mcmc(model: PosteriorModel, config: PtmConfig) -> Inference:
             "n_evaluated": d.n_evaluated,
             "samples": res.samples,
             "acceptance": dict(d.acceptance),
+            **cold_chain_details(res),
         },
     )
+
+
+def _json_state(state: Any) -> Any:
+    """An MCMC state (an integer id or a label sequence) as plain JSON values."""
+    if isinstance(state, Iterable) and not isinstance(state, str | bytes):
+        return [int(v) for v in state]
+    return int(state)
+
+
+def cold_chain_details(res: Any) -> dict[str, Any]:
+    """The cold-chain states of an MCMC result for the report's SRQ plot (``ptm_ros.report.SRQ_KEY``),
+    one list per chain, and their thinning stride; nothing when the result holds none."""
+    chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
+    if not chains:
+        return {}
+    return {
+        "cold_chain_states": [[_json_state(s) for s in c] for c in chains],
+        "cold_chain_thin": int(getattr(res, "cold_thin", 1)),
+    }
 
 
 def _infer_rbpf(
@@ -286,7 +367,7 @@ def build_ptm(
     **extra: Any,
 ) -> Ptm:
     """The ptm.json content of an inference result."""
-    landmarks = [Landmark(v.index, v.stamp, v.pose) for v in visits]
+    landmarks = [Landmark.from_visit(v) for v in visits]
     inf = config.inference
     return make_ptm(
         landmarks,
@@ -302,13 +383,16 @@ def build_ptm(
 
 @dataclass(frozen=True)
 class RunResult:
-    """What ``run_offline`` wrote."""
+    """What ``run_offline`` wrote: ``files`` maps the keys of :data:`OUTPUT_FILES` to the files written;
+    ``trajectory_error`` is ``ptm.extra["trajectory_error"]`` (None without a ground truth)."""
 
     ptm: Ptm
     ptm_path: Path
     report_path: Path | None
     score: Any | None
     diagnostics: dict[str, Any]
+    files: Mapping[str, Path] = field(default_factory=dict)
+    trajectory_error: Mapping[str, Any] | None = None
 
 
 def find_ground_truth(bag: Path) -> Path | None:
@@ -327,8 +411,11 @@ def run_offline(
     ground_truth: str | Path | None = None,
     progress: Progress | None = None,
     write_report: bool = True,
+    write_map: bool = True,
 ) -> RunResult:
-    """Bag in, ``out_dir/ptm.json`` + ``config.yaml`` + report (+ score when a ground truth is known)."""
+    """Bag in, the files of the module docstring out (the score when a ground truth is known: the
+    ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
+    occupancy map files."""
     t0 = time.perf_counter()
     bag = Path(bag)
     out = Path(out_dir)
@@ -340,13 +427,17 @@ def run_offline(
         image_topic=topics.panorama,
         require=(topics.odom,),
     )
+    gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
+    truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
     diag: dict[str, Any] = {}
-    visits = detect_visits(run, config, diag)
+    extractor = run_extractor(run, config)
+    visits = detect_visits(run, config, diag, extractor=extractor)
     registrar = cached(make_registrar(visits, config, diag)) if config.model.use_laser else None
     result = infer(visits, config, registrar=registrar, progress=progress)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
-    used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **run_sensors(run))))
+    sensors = run_sensors(run)
+    used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
     ptm = build_ptm(
         visits,
         result,
@@ -357,19 +448,153 @@ def run_offline(
         detector=used.detector.kind,
         diagnostics=diag,
     )
-    ptm_path = save_ptm(ptm, out / "ptm.json")
-    save_config(used, out / "config.yaml")
-    score = None
-    gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
-    if gt is not None:
-        score = score_against(ptm, gt)
+    want_map = write_map and sensors["has_scans"]
+    timing = dict(ptm.timing)
+    extra = dict(ptm.extra)
+    traj = None
+    if write_report or want_map or truth is not None:
+        t1 = time.perf_counter()
+        base = corrected_odometry(run, extractor)
+        traj = map_trajectory(run, visits, ptm.map_topology.labels, config, registrar, odometry=base)
+        timing["smoothing_s"] = time.perf_counter() - t1
+    if truth is not None and traj is not None:
+        ate = trajectory_errors(run, traj, truth)
+        if ate is not None:
+            extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(gt)}
+    files: dict[str, Path] = {}
+    if want_map and traj is not None:
+        t1 = time.perf_counter()
+        files |= write_occupancy_map(run, traj, out, config)
+        timing["map_s"] = time.perf_counter() - t1
+    ptm = replace(ptm, timing=timing, extra=extra)
+    ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
+    files["ptm"] = ptm_path
+    files["config"] = save_config(used, out / OUTPUT_FILES["config"])
+    files["route_graph"] = write_route_graph(ptm, out / OUTPUT_FILES["route_graph"])
+    score = score_against(ptm, truth) if truth is not None else None
     report = None
     if write_report:
         from ptm_ros.report import write_report as _write_report
 
-        traj = map_trajectory(run, visits, ptm.map_topology.labels, config, registrar)
-        report = _write_report(out, ptm, trajectory=traj, score=score, title=f"PTM of {bag.name}")
-    return RunResult(ptm=ptm, ptm_path=ptm_path, report_path=report, score=score, diagnostics=diag)
+        report = _write_report(
+            out,
+            ptm,
+            trajectory=traj,
+            score=score,
+            surprise_trace=surprise_trace(extractor.detector),
+            occupancy_map=files.get("map_png"),
+            notes=ate_notes(extra.get(TRAJECTORY_ERROR_KEY)),
+            title=f"PTM of {bag.name}",
+        )
+    return RunResult(
+        ptm=ptm,
+        ptm_path=ptm_path,
+        report_path=report,
+        score=score,
+        diagnostics=diag,
+        files=files,
+        trajectory_error=extra.get(TRAJECTORY_ERROR_KEY),
+    )
+
+
+def surprise_trace(detector: Any) -> Any | None:
+    """The Bayesian surprise trace of a surprise detector (thesis Fig. 62), None for other detectors."""
+    from ptm_ros.surprise import AppearanceSurpriseDetector, LaserSurpriseDetector
+
+    if isinstance(detector, LaserSurpriseDetector | AppearanceSurpriseDetector):
+        return detector.trace
+    return None
+
+
+def trajectory_errors(
+    run: RunData, trajectory: np.ndarray, truth: GroundTruthTrajectory
+) -> dict[str, Any] | None:
+    """Absolute trajectory errors (m) of ``trajectory (T, 3)`` (at the run's odometry stamps) and of the
+    raw odometry against a ground truth, at the odometry stamps inside the ground truth's time span
+    (its corrected poses interpolated there); None when fewer than two lie inside."""
+    from ptm_ros.evaluation import absolute_trajectory_error
+
+    odom = run.odometry
+    stamps = np.asarray(odom.stamps, dtype=float)
+    traj = np.asarray(trajectory, dtype=float)
+    if traj.shape != (len(stamps), 3):
+        msg = f"the trajectory has shape {traj.shape}, the run {len(stamps)} odometry poses"
+        raise DataError(msg)
+    inside = (stamps >= np.min(truth.stamps)) & (stamps <= np.max(truth.stamps))
+    if np.count_nonzero(inside) < 2:
+        return None
+    true_xy = interpolate_pose(truth, stamps[inside])[:, :2]
+    return {
+        "ate_smoothed_m": absolute_trajectory_error(traj[inside, :2], true_xy),
+        "ate_odometry_m": absolute_trajectory_error(np.asarray(odom.poses)[inside, :2], true_xy),
+        "poses": int(np.count_nonzero(inside)),
+    }
+
+
+def ate_notes(ate: Mapping[str, Any] | None) -> list[str]:
+    """Report lines for the trajectory errors of :func:`trajectory_errors` (none without them)."""
+    if not ate:
+        return []
+    return [
+        f"absolute trajectory error after rigid alignment, over {ate['poses']} odometry poses: smoothed "
+        f"MAP trajectory {ate['ate_smoothed_m']:.3f} m, raw odometry {ate['ate_odometry_m']:.3f} m"
+    ]
+
+
+def scan_poses(run: RunData, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(mask, poses)``: which scans lie within the odometry's time span, and their poses ``(S, 3)``
+    interpolated from ``trajectory (T, 3)`` given at the odometry stamps."""
+    odom, scans = run.odometry, run.scans
+    t = np.asarray(scans.stamps, dtype=float)
+    mask = (t >= odom.stamps[0]) & (t <= odom.stamps[-1])
+    return mask, interpolate_poses(odom.stamps, trajectory, t[mask])
+
+
+def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> Any | None:
+    """The occupancy grid (:func:`ptm_ros.occupancy.build_grid`) of the run's scans placed along
+    ``trajectory (T, 3)`` (at the odometry stamps); None when no scan lies within the odometry's span."""
+    from ptm_ros.occupancy import build_grid
+
+    sc = run.scans
+    if sc is None or len(sc.stamps) == 0:
+        return None
+    mask, poses = scan_poses(run, trajectory)
+    if not np.any(mask):
+        return None
+    keep = np.flatnonzero(mask)
+    ranges = sc.ranges[mask] if isinstance(sc.ranges, np.ndarray) else [sc.ranges[k] for k in keep]
+    return build_grid(
+        poses,
+        ranges,
+        sc.angle_min[mask],
+        sc.angle_increment[mask],
+        sc.range_max[mask],
+        range_min=sc.range_min[mask],
+        config=config.occupancy,
+    )
+
+
+def write_occupancy_map(
+    run: RunData, trajectory: np.ndarray, out: Path, config: PtmConfig
+) -> dict[str, Path]:
+    """``map.pgm`` + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory`` over
+    it) of :func:`occupancy_grid` in ``out``; nothing when the run has no usable scan."""
+    from ptm_ros.occupancy import save_map, save_png
+
+    grid = occupancy_grid(run, trajectory, config)
+    if grid is None:
+        return {}
+    pgm, yml = save_map(grid, out / Path(OUTPUT_FILES["map_pgm"]).stem, config.occupancy)
+    title = f"occupancy grid ({grid.resolution:g} m cells, {grid.scans} scans), smoothed MAP trajectory"
+    png = save_png(grid, out / OUTPUT_FILES["map_png"], trajectory=trajectory, title=title)
+    return {"map_pgm": pgm, "map_yaml": yml, "map_png": png}
+
+
+def write_route_graph(ptm: Ptm, path: Path) -> Path:
+    """The PTM as a nav2 route graph (:func:`ptm_ros.routes.route_graph`) at ``path``."""
+    from ptm_ros.routes import route_graph, save_route_graph
+
+    return save_route_graph(route_graph(ptm), path)
 
 
 def cached(registrar: Registrar) -> Registrar:
@@ -385,22 +610,31 @@ def cached(registrar: Registrar) -> Registrar:
 
 
 def map_trajectory(
-    run: RunData, visits: Sequence[Visit], labels: Labels, config: PtmConfig, registrar: Registrar | None
+    run: RunData,
+    visits: Sequence[Visit],
+    labels: Labels,
+    config: PtmConfig,
+    registrar: Registrar | None,
+    *,
+    odometry: np.ndarray | None = None,
 ) -> np.ndarray:
     """The odometry trajectory smoothed for a topology: visit poses optimised under its same-place and
     laser constraints (:func:`ptm_ros.odometry.optimize_poses`), the path between deformed to fit
-    (:func:`ptm_ros.smoothing.smoothed_trajectory`)."""
+    (:func:`ptm_ros.smoothing.smoothed_trajectory`). ``odometry`` ``(T, 3)`` at the run's odometry stamps
+    is the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
     from ptm_ros.odometry import optimize_poses
     from ptm_ros.smoothing import smoothed_trajectory
 
     odom = run.odometry
+    base = odom.poses if odometry is None else odometry
     model = PosteriorModel(visits, config.model, registrar=registrar)
     poses, _, _ = optimize_poses(labels, visits, config.model.odometry, model.loops(labels))
-    return smoothed_trajectory(odom.stamps, odom.poses, [v.stamp for v in visits], poses)
+    return smoothed_trajectory(odom.stamps, base, [v.stamp for v in visits], poses)
 
 
-def score_against(ptm: Ptm, ground_truth: str | Path) -> Any:
-    """Score a PTM against a ground-truth file (simulator JSON or CARMEN ``*-gt-*.txt``)."""
+def score_against(ptm: Ptm, ground_truth: str | Path | GroundTruthTrajectory) -> Any:
+    """Score a PTM against a ground-truth file (simulator JSON or CARMEN ``*-gt-*.txt``) or a loaded
+    :class:`ptm_ros.io.groundtruth.GroundTruthTrajectory`."""
     from ptm_ros.tools.evaluate import score_against_ground_truth
 
     return score_against_ground_truth(ptm, ground_truth)

@@ -1,8 +1,12 @@
 """``ptm-run BAG --out DIR``: the offline pipeline (same core code as the nodes, no DDS).
 
-Writes ``DIR/ptm.json`` (CONTRACT.md schema), ``DIR/config.yaml`` (the parameters used) and
-``DIR/report.{md,html}`` with figures; prints the most probable topologies and, when the bag carries a
-ground truth (``BAG/ground_truth.json``) or ``--ground-truth`` is given, their score.
+Writes ``DIR/ptm.json`` (CONTRACT.md schema), ``DIR/config.yaml`` (the parameters used),
+``DIR/route_graph.geojson`` (nav2 route graph), for a bag with scans the occupancy map ``DIR/map.pgm`` +
+``DIR/map.yaml`` (nav2 map_server) and ``DIR/map.png`` (unless ``--no-map``), and
+``DIR/report.{md,html}`` with figures (unless ``--no-report``); see :mod:`ptm_ros.tools.pipeline`.
+Prints the most probable topologies and, when the bag carries a ground truth (``BAG/ground_truth.json``)
+or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
+trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ground-truth", type=Path, default=None, help="score against this ground truth")
     p.add_argument("--top", type=int, default=5, help="topologies to print (default 5)")
     p.add_argument("--no-report", action="store_true", help="skip the figures and report")
+    p.add_argument("--no-map", action="store_true", help="skip the occupancy map (map.pgm/.yaml/.png)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -83,7 +88,16 @@ def format_summary(result, top: int) -> str:
         )
         if s.get("true_topology_mass") is not None:
             lines.append(f"mass on the true topology = {s['true_topology_mass']:.3f}")
-    lines.append(f"wrote {result.ptm_path}" + (f" and {result.report_path}" if result.report_path else ""))
+    ate = result.trajectory_error
+    if ate:
+        lines.append(
+            f"trajectory error (ATE, {ate['poses']} poses): smoothed MAP {ate['ate_smoothed_m']:.3f} m, "
+            f"odometry {ate['ate_odometry_m']:.3f} m"
+        )
+    written = [str(p) for p in result.files.values()] or [str(result.ptm_path)]
+    if result.report_path:
+        written.append(str(result.report_path))
+    lines.append("wrote " + ", ".join(written))
     return "\n".join(lines)
 
 
@@ -102,6 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ground_truth=args.ground_truth,
             progress=_progress(args.quiet),
             write_report=not args.no_report,
+            write_map=not args.no_map,
         )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
