@@ -125,6 +125,9 @@ ROS_ONLY_PARAMETERS = frozenset(
         "jump_confirm",
         "max_speed",
         "silence_s",
+        "state_file",
+        "autosave_every",
+        "resume",
     }
 )
 

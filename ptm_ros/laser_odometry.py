@@ -68,7 +68,7 @@ class LaserOdometryConfig:
     max_correction_xy: float = 0.5
     max_correction_yaw: float = 0.2
     min_points: int = 10
-    min_inlier_fraction: float = 0.5
+    min_inlier_fraction: float = 0.3
     refine: bool = True
 
     def __post_init__(self) -> None:

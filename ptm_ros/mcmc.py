@@ -162,6 +162,8 @@ class McmcConfig:
         min_iterations: sweeps of the first round (rounds then double).
         max_iterations: cap on sweeps per chain.
         max_seconds: cap on wall time (s).
+        trace_samples: most cold-chain states kept per chain in :attr:`McmcResult.cold_states` (the trace
+            is thinned by a common stride to fit; for SRQ plots, thesis Ch. 3.6).
     """
 
     proposal: str = "auto"
@@ -180,6 +182,7 @@ class McmcConfig:
     min_iterations: int = 500
     max_iterations: int = 200_000
     max_seconds: float = 60.0
+    trace_samples: int = 4000
 
     def __post_init__(self) -> None:
         for name, value, options in (
@@ -211,6 +214,7 @@ class McmcConfig:
             ("processes", self.processes, 1),
             ("min_iterations", self.min_iterations, 1),
             ("max_iterations", self.max_iterations, 1),
+            ("trace_samples", self.trace_samples, 1),
         ):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
                 msg = f"McmcConfig.{name} must be an integer >= {low}, got {value!r}"
@@ -305,6 +309,12 @@ class McmcResult:
         log_posteriors: unnormalised log P(T | Z) of every evaluated topology.
         samples: cold-chain samples drawn (sweeps × chains).
         wall_s: wall time (s).
+        cold_states: per independent chain, the cold (β = 1) replica's state after every
+            ``cold_thin``-th sweep from the first (burn-in included), as ids into ``state_labels``; at most
+            :attr:`McmcConfig.trace_samples` per chain. The input of an SRQ plot (:mod:`ptm_ros.convergence`).
+        state_labels: the topology of each id (ids shared by all chains, numbered in order of first
+            appearance); only the states in ``cold_states``.
+        cold_thin: sweeps per kept state (the common thinning stride of all chains).
     """
 
     probabilities: dict[Labels, float]
@@ -315,6 +325,9 @@ class McmcResult:
     wall_s: float
     diagnostics: McmcDiagnostics
     config: McmcConfig
+    cold_states: tuple[tuple[int, ...], ...] = ()
+    state_labels: tuple[Labels, ...] = ()
+    cold_thin: int = 1
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -694,6 +707,15 @@ class OdometryProposal(SplitMergeProposal):
         return -0.5 * d2 / self.scale**2
 
 
+def _neutral_missing(log_bc: FloatArray, have: NDArray[np.bool_]) -> FloatArray:
+    """Pairs with a visit lacking the measurement (a missing panorama) get the mean log coefficient of
+    the measured pairs: no evidence either way for the proposal."""
+    both = have[:, None] & have[None, :]
+    np.fill_diagonal(both, False)
+    fill = float(np.mean(log_bc[both])) if np.any(both) else 0.0
+    return np.where(have[:, None] & have[None, :], log_bc, fill)
+
+
 def bhattacharyya_similarity(visits: Sequence[Visit], model: AppearanceModel) -> FloatArray:
     """``(N, N)`` Bhattacharyya coefficients (eq. 91) between the visits' appearance distributions.
 
@@ -704,20 +726,28 @@ def bhattacharyya_similarity(visits: Sequence[Visit], model: AppearanceModel) ->
     * Word histograms: ``p_i = (x_i + α) / (m_i + α_·)``, the Dirichlet posterior mean of the visit's word
       distribution (defined for empty histograms too); ``BC = Σ_w √(p_iw p_jw)``.
 
-    With both, their geometric mean. 1 on the diagonal.
+    With both, their geometric mean. 1 on the diagonal. Visits without a measurement (missing
+    panoramas) get the mean coefficient of the measured pairs.
     """
     logs = []
     if model.nig is not None:
-        sig = np.array([np.asarray(v.signature, dtype=float).reshape(-1) for v in visits])
+        have = np.array([v.signature is not None for v in visits])
+        zero = np.zeros(model.nig.dim)
+        sig = np.array(
+            [zero if v.signature is None else np.asarray(v.signature, float).ravel() for v in visits]
+        )
         var = model.nig.beta / (model.nig.alpha - 1.0)
         diff = sig[:, None, :] - sig[None, :, :]
-        logs.append(-np.mean(np.square(diff) / var, axis=2) / 8.0)
+        logs.append(_neutral_missing(-np.mean(np.square(diff) / var, axis=2) / 8.0, have))
     if model.dcm_alpha is not None:
         alpha = model.dcm_alpha
-        x = np.array([np.asarray(v.words, dtype=float).reshape(-1) for v in visits])
+        have = np.array([v.words is not None for v in visits])
+        x = np.array(
+            [np.zeros(alpha.size) if v.words is None else np.asarray(v.words, float).ravel() for v in visits]
+        )
         p = (x + alpha) / (x.sum(axis=1, keepdims=True) + alpha.sum())
         root = np.sqrt(p)
-        logs.append(np.log(np.clip(root @ root.T, 1e-300, 1.0)))
+        logs.append(_neutral_missing(np.log(np.clip(root @ root.T, 1e-300, 1.0)), have))
     if not logs:
         msg = "the appearance model has neither signatures nor word histograms"
         raise ModelError(msg)
@@ -1240,6 +1270,27 @@ class McmcSampler:
         n_eval = len(set().union(*(rec.visited for rec in self.records)))
         return McmcCheck(n, self.wall_s, doubling, chain_tv, n_eval)
 
+    def cold_chain(self, max_samples: int) -> tuple[tuple[tuple[int, ...], ...], tuple[Labels, ...], int]:
+        """Every chain's cold-state trace thinned to at most ``max_samples`` states by one common stride.
+
+        Returns ``(states, labels, thin)``: per chain the ids of its state after sweeps
+        ``0, thin, 2 thin, …`` (0-based, the first sweep included), the topology of each id (shared by all
+        chains, numbered in order of first appearance, chain 0's kept states first) and the stride
+        ``thin = ⌈longest trace / max_samples⌉``.
+        """
+        if max_samples < 1:
+            msg = f"max_samples must be >= 1, got {max_samples}"
+            raise ConfigError(msg)
+        traces = [rec.trace() for rec in self.records]
+        thin = max(1, -(-max(len(t) for t in traces) // max_samples))
+        ids: dict[Labels, int] = {}
+        states = []
+        for rec, trace in zip(self.records, traces, strict=True):
+            kept = trace[::thin].tolist()  # this chain's own ids
+            remap = {i: ids.setdefault(rec.labels[i], len(ids)) for i in dict.fromkeys(kept)}
+            states.append(tuple(remap[i] for i in kept))
+        return tuple(states), tuple(ids), thin
+
     def acceptance(self) -> tuple[dict[str, float], dict[str, int]]:
         """Acceptance rate and proposal count per move kind, pooled over chains."""
         proposed: dict[str, int] = {}
@@ -1277,6 +1328,7 @@ class McmcSampler:
         )
         histogram = self.estimate("histogram")
         visited = self.estimate("visited")
+        states, labels, thin = self.cold_chain(cfg.trace_samples)
         return McmcResult(
             probabilities=visited if cfg.estimate == "visited" else histogram,
             histogram=histogram,
@@ -1286,6 +1338,9 @@ class McmcSampler:
             wall_s=self.wall_s,
             diagnostics=diag,
             config=cfg,
+            cold_states=states,
+            state_labels=labels,
+            cold_thin=thin,
         )
 
 

@@ -916,8 +916,8 @@ class TopologyFilter:
             "config": {f.name: getattr(self.config, f.name) for f in fields(self.config)},
             "rng": self._rng.bit_generator.state,
             "log_evidence": self._log_evidence,
-            "visits": [_visit_dict(v) for v in self._visits],
-            "registrations": [_registration_row(i, j, z) for (i, j), z in self._pairs.items()],
+            "visits": [visit_dict(v) for v in self._visits],
+            "registrations": [registration_row(i, j, z) for (i, j), z in self._pairs.items()],
             "history": [[getattr(h, f.name) for f in fields(FilterState)] for h in self._history],
         }
         if st is not None:
@@ -958,9 +958,9 @@ class TopologyFilter:
             raise ModelError(msg)
         flt._rng.bit_generator.state = state["rng"]
         flt._log_evidence = float(state["log_evidence"])
-        flt._visits = [_visit_from_dict(d) for d in state["visits"]]
+        flt._visits = [visit_from_dict(d) for d in state["visits"]]
         for row in state["registrations"]:
-            flt._pairs[(int(row[0]), int(row[1]))] = _registration_from_row(row)
+            flt._pairs[(int(row[0]), int(row[1]))] = registration_from_row(row)
         flt._history = [FilterState(*row) for row in state["history"]]
         if "labels" in state:
             labels = tuple(tuple(int(v) for v in lab) for lab in state["labels"])
@@ -1076,7 +1076,7 @@ def _check_visit(visit: Visit, n: int) -> None:
             raise ModelError(msg)
 
 
-def _registration_row(i: int, j: int, z: RelativePose | NoMatch | None) -> list[Any]:
+def registration_row(i: int, j: int, z: RelativePose | NoMatch | None) -> list[Any]:
     """``[i, j, mean, cov, log_bayes]`` (mean/cov None for a NoMatch; everything None for no outcome)."""
     if z is None:
         return [i, j, None, None, None]
@@ -1085,8 +1085,8 @@ def _registration_row(i: int, j: int, z: RelativePose | NoMatch | None) -> list[
     return [i, j, z.mean.tolist(), z.cov.tolist(), z.log_bayes]
 
 
-def _registration_from_row(row: Sequence[Any]) -> RelativePose | NoMatch | None:
-    """Inverse of :func:`_registration_row` (rows of 4 entries, saved before ``log_bayes``, read too)."""
+def registration_from_row(row: Sequence[Any]) -> RelativePose | NoMatch | None:
+    """Inverse of :func:`registration_row` (rows of 4 entries, saved before ``log_bayes``, read too)."""
     i, j, m, c = row[:4]
     lb = row[4] if len(row) > 4 else 0.0
     if m is not None:
@@ -1130,11 +1130,13 @@ def _blocks_of(labels: Labels) -> tuple[tuple[int, ...], ...]:
     return tuple(tuple(b) for b in out)
 
 
-def _visit_dict(v: Visit) -> dict[str, Any]:
+def visit_dict(v: Visit) -> dict[str, Any]:
+    """A visit as plain Python + numpy (for :meth:`TopologyFilter.state_dict` and persistence)."""
     return {
         "index": v.index,
         "stamp": v.stamp,
         "pose": list(v.pose),
+        "odom_pose": None if v.odom_pose is None else list(v.odom_pose),
         "travel": v.travel,
         "rotation": v.rotation,
         "signature": None if v.signature is None else np.asarray(v.signature).copy(),
@@ -1143,11 +1145,14 @@ def _visit_dict(v: Visit) -> dict[str, Any]:
     }
 
 
-def _visit_from_dict(d: dict[str, Any]) -> Visit:
+def visit_from_dict(d: dict[str, Any]) -> Visit:
+    """Inverse of :func:`visit_dict` (dicts saved before ``odom_pose`` existed are read too)."""
+    odom_pose = d.get("odom_pose")
     return Visit(
         index=int(d["index"]),
         stamp=float(d["stamp"]),
         pose=tuple(float(x) for x in d["pose"]),
+        odom_pose=None if odom_pose is None else tuple(float(x) for x in odom_pose),
         travel=float(d["travel"]),
         rotation=float(d["rotation"]),
         signature=None if d["signature"] is None else np.asarray(d["signature"], dtype=float),

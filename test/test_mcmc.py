@@ -78,9 +78,10 @@ def spread_visits(route=(0, 1, 2, 3, 0), side=0.8, seed=4):
     return visits
 
 
-MODEL_CONFIG = ModelConfig(
+MODEL_CONFIG = ModelConfig(  # appearance prior within_fraction 0.1: the posterior these tests were built on
     prior=PriorConfig(alpha=2.0),
     odometry=OdometryConfig(n_samples=0, penalty_max=0.0, area_m2=20.0, sigma_topology=1.0),
+    appearance=AppearanceConfig(within_fraction=0.1),
 )
 
 
@@ -433,3 +434,51 @@ def test_bad_initial_topology(model5):
         McmcSampler(model5, McmcConfig(), 0, initial=(1, 0, 0, 0, 0))
     with pytest.raises(ConfigError, match="ladder"):
         thesis_ladder(0, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Cold-chain trace (SRQ plots)
+# ---------------------------------------------------------------------------------------------------
+
+
+def test_cold_trace_reproduces_the_histogram(model6):
+    cfg = McmcConfig(estimate="histogram", burn_in=0.0, min_iterations=300, max_iterations=300, chains=2)
+    res = run_mcmc(model6, cfg, 3)
+    assert res.cold_thin == 1
+    assert [len(s) for s in res.cold_states] == [300, 300]
+    ids = {i for s in res.cold_states for i in s}
+    assert ids == set(range(len(res.state_labels)))  # dense ids, only states that occur
+    assert len(set(res.state_labels)) == len(res.state_labels)  # one id per topology, shared by chains
+    counts: dict = {}
+    for s in res.cold_states:
+        for i in s:
+            lab = res.state_labels[i]
+            counts[lab] = counts.get(lab, 0) + 1
+    assert {lab: c / 600 for lab, c in counts.items()} == pytest.approx(res.histogram, abs=1e-12)
+    # chains start apart (singletons) and move: the first state of each chain is one merge or split away
+    for s in res.cold_states:
+        first = res.state_labels[s[0]]
+        assert first == tuple(range(6)) or abs(max(first) - 5) == 1
+
+
+def test_cold_trace_is_thinned_by_one_stride(model6):
+    cfg = McmcConfig(min_iterations=300, max_iterations=300, chains=2)
+    full = run_mcmc(model6, replace(cfg, trace_samples=4000), 9)
+    thin = run_mcmc(model6, replace(cfg, trace_samples=7), 9)
+    assert thin.cold_thin == 43  # ⌈300 / 7⌉
+    for a, b in zip(full.cold_states, thin.cold_states, strict=True):
+        assert len(b) == 7  # sweeps 0, 43, …, 258
+        assert [thin.state_labels[i] for i in b] == [full.state_labels[i] for i in a[::43]]
+    one = run_mcmc(model6, replace(cfg, trace_samples=1), 9)
+    assert one.cold_thin == 300 and [len(s) for s in one.cold_states] == [1, 1]
+    forked = run_mcmc(model6, replace(cfg, trace_samples=7, processes=2), 9)
+    assert forked.cold_states == thin.cold_states and forked.state_labels == thin.state_labels
+
+
+def test_cold_trace_config_errors(model5):
+    with pytest.raises(ConfigError, match="trace_samples must be an integer >= 1"):
+        McmcConfig(trace_samples=0)
+    with McmcSampler(model5, McmcConfig(chains=1), 0) as sampler:
+        assert sampler.cold_chain(10) == (((),), (), 1)  # no sweep yet
+        with pytest.raises(ConfigError, match="max_samples must be >= 1"):
+            sampler.cold_chain(0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from dataclasses import dataclass, field, replace
@@ -16,7 +17,7 @@ import pytest
 from ros_helpers import Inbox, dds_env, next_domain_id, ros_context, wait_for
 
 from ptm_ros.config import PtmConfig, load_config
-from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
@@ -24,6 +25,8 @@ from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
 from ptm_ros.nodes.topology_filter import (
+    BENIGN,
+    COUNTERS,
     FilterSession,
     edge_probabilities,
     ensemble_markers,
@@ -32,6 +35,7 @@ from ptm_ros.nodes.topology_filter import (
     topology_alpha,
 )
 from ptm_ros.partitions import enumerate_partitions
+from ptm_ros.persistence import load_filter_state, save_filter_state
 from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
 from ptm_ros.tools.pipeline import detect_visits, infer, make_extractor, make_registrar
 
@@ -227,6 +231,130 @@ def test_time_and_pose_messages_round_trip():
         assert (q.x, q.y, q.z, q.w) == yaw_to_quaternion(float(yaw))
 
 
+# ---------------------------------------------------------------------------------------- bad input
+
+
+def test_valid_stamp_rejects_what_is_no_ros_time():
+    from types import SimpleNamespace
+
+    def header(sec, nanosec):
+        return SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=nanosec))
+
+    assert common.valid_stamp(header(5, 999_999_999)) == 5.999999999
+    assert common.valid_stamp(header(0, 0)) == 0.0
+    assert common.valid_stamp(header(-1, 0)) is None
+    assert common.valid_stamp(header(3, 1_000_000_000)) is None
+    assert common.valid_stamp(header(3, 2**32 - 1)) is None
+
+
+def test_guard_config_is_validated():
+    for kwargs, match in [
+        ({"stamp_jump_s": 0.0}, "stamp_jump_s must be finite and > 0"),
+        ({"stamp_jump_s": math.nan}, "stamp_jump_s must be finite and > 0"),
+        ({"confirm": 0}, "jump_confirm must be >= 1"),
+        ({"max_speed": 0.0}, "max_speed must be > 0"),
+        ({"max_speed": math.nan}, "max_speed must be > 0"),
+    ]:
+        with pytest.raises(ConfigError, match=match):
+            common.GuardConfig(**kwargs)
+    assert common.GuardConfig(max_speed=math.inf).max_speed == math.inf  # no teleport check
+
+
+def point_guard(**kwargs):
+    return common.StreamGuard(common.GuardConfig(**kwargs), equal=lambda a, b: a == b, position=lambda p: p)
+
+
+def test_stream_guard_passes_a_timeline_and_drops_every_isolated_bad_message():
+    """Random bad messages (far stamps either way, teleports, repeats) between the messages of a 10 Hz
+    odometry timeline: exactly the timeline is released, in order; each bad message is counted once."""
+    rng = np.random.default_rng(3)
+    guard = point_guard()
+    timeline = [(100.0 + 0.1 * k, (0.05 * k, 0.01 * k)) for k in range(3000)]
+    released, outliers, duplicates, bad = [], 0, 0, 0
+    for k, (t, p) in enumerate(timeline):
+        if k > 3:
+            for _ in range(int(rng.poisson(0.7))):
+                t0, p0 = timeline[k - 1]
+                kind = int(rng.integers(3))
+                if kind == 0:
+                    adm = guard.admit(t0 + float(rng.choice([-1, 1]) * rng.uniform(30.5, 1e5)), p0)
+                elif kind == 1:
+                    jump = rng.uniform(2.0, 1e4)  # farther than max_speed * dt + 1 m
+                    adm = guard.admit(t0 + float(rng.uniform(0.0, 0.09)), (p0[0] + jump, p0[1]))
+                else:
+                    adm = guard.admit(t0, p0)
+                    assert adm.duplicate
+                    duplicates += 1
+                bad += kind != 2
+                assert adm.released == ()
+                outliers += adm.outliers
+        adm = guard.admit(t, p)
+        assert adm.event in (None, common.START) and not adm.duplicate
+        released += adm.released
+        outliers += adm.outliers
+    assert released == timeline
+    assert outliers == bad and duplicates > 100 and bad > 1000
+    assert guard.held == 0 and guard.last_stamp == timeline[-1][0]
+
+
+def test_stream_guard_confirms_jumps_resets_and_teleports():
+    guard = point_guard(confirm=3)
+    t = [float(k) for k in range(5)]
+    assert guard.admit(0.0, (0.0, 0.0)).released == () and guard.held == 1
+    guard.admit(1e6, (0.0, 0.0))  # a lone bad first message: its own run
+    assert guard.admit(0.5, (0.1, 0.0)).released == ()
+    adm = guard.admit(1.0, (0.2, 0.0))
+    assert adm.event == common.START and [s for s, _ in adm.released] == [0.0, 0.5, 1.0] and adm.outliers == 1
+    for s in t[2:]:
+        assert guard.admit(s, (0.2 * s, 0.0)).released == ((s, (0.2 * s, 0.0)),)
+    # a pause of 100 s: held until three messages confirm it, a bad one in between changes nothing
+    assert guard.admit(104.0, (1.0, 0.0)).released == ()
+    assert guard.admit(4.0, (0.8, 0.0)).duplicate
+    assert guard.admit(-5.0 + 1e3 * 7, (0.0, 0.0)).released == ()
+    assert guard.admit(104.1, (1.0, 0.0)).released == ()
+    adm = guard.admit(104.2, (1.0, 0.0))
+    assert adm.event == common.FORWARD_JUMP and len(adm.released) == 3 and adm.outliers == 1
+    # the clock goes back (a looped bag)
+    for s in (10.0, 10.1):
+        assert guard.admit(s, (0.0, 0.0)).released == ()
+    adm = guard.admit(10.2, (0.0, 0.0))
+    assert adm.event == common.CLOCK_RESET and guard.last_stamp == 10.2
+    # odometry jumps 100 m in 0.1 s and goes on from there
+    for s in (10.3, 10.4):
+        assert guard.admit(s, (100.0, 0.0)).released == ()
+    adm = guard.admit(10.5, (100.1, 0.0))
+    assert adm.event == common.TELEPORT and [p for _, p in adm.released][-1] == (100.1, 0.0)
+    # at the end of input: a held pause is used, a held reset or teleport is dropped
+    guard.admit(200.0, (100.1, 0.0))
+    adm = guard.settle()
+    assert adm.event == common.FORWARD_JUMP and adm.released == ((200.0, (100.1, 0.0)),)
+    guard.admit(50.0, (100.1, 0.0))
+    assert guard.settle() == common.Admission(outliers=1)
+    # at most MAX_RUNS runs are held: the oldest goes first
+    for k in range(common.StreamGuard.MAX_RUNS + 1):
+        adm = guard.admit(1000.0 + 100.0 * k * (-1) ** k, (100.1, 0.0))
+    assert adm.outliers == 1 and guard.held == common.StreamGuard.MAX_RUNS
+
+
+def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
+    good = tmp_path / "good.yaml"
+    good.write_text("/**:\n  ros__parameters:\n    inference:\n      particles: 3\n")
+    common.check_params_files(["prog", "--ros-args", "--params-file", str(good)])
+    cases = {
+        "broken.yaml": ("/**:\n  ros__parameters: {inference: [1, 2\n", "cannot read parameter file"),
+        "string.yaml": ("just a string\n", "expected a mapping of node names"),
+        "empty.yaml": ("", "expected a mapping of node names"),
+        "section.yaml": ("/**:\n  ros__parameters: 5\n", "'ros__parameters' must be a mapping"),
+        "nested.yaml": ("/**:\n  ns:\n    other: 3\n", r"nested.yaml, at /\*\*.ns.other: expected a mapping"),
+    }
+    for name, (text, match) in cases.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ConfigError, match=match):
+            common.check_params_files(["--ros-args", "--params-file", str(tmp_path / name)])
+    with pytest.raises(ConfigError, match="cannot read parameter file"):
+        common.check_params_files(["--params-file", str(tmp_path / "missing.yaml")])
+
+
 # ------------------------------------------------------------------------------------- filter session
 
 
@@ -285,18 +413,71 @@ def test_frozen_appearance_priors_stop_replays(sim_visits):
     frozen = fit_appearance_model(signed[:3], no_laser().model.appearance)
     assert np.array_equal(session.filter.appearance.nig.mu, frozen.nig.mu)
     assert np.array_equal(session.filter.appearance.nig.beta, frozen.nig.beta)
-    # a visit without a signature switches appearance off for the run: one replay, even when frozen
+    # appearance switching on (a second visit with a signature; visits without one are missing
+    # measurements) replays the filter, even when the priors are frozen; a missing one later does not
     session = FilterSession(no_laser(), refit_max_visits=3)
-    missing = [n for n, v in enumerate(sim_visits) if v.signature is None]
-    assert missing and missing[0] >= 3
-    for n, v in enumerate(sim_visits):
+    visits = [replace(v, signature=None) if n < 4 or n == 6 else v for n, v in enumerate(signed)]
+    for n, v in enumerate(visits):
         before = session.replays
         session.add(v)
         if n >= 3:
-            assert (session.replays > before) == (n == missing[0])
-    assert session.filter.appearance is None
+            assert (session.replays > before) == (n == 5)
+    assert session.filter.appearance is not None
 
 
+@pytest.mark.parametrize(
+    ("laser", "refit", "k"),
+    [(False, 0, 4), (True, 3, 5)],  # appearance refit + replay after every visit; frozen priors, updates
+)
+def test_session_restored_from_a_state_file_continues_exactly(sim_visits, tmp_path, laser, refit, k):
+    """Issue #8: a session saved after k visits, restored into a new session and continued, ends exactly
+    where the uninterrupted session does (ensemble, positions, replays, registration counters)."""
+    config = load_config(
+        None, {"model": {"use_laser": laser}, "inference": {"particles": 30 if laser else 20}}
+    )
+    whole = FilterSession(config, refit_max_visits=refit)
+    for v in sim_visits:
+        whole.add(v)
+    first = FilterSession(config, refit_max_visits=refit)
+    for v in sim_visits[:k]:
+        first.add(v)
+    save_filter_state(tmp_path / "s.npz", first.state_dict(), meta={})
+    resumed = FilterSession(config, refit_max_visits=refit)
+    resumed.load_state(load_filter_state(tmp_path / "s.npz")[0])
+    assert resumed.visits == first.visits and resumed.filter.log_weights() == first.filter.log_weights()
+    if laser:
+        assert resumed._pairs.keys() == first._pairs.keys() and resumed.registrations == first.registrations
+    for v in sim_visits[k:]:
+        resumed.add(v)
+    assert resumed.inference().probabilities == whole.inference().probabilities  # bit-identical masses
+    for lab, pos in whole.inference().positions.items():
+        assert np.array_equal(resumed.inference().positions[lab], pos)
+    assert resumed.filter.log_evidence == whole.filter.log_evidence
+    assert resumed.replays == whole.replays and resumed.registrations == whole.registrations
+    if refit:
+        assert resumed.replays < len(sim_visits) - 1  # the restored filter itself was updated
+
+
+def test_session_state_errors_leave_an_empty_session(sim_visits):
+    session = FilterSession(no_laser())
+    for v in sim_visits[:3]:
+        session.add(v)
+    state = session.state_dict()
+    with pytest.raises(DataError, match="not a filter session state"):
+        session.load_state({"schema": "ptm_ros.rbpf/1"})
+    for broken in (
+        {k: v for k, v in state.items() if k != "pairs"},
+        {**state, "built_at": 7},
+        {**state, "visits": state["visits"][:2]},
+    ):
+        with pytest.raises(DataError, match="malformed filter session state"):
+            session.load_state(broken)
+        assert session.filter is None and not session.visits
+    session.load_state(state)
+    assert len(session.visits) == 3 and session.filter.visits == session.visits
+
+
+# ------------------------------------------------------------------------------------- graph and markers
 # ------------------------------------------------------------------------------------- graph and markers
 
 
@@ -518,20 +699,195 @@ def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_
         node._on_visit(msg(v[1]))
         node._on_visit(msg(v[3]))  # visit 2 never arrives
         node._on_visit(msg(v[1]))  # a duplicate
-        bad = replace(v[4], signature=np.zeros(3))  # a signature the appearance model cannot use
-        node._on_visit(msg(bad))
-        assert node.counters["gaps"] == 1 and node.counters["duplicates"] == 1
-        assert node.counters["rejected"] == 1 and len(node.session.visits) == 3
+        node._on_visit(msg(v[0]))  # visit 0 delivered again: a duplicate too, not a restart
+        assert any(u.signature is not None for u in node.session.visits)
+        node._on_visit(msg(replace(v[4], signature=np.zeros(3))))  # shaped unlike the map's signatures
+        real_add = node.session.add
+
+        def add(visit):
+            if visit.stamp == v[4].stamp:
+                raise ModelError("a visit the models cannot use")
+            return real_add(visit)
+
+        monkeypatch.setattr(node.session, "add", add)
+        node._on_visit(msg(v[4]))
+        assert node.counters["gaps"] == 1 and node.counters["duplicates"] == 2
+        assert node.counters["invalid"] == 1 and node.counters["rejected"] == 1
+        assert len(node.session.visits) == 3 and node.counters["resets"] == 0
         assert [u.stamp for u in node.session.visits] == [v[0].stamp, v[1].stamp, v[3].stamp]
         assert not node.complete
+        node._on_visit(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": 4})))
+        assert not node.complete and node.counters["invalid"] == 2  # 5 visits arrived: not the end
         node._on_visit(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": 5})))
         assert node.complete  # every announced visit was consumed, mapped or not
-        node._on_visit(msg(v[0]))  # the detector restarted: a new map
+        node._on_visit(msg(replace(v[5], index=0)))  # a different visit 0: the detector restarted
         assert len(node.session.visits) == 1 and not node.complete and node.counters["resets"] == 1
         reply = node._on_reset(Trigger.Request(), Trigger.Response())
         assert reply.success and reply.message == "forgot 1 visits" and node.session.filter is None
         node._on_visit(msg(v[5]))  # after a reset, numbering starts again from the next visit
         assert [u.index for u in node.session.visits] == [0] and node.session.visits[0].stamp == v[5].stamp
+        assert node.counters["internal_errors"] == 0
+
+
+def test_filter_node_follows_detector_sessions(sim_visits, monkeypatch):
+    """Visits carry the detector's session id: a new session (from visit 0) starts a new map; visits of
+    another session, old visits, implausible index jumps and inconsistent end markers are dropped."""
+    from rclpy.parameter import Parameter
+    from std_msgs.msg import String
+
+    from ptm_ros.nodes.landmark_detector import visit_message
+    from ptm_ros.nodes.topology_filter import MAX_VISIT_GAP, TopologyFilterNode
+
+    def msg(visit, session, index=None):
+        return String(data=visit_message(visit if index is None else replace(visit, index=index), session))
+
+    def end(count, session):
+        return String(data=json.dumps({"schema": common.END_SCHEMA, "visits": count, "session": session}))
+
+    overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=20)]
+    v = [replace(u, signature=None) for u in sim_visits]
+    with ros_context(monkeypatch) as ros:
+        node = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
+        for k in range(3):
+            node._on_visit(msg(v[k], "a"))
+        node._on_visit(msg(v[3], "b", index=1))  # another session, not from its start
+        node._on_visit(end(3, "b"))
+        assert node.counters["foreign"] == 2 and len(node.session.visits) == 3
+        node._on_visit(msg(v[3], "a", index=3 + MAX_VISIT_GAP + 1))  # a corrupt index
+        node._on_visit(msg(v[1], "a", index=3))  # older than the map's latest visit
+        assert node.counters["implausible"] == 1 and node.counters["out_of_order"] == 1
+        node._on_visit(msg(v[0], "a"))  # visit 0 of the same session again: a duplicate
+        assert node.counters["duplicates"] == 1 and node.counters["resets"] == 0
+        node._on_visit(msg(v[0], "b"))  # session b starts (same data: a looped bag): a new map
+        node._on_visit(msg(v[1], "b"))
+        assert node.counters["resets"] == 1 and len(node.session.visits) == 2
+        node._on_visit(msg(v[2], "a"))  # the old session is over
+        node._on_visit(end(1, "b"))  # fewer visits than already arrived
+        assert node.counters["foreign"] == 3 and node.counters["invalid"] == 1 and not node.complete
+        node._on_visit(end(2, "b"))
+        assert node.complete and [u.stamp for u in node.session.visits] == [v[0].stamp, v[1].stamp]
+        assert node.counters["internal_errors"] == 0
+
+
+def filter_node(ros, **params):
+    """An in-process topology_filter without laser, fed through its callback (no DDS traffic needed)."""
+    from rclpy.parameter import Parameter
+
+    from ptm_ros.nodes.topology_filter import TopologyFilterNode
+
+    base = {"model.use_laser": False, "inference.particles": 20, **params}
+    overrides = [Parameter(k, value=v) for k, v in base.items()]
+    return ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
+
+
+def stream_messages(visits, session):
+    """The detector's history on landmark_visits: its visits (numbered from 0), then its end marker."""
+    from std_msgs.msg import String
+
+    from ptm_ros.nodes.landmark_detector import visit_message
+
+    end = {"schema": common.END_SCHEMA, "visits": len(visits), "session": session}
+    msgs = [String(data=visit_message(replace(v, index=i), session)) for i, v in enumerate(visits)]
+    return [*msgs, String(data=json.dumps(end))]
+
+
+def test_filter_node_autosaves_and_resumes_from_the_detector_history(sim_visits, tmp_path, monkeypatch):
+    """Issue #8: a filter killed after its last autosave, restarted with ``resume``, skips the visits the
+    detector's transient-local history redelivers that it restored, maps the rest and ends exactly as a
+    filter that was never interrupted. An earlier detector session in that history starts no map."""
+    from std_srvs.srv import Trigger
+
+    v = [replace(u, signature=None) for u in sim_visits]
+    old, new = stream_messages(v[:2], "r"), stream_messages(v[2:], "s")  # a looped bag: two sessions
+    history = old + new
+    state = tmp_path / "filter" / "state.npz"
+    params = {"state_file": str(state), "autosave_every": 2}
+    with ros_context(monkeypatch) as ros:
+        reference = filter_node(ros)
+        for m in history:
+            reference._on_visit(m)
+        assert reference.complete and len(reference.session.visits) == len(v) - 2
+
+        first = filter_node(ros, **params)
+        for m in old + new[:5]:  # session r (2 visits, end), then visits 0..4 of session s
+            first._on_visit(m)
+        assert first.persistence["saves"] == 4  # r: 2 visits; its end; s: visits 0-1, 2-3
+        assert load_filter_state(state)[0]["next_index"] == 4
+        first.state_file = None  # kill -9: no save at shutdown
+
+        resumed = filter_node(ros, resume=True, **params)
+        assert resumed.persistence["resumed_visits"] == 4 and resumed.counters["resets"] == 1
+        assert [u.stamp for u in resumed.session.visits] == [u.stamp for u in v[2:6]]
+        for m in history:  # what a restarted subscription receives from the detector
+            resumed._on_visit(m)
+        assert resumed.complete and resumed.session.visits == reference.session.visits
+        assert resumed.session.inference().probabilities == reference.session.inference().probabilities
+        values = resumed.diagnostics()
+        assert values["redelivered"] == len(old) + 4  # session r whole, visits 0-3 of s
+        assert values["resets"] == 1 and values["accepted"] == len(v)  # before and after the kill
+        bad = [k for k in COUNTERS if k not in BENIGN and values[k]]
+        assert not bad and values["persistence"]["resume_rejected"] == 0
+        saved, meta = load_filter_state(state)  # saved at the end marker
+        assert saved["end_count"] == len(v) - 2 and meta["config"]["inference"]["particles"] == 20
+        reply = resumed._on_save_state(Trigger.Request(), Trigger.Response())
+        assert reply.success and json.loads(reply.message) == {"path": str(state), "visits": len(v) - 2}
+        resumed._on_visit(new[4])  # after the redelivery, a repeat is a duplicate again
+        assert resumed.counters["duplicates"] == 1
+        off = filter_node(ros)
+        reply = off._on_save_state(Trigger.Request(), Trigger.Response())
+        assert not reply.success and "state_file is not set" in reply.message
+
+
+def test_an_empty_new_detector_session_ends_the_input_with_the_map_as_it_is(sim_visits, monkeypatch):
+    """A restarted detector that finds no visit before its input ends: its end marker (0 visits) makes
+    the map final; an end marker of another session announcing visits is still foreign."""
+    v = [replace(u, signature=None) for u in sim_visits]
+    with ros_context(monkeypatch) as ros:
+        node = filter_node(ros)
+        for m in stream_messages(v[:3], "a")[:3]:
+            node._on_visit(m)
+        node._on_visit(stream_messages(v[:2], "b")[-1])  # "b" announces 2 visits it never sent
+        assert node.counters["foreign"] == 1 and not node.complete
+        node._on_visit(stream_messages([], "c")[-1])
+        assert node.complete and node.counters["ends"] == 1 and len(node.session.visits) == 3
+        assert node.counters["resets"] == 0
+
+
+def test_resume_from_an_unusable_state_file_starts_afresh(sim_visits, tmp_path, monkeypatch, capfd):
+    """A corrupt or foreign state file, or one made with another configuration, is moved aside and the
+    filter starts afresh (WARN); the detector's history then rebuilds the map."""
+    v = [replace(u, signature=None) for u in sim_visits]
+    state = tmp_path / "state.npz"
+    params = {"state_file": str(state), "autosave_every": 1}
+    with ros_context(monkeypatch) as ros:
+        fresh = filter_node(ros, resume=True, **params)  # no file yet: a normal start
+        assert fresh.persistence == {
+            "resumed_visits": 0,
+            "resume_rejected": 0,
+            "saves": 0,
+            "save_failures": 0,
+        }
+        for m in stream_messages(v[:3], "s")[:3]:
+            fresh._on_visit(m)
+        fresh.state_file = None
+        good = state.read_bytes()
+        cases = [
+            ({"inference.particles": 21}, good, r"another config \(inference.particles differ\)"),
+            ({"refit_max_visits": 5}, good, "another refit_max_visits"),
+            ({}, good[: len(good) // 2], "truncated or corrupt"),
+            ({}, b"not a state", "not a ptm_ros filter state"),
+        ]
+        for extra, content, reason in cases:
+            state.write_bytes(content)
+            node = filter_node(ros, resume=True, **params, **extra)
+            node.state_file = None
+            assert node.session.filter is None and node.persistence["resume_rejected"] == 1
+            assert not state.exists() and (tmp_path / "state.npz.rejected").read_bytes() == content
+            assert re.search(f"cannot resume from {state}: .*{reason}", capfd.readouterr().err)
+            for m in stream_messages(v[:3], "s"):  # the detector's history rebuilds the map
+                node._on_visit(m)
+            assert node.session.visits == fresh.session.visits and node.complete
+            assert node.diagnostics()["persistence"]["resume_rejected"] == 1  # /diagnostics: WARN
 
 
 def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypatch, capfd):
@@ -575,7 +931,8 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
             assert ps.header.frame_id == "wheel_odom" and common.header_stamp(ps.header) == v.stamp
             assert (ps.pose.position.x, ps.pose.position.y) == v.pose[:2]
         diag = det.diagnostics()
-        assert diag["extractor"]["skipped"] == {"odometry-non-finite": 2}
+        assert diag["odometry-non-finite"] == 2 and diag["extractor"]["skipped"] == {}
+        assert diag["fed"]["odometry"] == len(stream) - 2 and diag["held"]["odometry"] == 0
         assert diag["received"] == {"/odom": len(stream), "/scan": 0, "/panorama": 0} and diag["finished"]
 
         def detector_status():
@@ -587,11 +944,97 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
             return None
 
         values = wait_for(detector_status, timeout=10.0)
-        assert values["extractor.skipped.odometry-non-finite"] == "2" and values["published_visits"] == str(
-            len(got) - 1
-        )
+        assert values["odometry-non-finite"] == "2" and values["published_visits"] == str(len(got) - 1)
         # two bad messages, one warning
-        assert capfd.readouterr().err.count("skipped a message: odometry-non-finite") == 1
+        assert capfd.readouterr().err.count("skipped 1 message(s): odometry-non-finite") == 1
+
+
+class Recorder:
+    """Stands in for a publisher: keeps what the node publishes."""
+
+    def __init__(self):
+        self.items = []
+
+    def publish(self, msg):
+        self.items.append(msg)
+
+
+def odometry_detector(ros, **params):
+    from rclpy.parameter import Parameter
+
+    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode
+
+    params = {"use_scans": False, "use_images": False, "stall_s": 0.0, **params}
+    node = ros.add(
+        LandmarkDetectorNode(
+            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
+        )
+    )
+    node._visit_pub, node._pose_pub, node._diag_pub = Recorder(), Recorder(), Recorder()
+    return node
+
+
+def visits_by_session(node):
+    out = {}
+    for m in node._visit_pub.items:
+        doc = json.loads(m.data)
+        if doc["schema"] != common.END_SCHEMA:
+            out.setdefault(doc["session"], []).append(parse_visit_message(m.data))
+    return list(out.values())
+
+
+def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(monkeypatch):
+    """Odometry pauses for 60 s (a forward jump: same session, nothing lost), then jumps 500 m (odometry
+    reset: a new session, visits from 0): each session's visits are ptm-run's on its samples."""
+    stamps = 5.0 + 0.1 * np.arange(400)
+    stamps[150:] += 60.0
+    poses = np.column_stack([0.05 * np.arange(400), np.sin(0.02 * np.arange(400)), np.full(400, 0.1)])
+    poses[300:, 0] += 500.0
+
+    def offline(part):
+        ext = make_extractor(PtmConfig(), "equidistant", use_scans=False, use_images=False)
+        return [v for t, p in part for v in ext.on_odometry(float(t), p)] + ext.flush()
+
+    samples = list(zip(stamps, poses, strict=True))
+    with ros_context(monkeypatch) as ros:
+        node = odometry_detector(ros)
+        for t, p in samples:
+            node._on_odom(odometry_msg(float(t), p))
+        node.finish()
+        first, second = visits_by_session(node)
+        assert first == offline(samples[:300]) and len(first) >= 5
+        assert second == offline(samples[300:]) and second[0].index == 0
+        d = node.diagnostics()
+        assert (d["forward_jumps"], d["teleports"], d["sessions"], d["clock_resets"]) == (1, 1, 2, 0)
+        assert sum(node.skipped.values()) == 0 and d["fed"]["odometry"] == 400
+        end = json.loads(node._visit_pub.items[-1].data)
+        assert end == {"schema": common.END_SCHEMA, "visits": len(second), "session": node.session_id}
+
+
+def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
+    with ros_context(monkeypatch) as ros:
+        node = odometry_detector(ros, use_scans=True, use_images=True, silence_s=10.0)
+        assert node.check_silence(100.0) == []  # nothing received yet
+        node._first_rx = 50.0
+        node._last_rx = {"odom": 99.0, "scan": 98.0}  # no panorama since the first message
+        assert node.check_silence(100.0) == ["panorama"] and node.counters["silences"] == 1
+        assert node.check_silence(101.0) == ["panorama"] and node.counters["silences"] == 1  # same silence
+        node._last_rx["panorama"] = 101.5
+        assert node.check_silence(102.0) == []
+        assert node.check_silence(200.0) == []  # everything stopped: a paused robot or bag, not a silence
+        node._last_rx = {"odom": 200.0, "scan": 185.0, "panorama": 199.0}
+        assert node.check_silence(200.5) == ["scan"] and node.counters["silences"] == 2
+        from types import SimpleNamespace
+
+        from ptm_ros.nodes import landmark_detector
+
+        monkeypatch.setattr(landmark_detector, "time", SimpleNamespace(monotonic=lambda: 200.6))
+        node._publish_diagnostics()
+        status = node._diag_pub.items[-1].status[0]
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == status.WARN and values["silent"] == "scan" and values["silences"] == "2"
+        node.silence_s = 0.0
+        assert node.check_silence(300.0) == []  # off
 
 
 def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monkeypatch):
@@ -657,6 +1100,8 @@ def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monk
         ("landmark_detector", ["-p", "sensor_qos:=fast"], "sensor_qos must be one of"),
         ("map_publisher", ["-p", "out_dir:=3"], "out_dir"),
         ("map_publisher", ["-p", "inference.particlez:=3"], "unknown parameter(s) ['inference.particlez']"),
+        ("landmark_detector", ["-p", "jump_confirm:=0"], "jump_confirm"),
+        ("map_publisher", ["--params-file", "/nonexistent/params.yaml"], "cannot read parameter file"),
     ],
 )
 def test_bad_parameter_makes_the_node_exit_non_zero(node, ros_args, match):
@@ -670,7 +1115,9 @@ def test_bad_parameter_makes_the_node_exit_non_zero(node, ros_args, match):
         check=False,
     )
     assert proc.returncode == 2, proc.stderr
-    assert "invalid parameters" in proc.stderr and match in proc.stderr
+    assert (
+        "invalid parameters" in proc.stderr or "invalid arguments" in proc.stderr
+    ) and match in proc.stderr
 
 
 def test_player_rejects_bad_arguments(tmp_path, capsys, sim_bag):

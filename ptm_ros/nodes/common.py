@@ -15,22 +15,37 @@ itself, so ``config/ptm.yaml`` serves the nodes unchanged.
 Message conversions keep the offline pipeline's numbers bit for bit: stamps are
 ``(sec·10⁹ + nanosec) / 10⁹`` correctly rounded and yaws are decoded with
 :func:`ptm_ros.io.bag.quaternion_to_yaw`, exactly as :func:`ptm_ros.io.bag.read_run` does.
+
+Bad input (issue #9). A header stamp with ``sec < 0`` or ``nanosec >= 10⁹`` is no ROS time
+(:func:`valid_stamp`). :class:`StreamGuard` keeps one sensor stream honest: exact duplicates are
+dropped; a stamp jump (or an odometry teleport) is held until ``confirm`` consistent messages confirm it
+and dropped as an outlier if the stream returns to its old timeline; a stream's first messages are
+confirmed the same way, so no lone bad message can set or move a stream's timeline. Every callback of
+the nodes is wrapped by :func:`guarded`: an unexpected exception is logged once per type with its
+traceback, counted as ``internal_errors`` and swallowed, so no message can stop a node.
+:func:`run_node` turns an unreadable or malformed ``--params-file`` into the same exit code 2 as a bad
+parameter value.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import io
+import itertools
 import math
 import re
 import sys
 import tokenize
+import traceback
 import types
 import typing
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -347,9 +362,15 @@ def declare_config(node: Node, root: type = PtmConfig) -> Any:
     return config_from_parameters(values, root)
 
 
+#: The detector's input-validation parameters (:class:`GuardConfig`, ``silence_s``).
+GUARD_PARAMETERS = frozenset({"stamp_jump_s", "jump_confirm", "max_speed", "silence_s"})
+
+#: The topology filter's persistence parameters (``state_file``, ``autosave_every``, ``resume``).
+PERSISTENCE_PARAMETERS = frozenset({"state_file", "autosave_every", "resume"})
+
 #: Every node-specific parameter of the suite (not configuration). One ``/**`` parameter file serves all
 #: nodes, so each node accepts the others' parameters too; any other name is a typo and is rejected.
-NODE_PARAMETERS = ROS_ONLY_PARAMETERS  # node-level parameters, not model configuration
+NODE_PARAMETERS = ROS_ONLY_PARAMETERS | GUARD_PARAMETERS | PERSISTENCE_PARAMETERS
 
 
 def check_parameter_names(node: Node, root: type = PtmConfig) -> None:
@@ -522,19 +543,314 @@ class OnceLogger:
         self._logger.warning(f"{message} (further '{kind}' problems are counted in /diagnostics, not logged)")
 
 
+# ------------------------------------------------------------------------------------------ bad input
+
+
+def valid_stamp(header: Any) -> float | None:
+    """:func:`header_stamp`, or None when the stamp is no ROS time (``sec < 0`` or ``nanosec >= 10⁹``)."""
+    sec, nanosec = int(header.stamp.sec), int(header.stamp.nanosec)
+    if sec < 0 or not 0 <= nanosec < NS_PER_S:
+        return None
+    return ns_to_stamp(sec * NS_PER_S + nanosec)
+
+
+#: Odometry steps up to this long are never a teleport (absorbs stamp jitter: a CARMEN log's logger
+#: timestamps give apparent speeds of 14 m/s over 20 ms steps).
+TELEPORT_SLACK_M = 1.0
+
+#: Events of :class:`StreamGuard` (``Admission.event``).
+START, FORWARD_JUMP, CLOCK_RESET, TELEPORT = "start", "forward-jump", "clock-reset", "teleport"
+
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """How a stream guard tells a stamp jump or an odometry teleport from a bad message.
+
+    Attributes:
+        stamp_jump_s: a stamp more than this before the stream's latest is a jump back (s), and one
+            more than this after it always a jump forward (a smaller limit applies once the stream's
+            rate is known: :meth:`StreamGuard.forward_limit`); must exceed the longest regular gap
+            between two messages of any topic.
+        confirm: consecutive, mutually consistent messages that confirm a jump or a stream's start.
+        max_speed: fastest plausible odometry motion (m/s): a step longer than
+            ``max_speed·Δt + TELEPORT_SLACK_M`` is a teleport; ``inf`` turns the check off.
+    """
+
+    stamp_jump_s: float = 30.0
+    confirm: int = 3
+    max_speed: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.stamp_jump_s) and self.stamp_jump_s > 0.0):
+            msg = f"stamp_jump_s must be finite and > 0, got {self.stamp_jump_s}"
+            raise ConfigError(msg)
+        if self.confirm < 1:
+            msg = f"jump_confirm must be >= 1, got {self.confirm}"
+            raise ConfigError(msg)
+        if not self.max_speed > 0.0:
+            msg = f"max_speed must be > 0 (inf: no teleport check), got {self.max_speed}"
+            raise ConfigError(msg)
+
+
+@dataclass(frozen=True)
+class Admission:
+    """What :meth:`StreamGuard.admit` decided about one message.
+
+    Attributes:
+        released: ``(stamp, payload)`` to use now, in stream order (the message itself, or the held
+            messages a confirmation releases); empty while a jump is held or for a duplicate.
+        duplicate: the message repeats the stream's latest (same stamp, equal payload).
+        outliers: held messages dropped because the stream went back to its timeline.
+        event: ``start`` (the stream's first messages confirmed), ``forward-jump``, ``clock-reset``
+            (stamps jumped back: bag looped, clock reset), ``teleport`` (odometry jumped in space), or None.
+    """
+
+    released: tuple[tuple[float, Any], ...] = ()
+    duplicate: bool = False
+    outliers: int = 0
+    event: str | None = None
+
+
+class StreamGuard:
+    """Duplicates, stamp jumps and teleports of one message stream (per topic, in arrival order).
+
+    * A message repeating the latest or a held one (same stamp, ``equal`` payloads) is a duplicate.
+    * A message more than ``stamp_jump_s`` before the latest, more than :meth:`forward_limit` after it,
+      or (with ``position``) farther from it than ``max_speed·Δt + TELEPORT_SLACK_M``, is a *jump* and is
+      held, appended to the first
+      held run it continues consistently (stamps non-decreasing, steps within ``stamp_jump_s``,
+      plausible speed) or starting a new run (at most :attr:`MAX_RUNS`; the oldest is dropped). The
+      first run to reach ``confirm`` messages is released (the other runs are outliers); a message back
+      on the old timeline drops every run (outliers). A confirmed backward jump is a clock reset.
+    * The stream's first messages are held the same way (event ``start``), so that a lone bad message
+      cannot set the timeline.
+    * Any other message is released at once (a small step back in time too: the consumer decides).
+
+    Args:
+        config: thresholds.
+        equal: whether two payloads are the same message.
+        position: ``(x, y)`` of a payload, for the teleport check (odometry); None: stamps only.
+    """
+
+    MAX_RUNS = 8
+    GAP_HISTORY = 32  # recent gaps between accepted messages kept for the forward limit
+    GAP_FACTOR = 10.0  # forward limit = GAP_FACTOR x their lower quartile ...
+    MIN_FORWARD_S = 0.25  # ... but at least this long (s)
+
+    def __init__(
+        self,
+        config: GuardConfig,
+        *,
+        equal: Callable[[Any, Any], bool],
+        position: Callable[[Any], tuple[float, float]] | None = None,
+    ) -> None:
+        self.config = config
+        self._equal = equal
+        self._position = position
+        self._last: tuple[float, Any] | None = None
+        self._runs: list[tuple[str, list[tuple[float, Any]]]] = []  # (event, messages) held
+        self._gaps: deque[float] = deque(maxlen=self.GAP_HISTORY)
+        self._forward = config.stamp_jump_s
+
+    def forward_limit(self) -> float:
+        """How far (s) a message may follow the latest one before it is a forward jump: ``GAP_FACTOR``
+        times the lower quartile of the stream's recent gaps (its confirmed start on), at least
+        ``MIN_FORWARD_S``, at most ``stamp_jump_s`` (which applies until two gaps are known). A lone
+        message stamped seconds ahead would otherwise make the consumer drop every later message older
+        than it. (Held runs only need steps within ``stamp_jump_s``, so a stream whose rate drops is
+        delayed by ``confirm`` messages per step, never stopped, until the quartile follows.)"""
+        return self._forward
+
+    def _accept(self, stamp: float, payload: Any) -> None:
+        if self._last is not None and stamp > self._last[0]:
+            self._gaps.append(stamp - self._last[0])
+            if len(self._gaps) >= 2:
+                quartile = float(np.percentile(np.fromiter(self._gaps, dtype=float), 25.0))
+                limit = max(self.MIN_FORWARD_S, self.GAP_FACTOR * quartile)
+                self._forward = min(self.config.stamp_jump_s, limit)
+        self._last = (stamp, payload)
+
+    @property
+    def held(self) -> int:
+        """Messages held for confirmation."""
+        return sum(len(run) for _, run in self._runs)
+
+    @property
+    def last_stamp(self) -> float | None:
+        """Stamp of the latest accepted message (None before the stream's start is confirmed)."""
+        return None if self._last is None else self._last[0]
+
+    def _too_far(self, a: tuple[float, Any], stamp: float, payload: Any) -> bool:
+        if self._position is None or not math.isfinite(self.config.max_speed):
+            return False
+        (xa, ya), (xb, yb) = self._position(a[1]), self._position(payload)
+        dt = max(stamp - a[0], 0.0)
+        return math.hypot(xb - xa, yb - ya) > self.config.max_speed * dt + TELEPORT_SLACK_M
+
+    def _jump(self, stamp: float, payload: Any) -> str | None:
+        assert self._last is not None
+        last = self._last[0]
+        if stamp < last - self.config.stamp_jump_s:
+            return CLOCK_RESET
+        if stamp >= last and self._too_far(self._last, stamp, payload):
+            return TELEPORT
+        if stamp > last + self._forward:
+            return FORWARD_JUMP
+        return None
+
+    def _consistent(self, prev: tuple[float, Any], stamp: float, payload: Any) -> bool:
+        in_time = prev[0] <= stamp <= prev[0] + self.config.stamp_jump_s
+        return in_time and not self._too_far(prev, stamp, payload)
+
+    def _is_duplicate(self, ref: tuple[float, Any] | None, stamp: float, payload: Any) -> bool:
+        return ref is not None and ref[0] == stamp and bool(self._equal(ref[1], payload))
+
+    def admit(self, stamp: float, payload: Any) -> Admission:
+        """Decide about the next message of the stream (``stamp`` finite, payload validated)."""
+        refs = [self._last, *(run[-1] for _, run in self._runs)]
+        if any(self._is_duplicate(ref, stamp, payload) for ref in refs):
+            return Admission(duplicate=True)
+        event = START if self._last is None else self._jump(stamp, payload)
+        if event is None:
+            outliers = self.held
+            self._runs.clear()
+            if stamp >= self._last[0]:  # type: ignore[index]
+                self._accept(stamp, payload)
+            return Admission(released=((stamp, payload),), outliers=outliers)
+        outliers = 0
+        run = next((r for _, r in self._runs if self._consistent(r[-1], stamp, payload)), None)
+        if run is None:
+            if len(self._runs) >= self.MAX_RUNS:
+                outliers += len(self._runs.pop(0)[1])
+            run = []
+            self._runs.append((event, run))
+        run.append((stamp, payload))
+        if len(run) < self.config.confirm:
+            return Admission(outliers=outliers)
+        return self._release(run, outliers)
+
+    def _release(self, run: list[tuple[float, Any]], outliers: int = 0) -> Admission:
+        event = next(e for e, r in self._runs if r is run)
+        outliers += self.held - len(run)
+        self._runs.clear()
+        self._last = run[0]  # the jump itself is no gap of the stream
+        for stamp, payload in run:
+            self._accept(stamp, payload)
+        return Admission(released=tuple(run), outliers=outliers, event=event)
+
+    def settle(self) -> Admission:
+        """End of input: release the longest held start or forward jump (nothing refuted it; the
+        earliest of equally long ones); drop held clock resets and teleports (too few messages to confirm
+        them) and every other run (outliers)."""
+        usable = [r for e, r in self._runs if e in (START, FORWARD_JUMP)]
+        if usable:
+            return self._release(max(usable, key=len))
+        outliers = self.held
+        self._runs.clear()
+        return Admission(outliers=outliers)
+
+
+def sum_counters(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
+    """Counters of ``a`` plus those of ``b``, key by key (nested mappings recursively; a value that is
+    not a number is taken from ``b``)."""
+    out: dict[str, Any] = dict(a)
+    for key, value in b.items():
+        mine = out.get(key)
+        if isinstance(value, Mapping):
+            out[key] = sum_counters(mine if isinstance(mine, Mapping) else {}, value)
+        elif isinstance(value, int | float) and not isinstance(value, bool) and isinstance(mine, int | float):
+            out[key] = mine + value
+        else:
+            out[key] = value
+    return out
+
+
+def guarded(method: Callable[..., Any]) -> Callable[..., Any]:
+    """Last-resort guard of a node callback (subscription, timer or service).
+
+    An exception escaping ``method`` is counted in ``self.counters["internal_errors"]``, logged once per
+    exception type with its traceback (``self._log_once``) and swallowed, so that no message stops the
+    node; a service callback then answers ``success: false``. Known bad input is handled inside the
+    callbacks; this only catches bugs.
+    """
+
+    @functools.wraps(method)
+    def wrapper(self: Any, *args: Any) -> Any:
+        try:
+            return method(self, *args)
+        except Exception as err:  # the guard of last resort
+            self.counters["internal_errors"] = self.counters.get("internal_errors", 0) + 1
+            kind = f"internal-{type(err).__name__}"
+            self._log_once(
+                kind,
+                f"internal error in {method.__name__}: {type(err).__name__}: {err}\n{traceback.format_exc()}",
+            )
+            response = args[-1] if args and hasattr(args[-1], "success") else None
+            if response is not None:
+                response.success = False
+                response.message = f"internal error: {type(err).__name__}: {err}"
+            return response
+
+    return wrapper
+
+
 # ------------------------------------------------------------------------------------------- process
+
+
+def _check_parameter_tree(node: Any, file: str, path: tuple[str, ...] = ()) -> None:
+    where = f"parameter file {file}, at {'.'.join(path) or 'the top level'}"
+    if not isinstance(node, Mapping) or not node:
+        msg = f"{where}: expected a mapping of node names to 'ros__parameters:' sections"
+        raise ConfigError(msg)
+    for key, value in node.items():
+        if key == "ros__parameters":
+            if not isinstance(value, Mapping):
+                msg = f"{where}: 'ros__parameters' must be a mapping, got {type(value).__name__}"
+                raise ConfigError(msg)
+        else:
+            _check_parameter_tree(value, file, (*path, str(key)))
+
+
+def check_params_files(args: Sequence[str]) -> None:
+    """Validate every ``--params-file FILE`` of a command line before rclpy reads it.
+
+    rcl accepts a parameter file that is not a mapping of ``node: ros__parameters: {...}`` sections (for
+    instance a bare string) and ignores it silently; this rejects it, and an unreadable or unparsable
+    file, with a message naming the file.
+
+    Raises:
+        ConfigError: the file is missing, not YAML, or not a ROS 2 parameter file.
+    """
+    import yaml
+
+    for flag, value in itertools.pairwise(args):
+        if flag != "--params-file":
+            continue
+        try:
+            doc = yaml.safe_load(Path(value).read_text())
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+            msg = f"cannot read parameter file {value}: {err}"
+            raise ConfigError(msg) from err
+        _check_parameter_tree(doc, value)
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "ptm_ros") -> int:
     """Initialise rclpy, build the node, spin until shutdown; return the process exit code.
 
-    A :class:`ConfigError` while building the node (a bad parameter) is logged as fatal and gives exit
-    code 2; SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern).
+    A :class:`ConfigError` while building the node (a bad parameter) or a bad ``--params-file``
+    (:func:`check_params_files`, or rcl refusing the arguments) is logged as fatal and gives exit code 2;
+    SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    rclpy.init(args=list(args) if args is not None else sys.argv)
+    argv = list(args) if args is not None else sys.argv
+    try:
+        check_params_files(argv)
+        rclpy.init(args=argv)
+    except (ConfigError, RuntimeError) as err:  # rclpy's RCLError is a RuntimeError
+        rclpy.logging.get_logger(name).fatal(f"invalid arguments: {err}")
+        return 2
     try:
         try:
             node = factory()

@@ -14,7 +14,52 @@ transient local) and after every visit publishes
   replays, dropped and invalid messages.
 
 Services (std_srvs/Trigger): ``~/save_ptm`` writes ``<out_dir>/ptm.json`` (the graph document) and
-``config.yaml``; ``~/reset`` forgets every visit (the next visit starts a new map).
+``config.yaml``; ``~/reset`` forgets every visit (the next visit starts a new map); ``~/save_state``
+writes the filter's state to ``state_file`` (below).
+
+Bad input (issue #9): every problem is logged once (a warning; later ones at debug level) and counted in
+``/diagnostics`` and the graph document's ``diagnostics``; none stops the node or changes the map:
+
+* ``invalid``: not JSON (also nested too deep or numbers beyond float range), an unknown schema, a
+  malformed visit (negative index, non-finite or negative stamp, non-numeric / non-finite / wrongly
+  shaped signature, words or patch, a signature or word histogram of another length than the map's) or
+  end marker (a negative count, or fewer visits than already received): dropped.
+* ``duplicates``: a visit of the current session already received (also visit 0 again): dropped.
+* ``gaps``: visits that never arrived (the next one is used); a jump of more than
+  :data:`MAX_VISIT_GAP` visits is implausible and the visit is dropped instead (``implausible``).
+* ``out_of_order``: a visit older (stamp) than the map's latest: dropped.
+* ``rejected``: a visit the models cannot use (the session is unchanged).
+* ``foreign``: a visit or end marker of another detector session that does not start it (index > 0),
+  and any visit of a session that already ended (one the map left for a newer session).
+* ``resets``: the detector started a new session (``session`` id changed, visit 0; or, for visits
+  without a session id, a different visit 0): the map is started afresh, as after ``~/reset``. An end
+  marker of a new session without a visit (a restarted detector that found nothing more) ends the input
+  with the map as it is.
+* ``redelivered`` (no problem): a visit or end marker the filter restored from its state file, which the
+  detector's history delivers again to a resumed filter: skipped.
+* ``internal_errors``: a bug caught by the last-resort guard (:func:`ptm_ros.nodes.common.guarded`).
+
+Every message is counted once in ``messages`` and once in ``accepted`` (visits given to the filter,
+mapped or ``rejected``), ``ends`` (end markers taken) or one of the drop counters above.
+
+Persistence (issues #8, #9). Parameters ``state_file`` (path, ``''`` = off), ``autosave_every`` (visits,
+0 = off) and ``resume`` (bool, default false). The node's state — the filter session (visits with their
+measurements, the registration cache, the particle filter's
+:meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`) and its place in the detector's stream (session id, next
+visit index, end marker, counters, sessions that ended) — is written atomically to ``state_file``
+(:func:`ptm_ros.persistence.save_filter_state`, with the configuration as meta data) every
+``autosave_every`` visits, at the detector's end marker, on ``~/save_state`` and at a clean shutdown.
+With ``resume: true``, a starting node continues from ``state_file`` when it exists, and publishes the
+restored ensemble. The visits since the last save come back from the detector: ``landmark_visits`` is
+reliable, keep-all and transient local, so a new subscription receives the detector's whole history (a
+keep-all Fast DDS writer keeps its latest 5000 messages: measured), in order; the restored ones are
+skipped (``redelivered``), the rest mapped, and the ensemble is exactly that of a filter never
+interrupted. This needs the detector that made the saved visits to be still running (a restarted
+detector starts a new session, hence a new map). A file that cannot be used — truncated, corrupt,
+foreign, or made with another configuration or ``refit_max_visits`` — is logged as an error, moved to
+``<state_file>.rejected``, and the node starts afresh (the detector's history rebuilds the map; the
+diagnostics say WARN: ``persistence.resume_rejected``). A failed save is logged and counted
+(``persistence.save_failures``, WARN); the previous file stays intact.
 
 Streaming equals offline. The appearance model's priors are fitted to *all* visits of a run (empirical
 Bayes, :func:`ptm_ros.appearance.fit_appearance_model`), which a stream only knows at its end. So
@@ -33,6 +78,7 @@ from __future__ import annotations
 import colorsys
 import dataclasses
 import json
+import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -48,8 +94,9 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ptm_ros.config import PtmConfig, save_config
+from ptm_ros.configio import to_dict
 from ptm_ros.errors import ConfigError, DataError, PtmError
-from ptm_ros.geometry import RelativePose
+from ptm_ros.geometry import NoMatch, RelativePose
 from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json
 from ptm_ros.nodes.common import (
     END_SCHEMA,
@@ -59,9 +106,18 @@ from ptm_ros.nodes.common import (
     check_parameter_names,
     declare_config,
     declare_node_parameter,
+    guarded,
     publish_diagnostics,
     run_node,
     time_msg,
+)
+from ptm_ros.persistence import (
+    load_filter_state,
+    registrations_from_state,
+    registrations_to_state,
+    save_filter_state,
+    visit_from_state,
+    visit_to_state,
 )
 from ptm_ros.posterior import PosteriorModel
 from ptm_ros.ptm import Ptm, Topology, to_json_dict
@@ -71,7 +127,32 @@ from ptm_ros.visits import Visit
 
 NODE_NAME = "topology_filter"
 GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
+#: Schema tags of :meth:`FilterSession.state_dict` and of the node's state file content.
+SESSION_STATE_SCHEMA = "ptm_ros.filter_session/1"
+NODE_STATE_SCHEMA = "ptm_ros.topology_filter_state/1"
 MARKER_Z_STEP = 1.0  # m between stacked hypotheses
+MAX_VISIT_GAP = 1000  # visits: a larger jump of the detector's index is a corrupt message
+#: What a JSON parser may raise on hostile text besides JSONDecodeError (a ValueError): numbers with
+#: more than 4300 digits (ValueError), nesting deeper than the recursion limit, values beyond float range.
+JSON_ERRORS = (ValueError, TypeError, KeyError, OverflowError, RecursionError)
+COUNTERS = (
+    "messages",
+    "accepted",
+    "ends",
+    "invalid",
+    "rejected",
+    "duplicates",
+    "gaps",
+    "implausible",
+    "out_of_order",
+    "foreign",
+    "resets",
+    "redelivered",
+    "internal_errors",
+)
+#: Counters that are no problem (the others turn /diagnostics to WARN).
+BENIGN = ("messages", "accepted", "ends", "resets", "redelivered")
+MAX_RETIRED = 64  # finished detector sessions remembered (their late visits never start a new map)
 
 
 # ------------------------------------------------------------------------------------- filter session
@@ -116,15 +197,16 @@ class FilterSession:
         self.refit_max_visits = refit_max_visits
         self.registrations: dict[str, Any] = {}
         self._visits: list[Visit] = []
-        self._pairs: dict[tuple[int, int], RelativePose | None] = {}
+        self._pairs: dict[tuple[int, int], RelativePose | NoMatch | None] = {}
         self._filter: TopologyFilter | None = None
+        self._built_at = 0  # visits when the filter was last (re)built: its appearance priors' data
         self.replays = 0
         self.wall_s = 0.0
         inner = make_registrar(self._visits, config, self.registrations) if config.model.use_laser else None
         self._registrar = None if inner is None else self._cached(inner)
 
     def _cached(self, inner: Any) -> Any:
-        def registrar(i: int, j: int) -> RelativePose | None:
+        def registrar(i: int, j: int) -> RelativePose | NoMatch | None:
             key = (i, j)
             if key not in self._pairs:
                 self._pairs[key] = inner(i, j)
@@ -189,6 +271,7 @@ class FilterSession:
             state = new.update(v)
         assert state is not None
         self._filter = new
+        self._built_at = len(self._visits)
         self.replays += int(old is not None)
         return state
 
@@ -197,9 +280,75 @@ class FilterSession:
         self._visits.clear()
         self._pairs.clear()
         self._filter = None
+        self._built_at = 0
         self.replays = 0
         self.wall_s = 0.0
         self.registrations.clear()
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the session (plain values and arrays, for
+        :func:`ptm_ros.persistence.save_filter_state`): the visits, the registration cache and its
+        counters, the filter's own :meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`."""
+        return {
+            "schema": SESSION_STATE_SCHEMA,
+            "visits": [visit_to_state(v) for v in self._visits],
+            "pairs": registrations_to_state(self._pairs),
+            "registrations": dict(self.registrations),
+            "built_at": self._built_at,
+            "replays": self.replays,
+            "wall_s": self.wall_s,
+            "filter": None if self._filter is None else self._filter.state_dict(),
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Replace the session by a saved one (:meth:`state_dict`), continuing exactly where it stopped.
+
+        The filter is rebuilt with the appearance priors fitted to the visits it was built on, so that
+        frozen priors (``refit_max_visits``) are restored too.
+
+        Raises:
+            DataError: a state of another schema or a malformed one (the session is then empty).
+        """
+        if not isinstance(state, dict) or state.get("schema") != SESSION_STATE_SCHEMA:
+            schema = state.get("schema") if isinstance(state, dict) else type(state).__name__
+            msg = f"not a filter session state ({SESSION_STATE_SCHEMA}), got schema {schema!r}"
+            raise DataError(msg)
+        self.reset()
+        try:
+            self._visits.extend(visit_from_state(d) for d in state["visits"])  # the registrar's list
+            self._pairs.update(registrations_from_state(state["pairs"]))
+            self.registrations.update(state["registrations"])
+            self._built_at = int(state["built_at"])
+            self.replays = int(state["replays"])
+            self.wall_s = float(state["wall_s"])
+            if state["filter"] is not None:
+                self._filter = self._restore_filter(state["filter"])
+        except (KeyError, TypeError, ValueError, PtmError) as err:
+            self.reset()
+            msg = f"malformed filter session state: {type(err).__name__}: {err}"
+            raise DataError(msg) from err
+
+    def _restore_filter(self, state: dict[str, Any]) -> TopologyFilter:
+        if [v.index for v in self._visits] != list(range(len(self._visits))):
+            msg = "the saved visits are not numbered 0, 1, 2, ..."
+            raise DataError(msg)
+        if not 1 <= self._built_at <= len(self._visits):
+            msg = f"the filter was built on {self._built_at} of {len(self._visits)} visits"
+            raise DataError(msg)
+        inf = self.config.inference
+        model = PosteriorModel(self._visits[: self._built_at], self.config.model, seed=inf.seed)
+        flt = TopologyFilter.from_state_dict(
+            state,
+            RbpfConfig(particles=inf.particles, resample=inf.resample),
+            model.prior,
+            self.config.model.odometry,
+            appearance=model.appearance,
+            registrar=self._registrar,
+        )
+        if flt.visits != tuple(self._visits):
+            msg = "the filter's visits differ from the session's"
+            raise DataError(msg)
+        return flt
 
     def inference(self) -> Inference:
         """The current ensemble as ``ptm-run``'s RBPF result (the ``inference.top`` most probable)."""
@@ -246,28 +395,86 @@ def graph_document(ptm: Ptm, *, complete: bool) -> dict[str, Any]:
     return doc
 
 
+_ARRAYS = {"signature": ("f", 1), "words": ("iu", 1), "patch": ("f", 2)}  # dtype kinds, dimensions
+
+
+def check_visit(visit: Visit) -> None:
+    """What :class:`Visit` itself does not check: index >= 0, a finite stamp >= 0, and numeric, finite,
+    non-empty measurements of the right shape: signature ``(K,)`` >= 0 (Fourier magnitudes), words
+    ``(V,)`` integers >= 0, patch ``(P, 2)``.
+
+    Raises:
+        DataError: naming the offending field.
+    """
+    if visit.index < 0:
+        msg = f"visit index {visit.index} < 0"
+        raise DataError(msg)
+    if not (math.isfinite(visit.stamp) and visit.stamp >= 0.0):
+        msg = f"visit {visit.index}: stamp {visit.stamp} is not a finite time >= 0"
+        raise DataError(msg)
+    for name, (kinds, ndim) in _ARRAYS.items():
+        arr = getattr(visit, name)
+        if arr is None:
+            continue
+        if (
+            arr.dtype.kind not in kinds
+            or arr.ndim != ndim
+            or arr.size == 0
+            or (ndim == 2 and arr.shape[1] != 2)
+        ):
+            msg = f"visit {visit.index}: {name} of dtype {arr.dtype} and shape {arr.shape}"
+            raise DataError(msg)
+        with np.errstate(invalid="ignore"):
+            bad = arr.dtype.kind == "f" and not np.all(np.isfinite(arr))
+            bad = bad or (name != "patch" and bool(np.any(arr < 0)))  # magnitudes and counts are >= 0
+        if bad:
+            msg = f"visit {visit.index}: {name} has non-finite or negative values"
+            raise DataError(msg)
+
+
+def parse_visit_envelope(text: str) -> tuple[Visit | int, str | None]:
+    """A ``landmark_visits`` message: ``(visit or end-marker count, session id or None)``.
+
+    Raises:
+        DataError: malformed JSON, an unknown schema, a malformed visit (:func:`check_visit`) or marker.
+    """
+    try:
+        doc = json.loads(text)
+    except JSON_ERRORS as err:
+        msg = f"visit message is not JSON: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    if not isinstance(doc, dict):
+        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {type(doc).__name__!r}"
+        raise DataError(msg)
+    session = doc.get("session")
+    if session is not None and not isinstance(session, str):
+        msg = f"visit message with a session id {session!r} that is not a string"
+        raise DataError(msg)
+    if doc.get("schema") == END_SCHEMA:
+        count = doc.get("visits")
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            msg = f"end-of-visits marker with a bad count {count!r}"
+            raise DataError(msg)
+        return count, session
+    if doc.get("schema") != VISIT_SCHEMA:
+        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {doc.get('schema')!r}"
+        raise DataError(msg)
+    try:
+        visit = visit_from_json(text)
+    except (PtmError, *JSON_ERRORS) as err:
+        msg = f"malformed visit message: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    check_visit(visit)
+    return visit, session
+
+
 def parse_visit_message(text: str) -> Visit | int:
     """A ``landmark_visits`` message: the :class:`Visit`, or the visit count of an end marker.
 
     Raises:
         DataError: malformed JSON, an unknown schema or a malformed visit.
     """
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as err:
-        msg = f"visit message is not JSON: {err}"
-        raise DataError(msg) from err
-    if isinstance(doc, dict) and doc.get("schema") == END_SCHEMA:
-        count = doc.get("visits")
-        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
-            msg = f"end-of-visits marker with a bad count {count!r}"
-            raise DataError(msg)
-        return count
-    if not isinstance(doc, dict) or doc.get("schema") != VISIT_SCHEMA:
-        schema = doc.get("schema") if isinstance(doc, dict) else type(doc).__name__
-        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {schema!r}"
-        raise DataError(msg)
-    return visit_from_json(text)
+    return parse_visit_envelope(text)[0]
 
 
 # -------------------------------------------------------------------------------------------- markers
@@ -291,7 +498,7 @@ def place_points(ptm: Ptm, rank: int) -> np.ndarray:
     m = max(t.labels) + 1
     if t.positions is not None and len(t.positions) == m:
         return np.asarray(t.positions, dtype=float).reshape(m, 2)
-    xy = np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
+    xy = np.array([lm.map_pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
     labels = np.asarray(t.labels)
     return np.array([xy[labels == k].mean(axis=0) for k in range(m)])
 
@@ -303,7 +510,7 @@ def ensemble_markers(ptm: Ptm, count: int, stamp: float) -> MarkerArray:
     clear.action = Marker.DELETEALL
     clear.header.frame_id = ptm.frame_id
     out.markers.append(clear)
-    xy = np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
+    xy = np.array([lm.map_pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
     for rank, t in enumerate(ptm.topologies[:count]):
         alpha = topology_alpha(t.probability)
         z = rank * MARKER_Z_STEP
@@ -369,11 +576,37 @@ class TopologyFilterNode(Node):
             minimum=0,
         )
         self.frame_id = declare_node_parameter(self, "frame_id", "odom", "odometry frame of the visits")
+        state_file = declare_node_parameter(
+            self,
+            "state_file",
+            "",
+            "file of the filter's saved state (~/save_state, autosave, resume); '' = off",
+        )
+        self.state_file = Path(state_file) if state_file else None
+        self.autosave_every = declare_node_parameter(
+            self,
+            "autosave_every",
+            0,
+            "save the state to state_file every this many visits; 0 = off",
+            minimum=0,
+        )
+        resume = declare_node_parameter(
+            self, "resume", False, "on start, continue from state_file if it exists (else start afresh)"
+        )
+        self.refit_max_visits = refit
         self.session = FilterSession(self.config, refit_max_visits=refit)
-        self.counters = {"messages": 0, "invalid": 0, "rejected": 0, "duplicates": 0, "gaps": 0, "resets": 0}
+        self.counters = dict.fromkeys(COUNTERS, 0)
         self._next_index: int | None = None  # the detector's index of the next visit (None: any)
         self._end_count: int | None = None  # visits the detector announced at its end
+        self._stream: str | None = None  # the detector session of the map's visits
+        self._first: tuple[float, tuple[float, float, float]] | None = None  # (stamp, pose) of its visit 0
+        self._last_stamp = -math.inf  # stamp of the latest visit in the map
         self._last: FilterState | None = None
+        self._retired: dict[str, int] = {}  # finished detector sessions -> visits they had
+        self._resumed: dict[str | None, int] = {}  # detector sessions -> visits restored from state_file
+        self._unsaved = 0  # visits taken since the state was last saved
+        self._dirty = False  # anything changed since then (visits, end markers, resets)
+        self.persistence = {"resumed_visits": 0, "resume_rejected": 0, "saves": 0, "save_failures": 0}
         self._log_once = OnceLogger(self.get_logger())
         self._graph_pub = self.create_publisher(String, "ptm_graph", LATCHED_QOS)
         self._marker_pub = self.create_publisher(MarkerArray, "ptm_markers", LATCHED_QOS)
@@ -381,10 +614,13 @@ class TopologyFilterNode(Node):
         self.create_subscription(String, "landmark_visits", self._on_visit, STREAM_QOS)
         self.create_service(Trigger, "~/save_ptm", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(Trigger, "~/save_state", self._on_save_state)
         self.create_timer(1.0, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
             f"RBPF with {self.config.inference.particles} particles, seed {self.config.inference.seed}"
         )
+        if resume and self.state_file is not None:
+            self._resume(self.state_file)
 
     # -------------------------------------------------------------------------------- visits
 
@@ -395,55 +631,136 @@ class TopologyFilterNode(Node):
             return False
         return (self._next_index or 0) >= self._end_count
 
+    def _drop(self, counter: str, message: str) -> None:
+        self.counters[counter] += 1
+        self._log_once(counter, message)
+
+    @guarded
     def _on_visit(self, msg: String) -> None:
         self.counters["messages"] += 1
         try:
-            item = parse_visit_message(msg.data)
+            item, session = parse_visit_envelope(msg.data)
         except DataError as err:
-            self.counters["invalid"] += 1
-            self._log_once("invalid-visit", f"dropped a malformed landmark_visits message: {err}")
+            self._drop("invalid", f"dropped a malformed landmark_visits message: {err}")
             return
         if isinstance(item, int):
-            self._end_count = item
-            self.get_logger().info(f"end of visits reported ({item}); {len(self.session.visits)} in the map")
-            self._publish()
+            self._on_end(item, session)
             return
-        self._add(item)
+        self._add(item, session)
 
-    def _add(self, visit: Visit) -> None:
-        """Consume the detector's visit ``visit.index`` (re-indexed from the last reset on)."""
-        expected = visit.index if self._next_index is None else self._next_index
-        if visit.index < expected:
-            if visit.index != 0:
-                self.counters["duplicates"] += 1
-                self._log_once("duplicate", f"dropped visit {visit.index}: already processed")
+    def _on_end(self, count: int, session: str | None) -> None:
+        if session != self._stream and session in self._resumed:
+            self.counters["redelivered"] += 1  # the end of a session restored from state_file
+            return
+        if self._next_index is not None and session != self._stream:
+            if count != 0 or session in self._retired:
+                self._drop("foreign", f"ignored the end marker of detector session {session!r}")
                 return
-            self.get_logger().warning("visit 0 arrived again: the detector restarted; starting a new map")
-            self._reset()
-        elif visit.index > expected:
-            self.counters["gaps"] += 1
-            self._log_once(
-                "gap", f"visits {expected}..{visit.index - 1} never arrived; continuing without them"
+            self.get_logger().warning(
+                f"detector session {session!r} ended without a visit: the map of {self._stream!r} is final"
             )
+            count = self._next_index  # a restarted detector found nothing more: the input is over
+        if count < (self._next_index or 0):
+            self._drop(
+                "invalid", f"ignored an end marker of {count} visits: {self._next_index} already arrived"
+            )
+            return
+        self._end_count = count
+        self.counters["ends"] += 1
+        self.get_logger().info(f"end of visits reported ({count}); {len(self.session.visits)} in the map")
+        self._dirty = True
+        if self.autosave_every > 0:
+            self._autosave()
+        self._publish()
+
+    def _shapes_differ(self, visit: Visit) -> bool:
+        """Whether the visit's signature or word histogram differs in length from the map's."""
+        for name in ("signature", "words"):
+            new = getattr(visit, name)
+            old = next((a for v in self.session.visits if (a := getattr(v, name)) is not None), None)
+            if new is not None and old is not None and new.shape != old.shape:
+                return True
+        return False
+
+    def _add(self, visit: Visit, session: str | None = None) -> None:
+        """Consume the detector's visit ``visit.index`` of detector session ``session`` (re-indexed from
+        the last reset on; see the module docstring for what is dropped)."""
+        key = (visit.stamp, visit.pose)
+        if self._redelivered(session, visit.index, key):
+            self.counters["redelivered"] += 1
+            if self.counters["redelivered"] == 1:
+                self.get_logger().info("the detector redelivers visits restored from the state file: skipped")
+            return
+        if self._next_index is not None and session != self._stream:
+            if visit.index != 0 or session in self._retired:
+                self._drop("foreign", f"dropped visit {visit.index} of another detector session {session!r}")
+                return
+            self.get_logger().warning(f"detector session {session!r} started: starting a new map")
+            self._retire()
+            self._reset()
+        elif self._next_index is not None and visit.index < self._next_index:
+            if visit.index != 0 or session is not None or key == self._first:
+                self._drop("duplicates", f"dropped visit {visit.index}: already processed")
+                return
+            self.get_logger().warning(
+                "a different visit 0 arrived: the detector restarted; starting a new map"
+            )
+            self._reset()
+        elif self._next_index is not None and visit.index > self._next_index + MAX_VISIT_GAP:
+            self._drop("implausible", f"dropped visit {visit.index}: {self._next_index} was expected")
+            return
+        if visit.stamp < self._last_stamp:
+            self._drop("out_of_order", f"dropped visit {visit.index}: older than the map's latest visit")
+            return
+        if self._shapes_differ(visit):
+            self._drop("invalid", f"dropped visit {visit.index}: measurements shaped unlike the map's")
+            return
+        expected = visit.index if self._next_index is None else self._next_index
+        if visit.index > expected:
+            self._drop("gaps", f"visits {expected}..{visit.index - 1} never arrived; continuing without them")
+        if self._next_index is None:
+            self._stream = session
+            self._first = key if visit.index == 0 else None
         self._next_index = visit.index + 1
+        self.counters["accepted"] += 1
         n = len(self.session.visits)
         if visit.index != n:
             visit = dataclasses.replace(visit, index=n)
         replays, wall = self.session.replays, self.session.wall_s
+        self._unsaved += 1
+        self._dirty = True
         try:
             self._last = state = self.session.add(visit)
         except PtmError as err:
-            self.counters["rejected"] += 1
-            self._log_once("rejected", f"the filter rejected visit {visit.index}: {err}")
+            self._drop("rejected", f"the filter rejected visit {visit.index}: {err}")
+            self._maybe_autosave()
             if self.complete:
                 self._publish()
             return
+        self._last_stamp = visit.stamp
         how = "replayed" if self.session.replays > replays else "updated"
         self.get_logger().info(
             f"visit {visit.index}: {state.n_topologies} topologies, ESS {state.ess:.1f}, "
             f"{how} in {(self.session.wall_s - wall) * 1e3:.0f} ms"
         )
+        self._maybe_autosave()
         self._publish()
+
+    def _redelivered(self, session: str | None, index: int, key: tuple[Any, ...]) -> bool:
+        """Whether a visit was restored from the state file (the detector's history delivers it again to
+        a resumed filter). Without session ids, a visit 0 unlike the map's is a restart, not a repeat."""
+        limit = self._resumed.get(session)
+        if limit is None or index >= limit:
+            return False
+        return not (session is None and index == 0 and key != self._first)
+
+    def _retire(self) -> None:
+        """Remember the current detector session as finished (its late visits never start a map)."""
+        if self._stream is None:
+            return
+        self._retired[self._stream] = self._next_index or 0
+        while len(self._retired) > MAX_RETIRED:
+            del self._retired[next(iter(self._retired))]
 
     def current_ptm(self) -> Ptm:
         """The ensemble now (an empty PTM before the first visit)."""
@@ -462,6 +779,153 @@ class TopologyFilterNode(Node):
         stamp = ptm.landmarks[-1].stamp if ptm.landmarks else 0.0
         self._marker_pub.publish(ensemble_markers(ptm, self.marker_topologies, stamp))
 
+    # --------------------------------------------------------------------------- persistence
+
+    def state_meta(self) -> dict[str, Any]:
+        """What the state file records about how its state was made (checked on resume)."""
+        return {
+            "node": NODE_NAME,
+            "config": to_dict(self.config),
+            "refit_max_visits": self.refit_max_visits,
+            "frame_id": self.frame_id,
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        """The node's state: the filter session and the position in the detector's visit stream."""
+        return {
+            "schema": NODE_STATE_SCHEMA,
+            "session": self.session.state_dict(),
+            "next_index": self._next_index,
+            "end_count": self._end_count,
+            "stream": self._stream,
+            "first": None if self._first is None else [self._first[0], list(self._first[1])],
+            "last_stamp": self._last_stamp,
+            "last": None if self._last is None else dataclasses.astuple(self._last),
+            "counters": dict(self.counters),
+            "retired": [[k, n] for k, n in self._retired.items()],
+        }
+
+    def save_state(self) -> Path:
+        """Write :meth:`state_dict` to ``state_file`` (atomically).
+
+        Raises:
+            DataError: no ``state_file``, or it cannot be written (the previous file is then unchanged).
+        """
+        if self.state_file is None:
+            msg = "parameter state_file is not set"
+            raise DataError(msg)
+        self.state_file.parent.mkdir(parents=True, exist_ok=True)
+        path = save_filter_state(self.state_file, self.state_dict(), meta=self.state_meta())
+        self._unsaved, self._dirty = 0, False
+        self.persistence["saves"] += 1
+        return path
+
+    def _maybe_autosave(self) -> None:
+        if self.autosave_every > 0 and self._unsaved >= self.autosave_every:
+            self._autosave()
+
+    def _autosave(self) -> None:
+        if self.state_file is None:
+            return
+        try:
+            self.save_state()
+        except (OSError, DataError) as err:
+            self.persistence["save_failures"] += 1
+            self._log_once("save-failure", f"cannot save the state to {self.state_file}: {err}")
+            return
+        self.get_logger().debug(f"saved the state ({len(self.session.visits)} visits) to {self.state_file}")
+
+    def _resume(self, path: Path) -> None:
+        """Continue from the state file (if it exists). A file that cannot be used (corrupt, foreign, made
+        with another configuration) is moved aside to ``<file>.rejected`` and the filter starts afresh:
+        the detector's transient-local history then rebuilds the map."""
+        if not path.exists():
+            self.get_logger().info(f"resume: no state file {path} yet; starting afresh")
+            return
+        try:
+            state, meta = load_filter_state(path)
+            self._check_meta(meta)
+            self._load_state(state)
+        except (DataError, ConfigError) as err:
+            self._reset_all()
+            self.persistence["resume_rejected"] += 1
+            aside = path.with_name(path.name + ".rejected")
+            try:
+                path.replace(aside)
+            except OSError as move_err:
+                aside = Path(f"(not moved: {move_err})")
+            self.get_logger().error(
+                f"cannot resume from {path}: {err}; starting afresh (file kept as {aside})"
+            )
+            return
+        n = len(self.session.visits)
+        self.persistence["resumed_visits"] = n
+        self.get_logger().info(
+            f"resumed from {path}: {n} visits of detector session {self._stream!r}, "
+            f"next detector visit {self._next_index}"
+        )
+        self._publish()
+
+    def _check_meta(self, meta: dict[str, Any]) -> None:
+        mine = self.state_meta()
+        if meta.get("node") != NODE_NAME:
+            msg = f"the state was saved by {meta.get('node')!r}, not {NODE_NAME}"
+            raise DataError(msg)
+        for key in ("config", "refit_max_visits"):
+            if meta.get(key) != mine[key]:
+                diff = _differences(meta.get(key), mine[key])
+                msg = f"the state was made with another {key} ({', '.join(diff[:5]) or key} differ)"
+                raise ConfigError(msg)
+
+    def _load_state(self, state: dict[str, Any]) -> None:
+        if state.get("schema") != NODE_STATE_SCHEMA:
+            msg = f"not a {NODE_NAME} state (schema {state.get('schema')!r})"
+            raise DataError(msg)
+        try:
+            self.session.load_state(state["session"])
+            self._next_index = None if state["next_index"] is None else int(state["next_index"])
+            self._end_count = None if state["end_count"] is None else int(state["end_count"])
+            self._stream = state["stream"]
+            first = state["first"]
+            self._first = None if first is None else (float(first[0]), tuple(float(x) for x in first[1]))
+            self._last_stamp = float(state["last_stamp"])
+            self._last = None if state["last"] is None else FilterState(*state["last"])
+            unknown = set(state["counters"]) - set(COUNTERS)
+            if unknown:
+                msg = f"unknown counters {sorted(unknown)}"
+                raise DataError(msg)
+            self.counters.update({k: int(v) for k, v in state["counters"].items()})
+            self._retired = {str(k): int(n) for k, n in state["retired"]}
+        except (KeyError, TypeError, ValueError, IndexError) as err:
+            msg = f"malformed {NODE_NAME} state: {type(err).__name__}: {err}"
+            raise DataError(msg) from err
+        self._resumed = {**self._retired, self._stream: self._next_index or 0}
+        self._unsaved, self._dirty = 0, False
+
+    def _reset_all(self) -> None:
+        self.session.reset()
+        self._next_index = self._end_count = self._stream = self._first = self._last = None
+        self._last_stamp = -math.inf
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self._retired, self._resumed = {}, {}
+
+    @guarded
+    def _on_save_state(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            path = self.save_state()
+        except (OSError, DataError) as err:
+            response.success, response.message = False, f"cannot save the state: {err}"
+            return response
+        response.success = True
+        response.message = json.dumps({"path": str(path), "visits": len(self.session.visits)})
+        return response
+
+    def destroy_node(self) -> None:
+        """Save the state (if ``state_file`` is set and changed since the last save), then destroy."""
+        if getattr(self, "state_file", None) is not None and getattr(self, "_dirty", False):
+            self._autosave()
+        super().destroy_node()
+
     # --------------------------------------------------------------------------- diagnostics
 
     def diagnostics(self) -> dict[str, Any]:
@@ -475,11 +939,14 @@ class TopologyFilterNode(Node):
             "replays": self.session.replays,
             "registrations": dict(self.session.registrations),
             **self.counters,
+            "persistence": dict(self.persistence),
         }
 
+    @guarded
     def _publish_diagnostics(self) -> None:
         values = self.diagnostics()
-        bad = values["invalid"] + values["rejected"] + values["gaps"]
+        bad = sum(values[k] for k in COUNTERS if k not in BENIGN)
+        bad += self.persistence["resume_rejected"] + self.persistence["save_failures"]
         publish_diagnostics(
             self,
             self._diag_pub,
@@ -492,6 +959,7 @@ class TopologyFilterNode(Node):
 
     # ------------------------------------------------------------------------------ services
 
+    @guarded
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if self.session.filter is None:
             response.success, response.message = False, "no visit received yet: nothing to save"
@@ -516,17 +984,33 @@ class TopologyFilterNode(Node):
         self.session.reset()
         self._next_index = None
         self._end_count = None
+        self._stream = None
+        self._first = None
+        self._last_stamp = -math.inf
         self._last = None
         self.counters["resets"] += 1
+        self._dirty = True
 
+    @guarded
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         n = len(self.session.visits)
         self._reset()
+        self._resumed = {}  # a new map from the next visit on, whatever it is
         self._marker_pub.publish(
             ensemble_markers(Ptm(landmarks=(), topologies=(), frame_id=self.frame_id), 0, 0.0)
         )
         response.success, response.message = True, f"forgot {n} visits"
         return response
+
+
+def _differences(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted paths at which two nested mappings differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b), key=str):
+            out += _differences(a.get(key), b.get(key), f"{prefix}{key}.")
+        return out
+    return [] if a == b else [prefix.rstrip(".")]
 
 
 def main(args: Sequence[str] | None = None) -> int:

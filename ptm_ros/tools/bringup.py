@@ -18,7 +18,18 @@ On SIGINT / SIGTERM it stops the player, has the detector complete its pending v
 gives the filter up to 30 s to map them (a second SIGINT skips the wait) and writes whatever the map
 publisher has (nothing when it holds no visit). Then it stops every process: SIGINT to
 its group, SIGTERM after 5 s, SIGKILL after 3 more; stray members of a group are killed too, so no
-process outlives the bringup. After a bag it writes ``ptm-run``'s report with figures beside ptm.json
+process outlives the bringup.
+
+Faults (issue #9). A node that dies during the run ends it (exit 1), unless ``--respawn N``: then it is
+restarted in place, up to N times per node. ``--autosave N`` has the filter save its state to
+``DIR/topology_filter/state.npz`` every N visits (parameters ``state_file``, ``autosave_every``; a state
+file left by an earlier run in DIR is deleted at the start); a respawned filter gets ``resume: true``,
+continues from that file and takes the visits lost since the last save from the detector's
+transient-local history, so the map ends exactly as without the fault (without ``--autosave`` it
+rebuilds everything from that history). A respawned detector starts a new detector session from the
+bag position it then sees (it never receives what was replayed while it was down), so the filter starts
+a new map of the rest of the run; the player's reliable writers wait for a killed reader until DDS
+declares it gone. After a bag it writes ``ptm-run``'s report with figures beside ptm.json
 (unless ``--no-report``) and prints the most probable topologies, scored against the bag's ground truth
 when it has one. Exit codes: 0 written, 1 a node failed / nothing to write / timeout, 2 bad arguments,
 parameters or bag.
@@ -44,6 +55,7 @@ PROG = "ptm-bringup"
 NODES = ("map_publisher", "topology_filter", "landmark_detector")
 STOP_TIMEOUTS = (5.0, 3.0, 2.0)  # s after SIGINT, after SIGTERM, after SIGKILL
 SIGINT_GRACE_S = 30.0  # s the filter gets to map the last visits after SIGINT (a second SIGINT skips)
+STATE_FILE = "topology_filter/state.npz"  # the filter's saved state, relative to --out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -62,6 +74,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-report", action="store_true", help="skip the report and figures (with --bag)")
     p.add_argument("--top", type=int, default=5, help="topologies to print (default 5)")
+    p.add_argument(
+        "--respawn",
+        type=int,
+        default=0,
+        metavar="N",
+        help="restart a node that dies, up to N times per node (default 0: a dead node ends the run)",
+    )
+    p.add_argument(
+        "--autosave",
+        type=int,
+        default=0,
+        metavar="N",
+        help=f"the filter saves its state to DIR/{STATE_FILE} every N visits (default 0: off); a "
+        "respawned filter resumes from it",
+    )
     return p
 
 
@@ -210,6 +237,12 @@ class Plan:
     player: list[str] | None
     wait: float
     timeout: float
+    respawn: int = 0
+
+    def restart_command(self, name: str) -> list[str]:
+        """The command of a respawned node: the filter resumes from its saved state (if any)."""
+        extra = ["-p", "resume:=true"] if name == "topology_filter" else []
+        return [*self.nodes[name], *extra]
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
@@ -245,7 +278,12 @@ def make_plan(args: argparse.Namespace) -> Plan:
             present = topic in topics and topics[topic].count > 0
             detector += ["-p", f"{name}:={str(present).lower()}"]
         detector += ["-p", "stall_s:=0.0"]
-    filt = [*mine, "-p", "refit_max_visits:=0", "-p", f"frame_id:={frame}", *users]
+    filt = [*mine, "-p", "refit_max_visits:=0", "-p", f"frame_id:={frame}"]
+    state = out / STATE_FILE
+    state.unlink(missing_ok=True)  # a previous run's state must never be resumed by this one
+    if args.autosave > 0:
+        filt += ["-p", f"state_file:={state}", "-p", f"autosave_every:={args.autosave}"]
+    filt += users
     nodes = {
         "map_publisher": node_command("map_publisher", [*mine, *users, "-p", f"out_dir:={out}"]),
         "topology_filter": node_command(
@@ -258,7 +296,9 @@ def make_plan(args: argparse.Namespace) -> Plan:
         replay = [x for x in (t.odom, t.scan, t.panorama) if x in topics]
         player = [sys.executable, "-m", "ptm_ros.nodes.bag_player", str(args.bag.resolve())]
         player += ["--rate", f"{args.rate:g}", "--wait", f"{args.wait:g}", "--topics", *replay]
-    return Plan(out=out, nodes=nodes, player=player, wait=args.wait, timeout=args.timeout)
+    return Plan(
+        out=out, nodes=nodes, player=player, wait=args.wait, timeout=args.timeout, respawn=args.respawn
+    )
 
 
 class Bringup:
@@ -275,6 +315,7 @@ class Bringup:
 
         self.plan = plan
         self.children: list[Child] = []
+        self.respawns = dict.fromkeys(plan.nodes, 0)
         self.stop_requested = False
         self.context = rclpy.Context()
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
@@ -359,6 +400,8 @@ class Bringup:
         player_done_at: float | None = None
         while not self.stop_requested:
             dead = self.failed_child()
+            if dead is not None and self.respawn(dead, env):
+                continue
             if dead is not None:
                 self.log(f"error: {dead.name} exited with code {dead.popen.poll()}")
                 self.write_what_we_have()
@@ -385,6 +428,19 @@ class Bringup:
             self.executor.spin_once(timeout_sec=0.2)
         self.end_input()
         return self.write_what_we_have()
+
+    def respawn(self, dead: Child, env: dict[str, str]) -> bool:
+        """Restart a dead node in its place (``--respawn``); False when it may not be restarted."""
+        if dead.name not in self.respawns or self.respawns[dead.name] >= self.plan.respawn:
+            return False
+        self.respawns[dead.name] += 1
+        self.log(
+            f"{dead.name} exited with code {dead.popen.poll()}; restarting it "
+            f"({self.respawns[dead.name]} of {self.plan.respawn})"
+        )
+        stop_all([dead])  # its process group's stray members, its output thread
+        self.children[self.children.index(dead)] = spawn(dead.name, self.plan.restart_command(dead.name), env)
+        return True
 
     def end_input(self) -> None:
         """On SIGINT: stop the player, have the detector complete its visits (``~/flush``) and give the
@@ -487,6 +543,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.rate >= 0.0:
         print(f"{PROG}: error: --rate must be >= 0, got {args.rate}", file=sys.stderr)
         return 2
+    for name in ("respawn", "autosave"):
+        if getattr(args, name) < 0:
+            print(f"{PROG}: error: --{name} must be >= 0, got {getattr(args, name)}", file=sys.stderr)
+            return 2
     return run(args)
 
 
