@@ -4,15 +4,19 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
-import sys
-import threading
 import time
 
 import numpy as np
 import pytest
-from ros_helpers import dds_env, kill_processes_mentioning, next_domain_id, processes_mentioning
+from ros_helpers import (
+    BRINGUP,
+    BringupProcess,
+    dds_env,
+    kill_processes_mentioning,
+    next_domain_id,
+    processes_mentioning,
+)
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.io.bag import read_run
@@ -22,8 +26,6 @@ from ptm_ros.ptm import load_ptm
 from ptm_ros.tools import bringup
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.pipeline import detect_visits
-
-BRINGUP = [sys.executable, "-m", "ptm_ros.tools.bringup"]
 
 
 @pytest.fixture(scope="module")
@@ -86,51 +88,11 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
     assert "score vs ground truth" in proc.stdout  # the simulator's ground truth beside the bag
 
 
-class Bringup:
-    """A ``ptm-bringup`` process whose output is collected line by line."""
-
-    def __init__(self, args: list[str]) -> None:
-        self.proc = subprocess.Popen(
-            [*BRINGUP, *args],
-            env=dds_env(next_domain_id()),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line)
-
-    @property
-    def log(self) -> str:
-        return "".join(self.lines)
-
-    def wait_for_line(self, text: str, timeout: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not any(text in line for line in self.lines):
-            assert self.proc.poll() is None and time.monotonic() < deadline, f"no {text!r} in:\n{self.log}"
-            time.sleep(0.05)
-
-    def interrupt(self) -> int:
-        self.proc.send_signal(signal.SIGINT)
-        code = self.proc.wait(timeout=120)
-        self._reader.join(timeout=10)
-        return code
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-
-
 def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
     out = tmp_path / "interrupted"
-    run = Bringup(["--bag", str(sim_bag), "--rate", "2", "--out", str(out), "--no-report"])
+    run = BringupProcess(
+        ["--bag", str(sim_bag), "--rate", "2", "--out", str(out), "--no-report"], dds_env(next_domain_id())
+    )
     try:
         run.wait_for_line("[topology_filter] [INFO]", timeout=120.0)
         run.wait_for_line(": visit 1: ", timeout=120.0)  # at least two visits mapped, the bag not over
@@ -154,7 +116,7 @@ def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
 
 def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path):
     out = tmp_path / "live"
-    run = Bringup(["--out", str(out)])
+    run = BringupProcess(["--out", str(out)], dds_env(next_domain_id()))
     try:
         run.wait_for_line("nodes are up")
         code = run.interrupt()

@@ -16,15 +16,12 @@ import json
 import os
 import shutil
 import signal
-import subprocess
 import sys
-import threading
-import time
 
 import numpy as np
 import pytest
-from ros_helpers import REPO, Inbox, dds_env, processes_mentioning, ros_context
-from test_bringup import BRINGUP, assert_no_orphans
+from ros_helpers import REPO, BringupProcess, Inbox, dds_env, processes_mentioning, ros_context
+from test_bringup import assert_no_orphans
 
 from ptm_ros.ptm import load_ptm
 
@@ -82,47 +79,6 @@ def fault_env(domain_id: int, profile) -> dict[str, str]:
     }
 
 
-class Run:
-    """A ``ptm-bringup`` process on a given domain, its output collected line by line."""
-
-    def __init__(self, args: list[str], env: dict[str, str]) -> None:
-        self.proc = subprocess.Popen(
-            [*BRINGUP, *args],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        self.lines: list[str] = []
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line)
-
-    @property
-    def log(self) -> str:
-        return "".join(self.lines)
-
-    def wait_for_line(self, text: str, timeout: float = 120.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not any(text in line for line in self.lines):
-            assert self.proc.poll() is None and time.monotonic() < deadline, f"no {text!r} in:\n{self.log}"
-            time.sleep(0.02)
-
-    def wait(self, timeout: float) -> int:
-        code = self.proc.wait(timeout=timeout)
-        self._reader.join(timeout=10)
-        return code
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-
-
 def node_pid(node: str, out) -> int:
     """The pid of one node process of the bringup writing to ``out``."""
     found = [
@@ -150,7 +106,7 @@ def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
         probe = ros.node("fault_probe")
         visits_seen = Inbox(probe, String, "/landmark_visits", STREAM_QOS)
         ros.spin(probe)
-        run = Run(args, fault_env(ros.domain_id, fault_profile))
+        run = BringupProcess(args, fault_env(ros.domain_id, fault_profile))
         try:
             run.wait_for_line("[topology_filter]: visit 4: ", timeout=150.0)  # autosaved at 4, 4 is lost
             os.kill(node_pid("topology_filter", out), signal.SIGKILL)
@@ -208,7 +164,7 @@ def test_detector_killed_mid_run_filter_keeps_its_map_and_recovers(
         graphs = Inbox(probe, String, "/ptm_graph", LATCHED_QOS)
         diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 200)
         ros.spin(probe)
-        run = Run(args, fault_env(ros.domain_id, fault_profile))
+        run = BringupProcess(args, fault_env(ros.domain_id, fault_profile))
         try:
             run.wait_for_line("[topology_filter]: visit 1: ", timeout=150.0)
             filter_pid = node_pid("topology_filter", out)
