@@ -457,20 +457,22 @@ def _downdate(cov: FloatArray, W: FloatArray) -> None:
 
 def _cubic(dist: FloatArray, config: OdometryConfig) -> FloatArray:
     """The separation penalty ``c(d) = c_max (1 - d/D)^3`` for ``d < D``, else 0 (eq. 15–16)."""
-    gap = np.clip(1.0 - dist / config.penalty_radius, 0.0, None)
-    return config.penalty_max * gap**3
+    gap = 1.0 - dist * (1.0 / config.penalty_radius)
+    np.maximum(gap, 0.0, out=gap)
+    return config.penalty_max * (gap * gap * gap)
 
 
 def _separation(mean: FloatArray, counts: IntArray, stride: int, config: OdometryConfig) -> FloatArray:
     """``Φ = Σ_{s<t} |s| |t| c(‖p̂_s - p̂_t‖)`` per particle ``(P,)``: the batch model's penalty over pairs
     of visits of different places (eq. 15–16) with every visit at the mean of its place."""
-    if config.penalty_max == 0.0:
+    used = int(np.max(np.nonzero(counts.any(axis=0))[0], initial=-1)) + 1  # later slots are empty
+    if config.penalty_max == 0.0 or used < 2:
         return np.zeros(len(mean))
-    cap = counts.shape[1]
-    p = mean[:, _place_cols(stride, np.arange(cap), 0, 2)]  # (P, cap, 2)
-    dist = np.hypot(p[:, :, None, 0] - p[:, None, :, 0], p[:, :, None, 1] - p[:, None, :, 1])
-    w = counts[:, :, None] * counts[:, None, :] * np.triu(np.ones((cap, cap)), 1)  # unused slots: 0
-    return np.sum(_cubic(dist, config) * w, axis=(1, 2))
+    s, t = np.triu_indices(used, 1)
+    p = mean[:, _place_cols(stride, np.arange(used), 0, 2)]  # (P, used, 2)
+    dist = np.hypot(p[:, s, 0] - p[:, t, 0], p[:, s, 1] - p[:, t, 1])  # (P, pairs)
+    w = counts[:, s] * counts[:, t]  # unused slots: 0
+    return np.sum(_cubic(dist, config) * w, axis=1)
 
 
 def _chol2(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
