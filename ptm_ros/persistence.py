@@ -315,3 +315,68 @@ def registrations_from_state(
         msg = f"corrupt filter state: bad registration row ({type(err).__name__}: {err})"
         raise DataError(msg) from err
     return out
+
+
+# ---------------------------------------------------------------------------- checking a state's origin
+
+
+def _hash_array(h: Any, name: str, value: Any, dtype: type) -> None:
+    if value is None:
+        h.update(f"{name}:none;".encode())
+        return
+    arr = np.ascontiguousarray(np.asarray(value, dtype=dtype))
+    h.update(f"{name}:{arr.dtype.str}{list(arr.shape)};".encode())
+    h.update(arr.tobytes())
+
+
+def visit_fingerprint(visit: Visit) -> str:
+    """SHA-256 of every field of a visit: scalars by ``repr``, arrays by dtype, shape and bytes.
+
+    Arrays are first cast to the dtypes :func:`visit_from_state` restores (float64, words int64), so a
+    visit and its saved copy have the same fingerprint; any changed value changes it.
+    """
+    h = hashlib.sha256()
+    odom = None if visit.odom_pose is None else [float(x) for x in visit.odom_pose]
+    scalars = [
+        int(visit.index),
+        float(visit.stamp),
+        [float(x) for x in visit.pose],
+        odom,
+        float(visit.travel),
+        float(visit.rotation),
+    ]
+    h.update(repr(scalars).encode())
+    _hash_array(h, "signature", visit.signature, np.float64)
+    _hash_array(h, "words", visit.words, np.int64)
+    _hash_array(h, "patch", visit.patch, np.float64)
+    return h.hexdigest()
+
+
+def visits_fingerprint(visits: Sequence[Visit]) -> str:
+    """SHA-256 of a visit sequence (its :func:`visit_fingerprint` s in order): equal iff every visit is."""
+    h = hashlib.sha256(f"{len(visits)} visits;".encode())
+    for v in visits:
+        h.update(visit_fingerprint(v).encode())
+    return h.hexdigest()
+
+
+def first_different_visit(saved: Sequence[Visit], fresh: Sequence[Visit]) -> int | None:
+    """The first index at which ``saved`` differs from the first ``len(saved)`` of ``fresh`` (by
+    :func:`visit_fingerprint`; ``len(fresh)`` when ``fresh`` is shorter), None when it is their prefix."""
+    for k, v in enumerate(saved):
+        if k >= len(fresh):
+            return len(fresh)
+        if visit_fingerprint(v) != visit_fingerprint(fresh[k]):
+            return k
+    return None
+
+
+def differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    """Dotted paths at which two nested mappings (e.g. a state's meta configuration and this run's)
+    differ; ``[]`` when they are equal."""
+    if isinstance(saved, Mapping) and isinstance(current, Mapping):
+        out: list[str] = []
+        for key in sorted(set(saved) | set(current), key=str):
+            out += differences(saved.get(key), current.get(key), f"{prefix}{key}.")
+        return out
+    return [] if saved == current else [prefix.rstrip(".") or "(value)"]

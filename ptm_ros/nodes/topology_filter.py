@@ -112,6 +112,7 @@ from ptm_ros.nodes.common import (
     time_msg,
 )
 from ptm_ros.persistence import (
+    differences,
     load_filter_state,
     registrations_from_state,
     registrations_to_state,
@@ -873,8 +874,8 @@ class TopologyFilterNode(Node):
             raise DataError(msg)
         for key in ("config", "refit_max_visits"):
             if meta.get(key) != mine[key]:
-                diff = _differences(meta.get(key), mine[key])
-                msg = f"the state was made with another {key} ({', '.join(diff[:5]) or key} differ)"
+                diff = differences(meta.get(key), mine[key]) if isinstance(mine[key], dict) else [key]
+                msg = f"the state was made with another {key} ({', '.join(diff[:5])} differ)"
                 raise ConfigError(msg)
 
     def _load_state(self, state: dict[str, Any]) -> None:
@@ -1001,16 +1002,6 @@ class TopologyFilterNode(Node):
         )
         response.success, response.message = True, f"forgot {n} visits"
         return response
-
-
-def _differences(a: Any, b: Any, prefix: str = "") -> list[str]:
-    """Dotted paths at which two nested mappings differ."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out = []
-        for key in sorted(set(a) | set(b), key=str):
-            out += _differences(a.get(key), b.get(key), f"{prefix}{key}.")
-        return out
-    return [] if a == b else [prefix.rstrip(".")]
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -12,7 +12,10 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
   (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
-* ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector).
+* ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector);
+* ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
+  --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
+  (:func:`run_offline`).
 
 With a ground truth, ``ptm.json`` carries ``extra["trajectory_error"]`` (:func:`trajectory_errors`):
 ``ate_smoothed_m`` and ``ate_odometry_m``, the absolute trajectory errors
@@ -29,13 +32,14 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ptm_ros.config import PtmConfig, save_config
+from ptm_ros.configio import to_dict
 from ptm_ros.detectors import EquidistantDetector
-from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.geometry import Registrar, interpolate_poses
 from ptm_ros.io.bag import RunData, read_run
 from ptm_ros.io.groundtruth import GroundTruthTrajectory, interpolate_pose, load_ground_truth
@@ -45,6 +49,10 @@ from ptm_ros.partitions import Labels
 from ptm_ros.posterior import PosteriorModel, exact_posterior, normalize_log, top_k
 from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
+
+if TYPE_CHECKING:
+    from ptm_ros.odometry import OdometryConfig
+    from ptm_ros.rbpf import RbpfConfig, TopologyFilter
 
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 
@@ -56,6 +64,7 @@ OUTPUT_FILES = {
     "map_pgm": "map.pgm",
     "map_yaml": "map.yaml",
     "map_png": "map.png",
+    "state": "filter_state.npz",
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
 TRAJECTORY_ERROR_KEY = "trajectory_error"
@@ -221,12 +230,17 @@ def infer(
     *,
     registrar: Registrar | None = None,
     progress: Progress | None = None,
+    persistence: FilterPersistence | None = None,
 ) -> Inference:
-    """Run the configured estimator over a visit sequence."""
+    """Run the configured estimator over a visit sequence (``persistence``: save / resume the RBPF's
+    state, :class:`FilterPersistence`; the other methods refuse it)."""
     inf = config.inference
     if not visits:
         msg = "no landmark visits were detected: nothing to infer"
         raise DataError(msg)
+    if persistence is not None and inf.method != "rbpf":
+        msg = f"saving and resuming the inference state needs method rbpf, not {inf.method!r}"
+        raise ConfigError(msg)
     model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
     if inf.method == "exact":
         if len(visits) > inf.max_exact_visits:
@@ -245,7 +259,7 @@ def infer(
             details={"n_topologies_evaluated": len(logp)},
         )
     if inf.method == "rbpf":
-        return _infer_rbpf(visits, model, config, registrar, progress)
+        return _infer_rbpf(visits, model, config, registrar, progress, persistence=persistence)
     if inf.method == "mcmc":
         return _infer_mcmc(model, config)
     msg = f"inference method {inf.method!r} is not available"
@@ -310,28 +324,96 @@ def cold_chain_details(res: Any) -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True)
+class FilterPersistence:
+    """How :func:`infer` saves and restores the RBPF (``ptm-run --autosave/--resume``, issue #8).
+
+    Attributes:
+        restored: a :meth:`ptm_ros.rbpf.TopologyFilter.state_dict` to continue from (its visits must be
+            the first of the run's, checked by the caller), or None to start afresh.
+        save: called with the filter after every ``every``-th visit and after the last one; None: never.
+        every: visits between saves (>= 1 when ``save`` is given).
+    """
+
+    restored: dict[str, Any] | None = None
+    save: Callable[[TopologyFilter], None] | None = None
+    every: int = 1
+
+    def __post_init__(self) -> None:
+        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
+            msg = f"FilterPersistence.every must be an integer >= 1, got {self.every!r}"
+            raise ConfigError(msg)
+
+
 def _infer_rbpf(
     visits: Sequence[Visit],
     model: PosteriorModel,
     config: PtmConfig,
     registrar: Registrar | None,
     progress: Progress | None,
+    *,
+    persistence: FilterPersistence | None = None,
 ) -> Inference:
-    """The Rao-Blackwellized particle filter over the whole run (thesis Algorithm 8)."""
-    from ptm_ros.rbpf import RbpfConfig, run_filter
+    """The Rao-Blackwellized particle filter over the whole run (thesis Algorithm 8); with
+    ``persistence``, continued from a saved state and/or saved along the way."""
+    from ptm_ros.rbpf import RbpfConfig, TopologyFilter, run_filter
 
     inf = config.inference
-    flt = run_filter(
-        visits,
-        RbpfConfig(particles=inf.particles, resample=inf.resample),
-        model.prior,
-        config.model.odometry,
-        appearance=model.appearance,
-        registrar=registrar,
-        seed=inf.seed,
-        progress=progress,
-    )
+    rbpf = RbpfConfig(particles=inf.particles, resample=inf.resample)
+    odometry = config.model.odometry
+    if persistence is None:
+        flt = run_filter(
+            visits,
+            rbpf,
+            model.prior,
+            odometry,
+            appearance=model.appearance,
+            registrar=registrar,
+            seed=inf.seed,
+            progress=progress,
+        )
+        return rbpf_inference(flt, config)
+    if persistence.restored is None:
+        flt = TopologyFilter(
+            rbpf, model.prior, odometry, appearance=model.appearance, registrar=registrar, seed=inf.seed
+        )
+    else:
+        flt = restore_filter(persistence.restored, rbpf, model, odometry, registrar)
+    todo = visits[len(flt.visits) :]
+    items: Iterable[Visit] = todo if progress is None else progress(todo, len(todo))
+    saved_at = len(flt.visits) if persistence.restored is not None else -1
+    for visit in items:
+        flt.update(visit)
+        if persistence.save is not None and len(flt.visits) % persistence.every == 0:
+            persistence.save(flt)
+            saved_at = len(flt.visits)
+    if persistence.save is not None and saved_at != len(flt.visits):
+        persistence.save(flt)
     return rbpf_inference(flt, config)
+
+
+def restore_filter(
+    state: dict[str, Any],
+    rbpf: RbpfConfig,
+    model: PosteriorModel,
+    odometry: OdometryConfig,
+    registrar: Registrar | None,
+) -> TopologyFilter:
+    """A :class:`ptm_ros.rbpf.TopologyFilter` continued from its :meth:`state_dict` with ``model``'s prior
+    and appearance priors (the same objects an uninterrupted run uses).
+
+    Raises:
+        DataError: a malformed state, or one saved with another laser setting.
+    """
+    from ptm_ros.rbpf import TopologyFilter
+
+    try:
+        return TopologyFilter.from_state_dict(
+            state, rbpf, model.prior, odometry, appearance=model.appearance, registrar=registrar
+        )
+    except (KeyError, IndexError, TypeError, ValueError, ModelError) as err:
+        msg = f"cannot restore the filter from the saved state: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
 
 
 def rbpf_inference(flt: Any, config: PtmConfig, **details: Any) -> Inference:
@@ -393,6 +475,132 @@ class RunResult:
     diagnostics: dict[str, Any]
     files: Mapping[str, Path] = field(default_factory=dict)
     trajectory_error: Mapping[str, Any] | None = None
+    resumed_visits: int = 0
+
+
+#: Schema tag of the state :func:`run_offline` saves (inside :mod:`ptm_ros.persistence`'s file).
+RUN_STATE_SCHEMA = "ptm_ros.run_state/1"
+#: ``meta["tool"]`` of that file.
+RUN_STATE_TOOL = "ptm-run"
+
+
+@dataclass(frozen=True)
+class RunCheckpoint:
+    """Saving and resuming :func:`run_offline`'s RBPF (``ptm-run --autosave/--resume``, issue #8).
+
+    Attributes:
+        path: the state file (:func:`ptm_ros.persistence.save_filter_state`, written atomically).
+        every: save after every ``every``-th visit and after the last one; 0: never save.
+        resume: continue from ``path`` when it exists, once :func:`check_run_state` accepts it (else
+            start afresh).
+    """
+
+    path: Path
+    every: int = 0
+    resume: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "path", Path(self.path))
+        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 0:
+            msg = f"RunCheckpoint.every must be an integer >= 0 (visits between saves), got {self.every!r}"
+            raise ConfigError(msg)
+        if self.every == 0 and not self.resume:
+            msg = "RunCheckpoint neither saves (every >= 1) nor resumes: nothing to do"
+            raise ConfigError(msg)
+
+
+def run_state_meta(used: PtmConfig, bag: Path, visits: Sequence[Visit]) -> dict[str, Any]:
+    """What :func:`run_offline`'s state file records about its run: the configuration used (as written
+    to ``config.yaml``), the bag, the number of visits and their fingerprint."""
+    from ptm_ros.persistence import visits_fingerprint
+
+    return {
+        "tool": RUN_STATE_TOOL,
+        "config": to_dict(used),
+        "bag": str(bag),
+        "n_visits": len(visits),
+        "visits_sha256": visits_fingerprint(visits),
+    }
+
+
+def check_state_config(meta: Mapping[str, Any], used: PtmConfig, path: Path) -> None:
+    """Refuse a state file that ``ptm-run`` did not write or wrote with another configuration.
+
+    Raises:
+        DataError: not written by ``ptm-run``.
+        ConfigError: made with another configuration (the differing parameters are named).
+    """
+    from ptm_ros.persistence import differences
+
+    if meta.get("tool") != RUN_STATE_TOOL:
+        writer = meta.get("tool") or meta.get("node") or "an unknown program"
+        msg = f"cannot resume from {path}: written by {writer}, not {RUN_STATE_TOOL}"
+        raise DataError(msg)
+    if not isinstance(meta.get("config"), Mapping):
+        msg = f"cannot resume from {path}: its meta data lack the configuration"
+        raise DataError(msg)
+    diff = differences(meta["config"], to_dict(used))
+    if diff:
+        more = f" and {len(diff) - 5} more" if len(diff) > 5 else ""
+        msg = (
+            f"cannot resume from {path}: it was made with other parameters (differing: "
+            f"{', '.join(diff[:5])}{more}); use the same ones, or start afresh without resuming"
+        )
+        raise ConfigError(msg)
+
+
+def check_run_state(
+    state: Mapping[str, Any], meta: Mapping[str, Any], visits: Sequence[Visit], path: Path
+) -> list[Visit]:
+    """Check that a state belongs to this run: the same number of visits, the same visit fingerprint,
+    and its saved visits equal to the first ones extracted now (extraction is deterministic).
+
+    Returns:
+        The saved visits.
+
+    Raises:
+        DataError: another run's state, or a malformed one.
+    """
+    from ptm_ros.persistence import first_different_visit, visit_from_state, visits_fingerprint
+
+    where = f"cannot resume from {path}"
+    if meta.get("n_visits") != len(visits):
+        msg = (
+            f"{where}: it belongs to a run of {meta.get('n_visits')} landmark visits, this one has "
+            f"{len(visits)} (another bag or detector?)"
+        )
+        raise DataError(msg)
+    if meta.get("visits_sha256") != visits_fingerprint(visits):
+        msg = f"{where}: its visits differ from this bag's (another bag?)"
+        raise DataError(msg)
+    if state.get("schema") != RUN_STATE_SCHEMA:
+        msg = f"{where}: not a {RUN_STATE_TOOL} state (schema {state.get('schema')!r})"
+        raise DataError(msg)
+    try:
+        saved = [visit_from_state(d) for d in state["filter"]["visits"]]
+    except (KeyError, TypeError) as err:
+        msg = f"{where}: malformed state ({type(err).__name__}: {err})"
+        raise DataError(msg) from err
+    k = first_different_visit(saved, visits)
+    if k is not None:
+        msg = f"{where}: its visit {k} differs from this run's"
+        raise DataError(msg)
+    return saved
+
+
+def _load_run_state(
+    checkpoint: RunCheckpoint, log: Callable[[str], None] | None
+) -> tuple[dict[str, Any], dict[str, Any]] | None:
+    """``(state, meta)`` of the checkpoint's file when resuming from an existing one, else None."""
+    from ptm_ros.persistence import load_filter_state
+
+    if not checkpoint.resume:
+        return None
+    if not checkpoint.path.exists():
+        if log is not None:
+            log(f"no state file {checkpoint.path} yet: starting afresh")
+        return None
+    return load_filter_state(checkpoint.path)
 
 
 def find_ground_truth(bag: Path) -> Path | None:
@@ -412,13 +620,27 @@ def run_offline(
     progress: Progress | None = None,
     write_report: bool = True,
     write_map: bool = True,
+    checkpoint: RunCheckpoint | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
-    occupancy map files."""
+    occupancy map files.
+
+    ``checkpoint`` (RBPF only) saves the filter's state along the way and/or resumes from it: the state
+    holds the filter (:meth:`ptm_ros.rbpf.TopologyFilter.state_dict`), the registration cache and the
+    diagnostics so far; its meta data :func:`run_state_meta`. A resumed run extracts the visits again,
+    refuses a state of another run (:func:`check_state_config`, :func:`check_run_state`), fits the models
+    on all visits as an uninterrupted run does, and continues the filter with the visits not yet seen:
+    the same ``ptm.json`` but for the timings. ``log`` receives progress notes (resumed, started afresh).
+    """
     t0 = time.perf_counter()
     bag = Path(bag)
     out = Path(out_dir)
+    if checkpoint is not None and config.inference.method != "rbpf":
+        msg = f"saving and resuming the filter state needs method rbpf, not {config.inference.method!r}"
+        raise ConfigError(msg)
+    saved = _load_run_state(checkpoint, log) if checkpoint is not None else None
     topics = config.topics
     run = read_run(
         bag,
@@ -429,15 +651,25 @@ def run_offline(
     )
     gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
+    sensors = run_sensors(run)
+    used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
+    if saved is not None and checkpoint is not None:
+        check_state_config(saved[1], used, checkpoint.path)
     diag: dict[str, Any] = {}
     extractor = run_extractor(run, config)
     visits = detect_visits(run, config, diag, extractor=extractor)
-    registrar = cached(make_registrar(visits, config, diag)) if config.model.use_laser else None
-    result = infer(visits, config, registrar=registrar, progress=progress)
+    memo: dict[tuple[int, int], Any] = {}
+    persistence, resumed = None, 0
+    if checkpoint is not None:
+        persistence, resumed = _run_persistence(
+            checkpoint, saved, used=used, bag=bag, visits=visits, memo=memo, diag=diag
+        )
+        if resumed and log is not None:
+            log(f"resumed from {checkpoint.path}: {resumed} of {len(visits)} visits already filtered")
+    registrar = cached(make_registrar(visits, config, diag), memo) if config.model.use_laser else None
+    result = infer(visits, config, registrar=registrar, progress=progress, persistence=persistence)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
-    sensors = run_sensors(run)
-    used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
     ptm = build_ptm(
         visits,
         result,
@@ -471,6 +703,8 @@ def run_offline(
     files["ptm"] = ptm_path
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
     files["route_graph"] = write_route_graph(ptm, out / OUTPUT_FILES["route_graph"])
+    if checkpoint is not None and checkpoint.every:
+        files["state"] = checkpoint.path
     score = score_against(ptm, truth) if truth is not None else None
     report = None
     if write_report:
@@ -494,7 +728,56 @@ def run_offline(
         diagnostics=diag,
         files=files,
         trajectory_error=extra.get(TRAJECTORY_ERROR_KEY),
+        resumed_visits=resumed,
     )
+
+
+def _run_persistence(
+    checkpoint: RunCheckpoint,
+    saved: tuple[dict[str, Any], dict[str, Any]] | None,
+    *,
+    used: PtmConfig,
+    bag: Path,
+    visits: Sequence[Visit],
+    memo: dict[tuple[int, int], Any],
+    diag: dict[str, Any],
+) -> tuple[FilterPersistence, int]:
+    """The RBPF's :class:`FilterPersistence` for a checkpoint, and the number of visits restored.
+
+    A saved state (checked against this run) refills the registration cache ``memo`` and the
+    diagnostics its registrations counted into ``diag``; saving writes the filter, ``memo`` and ``diag``.
+    """
+    from ptm_ros.persistence import registrations_from_state, registrations_to_state, save_filter_state
+
+    restored = None
+    if saved is not None:
+        state, meta = saved
+        restored_visits = check_run_state(state, meta, visits, checkpoint.path)
+        try:
+            memo.update(registrations_from_state(state["pairs"]))
+            for key, value in state["diagnostics"].items():
+                diag.setdefault(key, value)  # the registration counters; detection's are recomputed
+        except (KeyError, TypeError, AttributeError) as err:
+            msg = f"cannot resume from {checkpoint.path}: malformed state ({type(err).__name__}: {err})"
+            raise DataError(msg) from err
+        restored = state["filter"]
+        resumed = len(restored_visits)
+    else:
+        resumed = 0
+    meta = run_state_meta(used, bag, visits)
+
+    def save(flt: TopologyFilter) -> None:
+        state = {
+            "schema": RUN_STATE_SCHEMA,
+            "filter": flt.state_dict(),
+            "pairs": registrations_to_state(memo),
+            "diagnostics": dict(diag),
+        }
+        checkpoint.path.parent.mkdir(parents=True, exist_ok=True)
+        save_filter_state(checkpoint.path, state, meta=meta)
+
+    every = checkpoint.every
+    return FilterPersistence(restored=restored, save=save if every else None, every=max(every, 1)), resumed
 
 
 def surprise_trace(detector: Any) -> Any | None:
@@ -597,9 +880,10 @@ def write_route_graph(ptm: Ptm, path: Path) -> Path:
     return save_route_graph(route_graph(ptm), path)
 
 
-def cached(registrar: Registrar) -> Registrar:
-    """A registrar that registers each pair once (shared by the estimator and the smoothing)."""
-    memo: dict[tuple[int, int], Any] = {}
+def cached(registrar: Registrar, memo: dict[tuple[int, int], Any] | None = None) -> Registrar:
+    """A registrar that registers each pair once (shared by the estimator and the smoothing); ``memo``
+    (optional) is the cache itself, pre-filled or read by the caller (``ptm-run``'s state file)."""
+    memo = {} if memo is None else memo
 
     def reg(i: int, j: int) -> Any:
         if (i, j) not in memo:

@@ -7,6 +7,12 @@ Writes ``DIR/ptm.json`` (CONTRACT.md schema), ``DIR/config.yaml`` (the parameter
 Prints the most probable topologies and, when the bag carries a ground truth (``BAG/ground_truth.json``)
 or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
 trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``).
+
+Persistence (``--method rbpf``, issue #8): ``--autosave N`` writes the filter's state every N visits and
+after the last one to ``DIR/filter_state.npz`` (``--state-file`` elsewhere; atomic writes, checksummed);
+``--resume`` continues from that file when it exists — after checking it was made with the same
+parameters on the same visits, else exit code 2 and a one-line reason — and writes the same ``ptm.json``
+as an uninterrupted run (timings aside); without the file it starts afresh.
 """
 
 from __future__ import annotations
@@ -15,12 +21,22 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ptm_ros.tools.pipeline import RunCheckpoint
 
 PROG = "ptm-run"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description="Compute a probabilistic topological map from a bag.")
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Compute a probabilistic topological map from a bag.",
+        epilog="A run saved with --autosave N and stopped (killed, crashed) continues with the same "
+        "command plus --resume, and writes the same ptm.json as an uninterrupted run (timings aside). "
+        "A state file made with other parameters, on another bag, or damaged is refused (exit code 2).",
+    )
     p.add_argument("bag", type=Path, help="rosbag2 directory with /odom (and /scan, /panorama)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--method", choices=("rbpf", "mcmc", "exact"), default=None, help="estimator")
@@ -38,6 +54,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-report", action="store_true", help="skip the figures and report")
     p.add_argument("--no-map", action="store_true", help="skip the occupancy map (map.pgm/.yaml/.png)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--autosave",
+        type=int,
+        default=None,
+        metavar="N",
+        help="rbpf: save the filter state every N visits and at the end (to DIR/filter_state.npz)",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="rbpf: continue from the saved state if it exists (it must come from the same bag and "
+        "parameters: else an error); without one, start afresh",
+    )
+    p.add_argument(
+        "--state-file",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="the state file of --autosave/--resume (default DIR/filter_state.npz)",
+    )
     return p
 
 
@@ -53,6 +89,27 @@ def _overrides(args: argparse.Namespace) -> dict:
     if args.detector is not None:
         out["detector"] = {"kind": args.detector}
     return out
+
+
+def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
+    """The :class:`~ptm_ros.tools.pipeline.RunCheckpoint` of ``--autosave/--resume/--state-file``, or None.
+
+    Raises:
+        ConfigError: ``--autosave`` below 1, or ``--state-file`` without ``--autosave``/``--resume``.
+    """
+    from ptm_ros.errors import ConfigError
+    from ptm_ros.tools.pipeline import OUTPUT_FILES, RunCheckpoint
+
+    if args.autosave is not None and args.autosave < 1:
+        msg = f"--autosave N needs N >= 1 (visits between saves), got {args.autosave}"
+        raise ConfigError(msg)
+    if args.autosave is None and not args.resume:
+        if args.state_file is not None:
+            msg = "--state-file needs --autosave N or --resume"
+            raise ConfigError(msg)
+        return None
+    path = args.state_file if args.state_file is not None else args.out / OUTPUT_FILES["state"]
+    return RunCheckpoint(path, every=args.autosave or 0, resume=args.resume)
 
 
 def _progress(quiet: bool):
@@ -104,11 +161,17 @@ def format_summary(result, top: int) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from ptm_ros.config import load_config
-    from ptm_ros.errors import PtmError
+    from ptm_ros.errors import ConfigError, PtmError
     from ptm_ros.tools.pipeline import run_offline
 
     try:
         config = load_config(args.params, _overrides(args))
+        checkpoint = checkpoint_of(args)
+        if checkpoint is not None and config.inference.method != "rbpf":
+            msg = (
+                f"--autosave/--resume need --method rbpf (the particle filter), not {config.inference.method}"
+            )
+            raise ConfigError(msg)
         result = run_offline(
             args.bag,
             args.out,
@@ -117,6 +180,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             progress=_progress(args.quiet),
             write_report=not args.no_report,
             write_map=not args.no_map,
+            checkpoint=checkpoint,
+            log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
         )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
