@@ -43,6 +43,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -89,6 +90,7 @@ _MAX_STEP_CORRECTION = (0.5, 0.2)  # (m, rad): larger ICP corrections of one odo
 _NORMAL_NEIGHBOURS = 16  # target points in the PCA of a normal
 _MAX_CURVATURE = 0.05  # eigenvalue ratio above which a neighbourhood has no normal (corner, clutter)
 _STEP_PRIOR_STD = np.array([0.1, 0.1, 0.05])  # m, m, rad: trust in kiss-icp along unseen directions
+_PREPARED_PATCHES = 512  # patches patch_registrar keeps prepared (least recently used dropped)
 _GN_ITERATIONS = 30  # point-to-plane Gauss–Newton iterations after kiss-icp
 _MIN_RESIDUAL_VARIANCE = 1e-12  # m², keeps the information finite on noise-free data
 
@@ -292,7 +294,13 @@ def voxel_downsample(points: ArrayLike, voxel: float) -> FloatArray:
     if len(pts) == 0:
         return pts
     cells = np.floor(pts / voxel).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    lo, hi = cells.min(axis=0), cells.max(axis=0)
+    cols, rows = int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
+    if cols * rows < 2**62:  # one integer key per cell, ordered like (cx, cy): a fast 1-D sort
+        key = (cells[:, 0] - lo[0]) * rows + (cells[:, 1] - lo[1])
+        _, first = np.unique(key, return_index=True)
+    else:  # astronomically spread points: sort the cell pairs themselves
+        _, first = np.unique(cells, axis=0, return_index=True)
     return pts[first]
 
 
@@ -523,7 +531,8 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
     aligned = _align(icp, src, voxel_map, guess, distance)
     if aligned is None or not refine:
         return aligned
-    overlap = _Overlap(pts, map_points, 0.5 * voxel, cfg.inlier_distance, target)
+    surface = _Target(map_points, 0.5 * voxel) if target is None else target
+    overlap = _Overlap(_Target(pts, 0.5 * voxel), surface, cfg.inlier_distance)
     aligned, _ = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
     return aligned
 
@@ -788,43 +797,40 @@ def register_patches(
     src = _as_points(source, "source")
     tgt = _as_points(target, "target")
     guess = _as_pose(initial, "initial")
-    fine_voxel = cfg.voxel
-    coarse_voxel = 2.0 * cfg.voxel
-    src_eval = voxel_downsample(src, 0.5 * fine_voxel)
-    src_fine = voxel_downsample(src, fine_voxel)
-    src_coarse = voxel_downsample(src, coarse_voxel)
-    tgt_count = len(voxel_downsample(tgt, 0.5 * fine_voxel))
-    if min(len(src_eval), tgt_count) < cfg.min_points:
+    return _register(_PreparedPatch(src, cfg), _PreparedPatch(tgt, cfg), guess, cfg)
+
+
+def _register(
+    source: _PreparedPatch, target: _PreparedPatch, guess: FloatArray, cfg: LaserConfig
+) -> Registration:
+    """:func:`register_patches` of two patches prepared with ``cfg`` (:class:`_PreparedPatch`)."""
+    n_src, n_tgt = len(source.surface.eval), len(target.surface.eval)
+    if min(n_src, n_tgt) < cfg.min_points:
         msg = (
-            f"patches too small to register: source {len(src_eval)}, target {tgt_count} points after "
-            f"{0.5 * fine_voxel:.3g} m downsampling (need {cfg.min_points})"
+            f"patches too small to register: source {n_src}, target {n_tgt} points after "
+            f"{0.5 * cfg.voxel:.3g} m downsampling (need {cfg.min_points})"
         )
         raise RegistrationError(msg)
 
-    from kiss_icp.mapping import VoxelHashMap
     from kiss_icp.registration import Registration as KissRegistration
 
-    tgt3 = _lift(tgt)
-    extent = cfg.max_range + cfg.patch_radius  # only points added with update() are culled by it
-    fine_map = VoxelHashMap(voxel_size=fine_voxel, max_distance=extent, max_points_per_voxel=20)
-    fine_map.add_points(tgt3)
-    coarse_map = VoxelHashMap(voxel_size=coarse_voxel, max_distance=extent, max_points_per_voxel=20)
-    coarse_map.add_points(tgt3)
+    fine_map, coarse_map = target.voxel_maps()
     icp = KissRegistration(
         max_num_iterations=cfg.max_iterations, convergence_criterion=1e-4, max_num_threads=1
     )
-    overlap = _Overlap(src, tgt, 0.5 * fine_voxel, cfg.inlier_distance)
-
-    fits = []
+    coarse_distance = 3.0 * (2.0 * cfg.voxel)
+    poses = []
     for k in range(cfg.n_rotations):
         pose = compose(guess, np.array([0.0, 0.0, 2.0 * np.pi * k / cfg.n_rotations]))
-        pose = _align(icp, src_coarse, coarse_map, pose, 3.0 * coarse_voxel)
-        pose = _align(icp, src_fine, fine_map, pose, cfg.correspondence_distance)
+        pose = _align(icp, source.coarse, coarse_map, pose, coarse_distance)
+        pose = _align(icp, source.fine, fine_map, pose, cfg.correspondence_distance)
         if pose is not None:
-            fits.append(overlap(pose))
-    if not fits:
+            poses.append(pose)
+    if not poses:
         msg = "ICP diverged from every initial heading"
         raise RegistrationError(msg)
+    overlap = _Overlap(source.surface, target.surface, cfg.inlier_distance)
+    fits = overlap.fits(poses)
     fits.sort(key=lambda f: (-f.fraction, f.rmse if f.n_inliers else math.inf))
     prior_std = np.array([cfg.patch_radius, cfg.patch_radius, np.pi])
     refined, cov = _point_to_plane(fits[0].pose, overlap, cfg, prior_std)
@@ -839,7 +845,7 @@ def register_patches(
         target_fraction=best.target_fraction,
         rmse=best.rmse,
         n_inliers=best.n_inliers,
-        n_points=len(overlap.src_eval),
+        n_points=n_src,
         valid=not reason,
         reason=reason,
         candidates=tuple((float(f.pose[0]), float(f.pose[1]), float(f.pose[2]), f.fraction) for f in fits),
@@ -862,68 +868,140 @@ class _Fit:
 
 
 class _Target:
-    """A target point set with its KD-tree, evaluation points and lazily computed normals (reusable by
-    every alignment onto it)."""
+    """A point set with its evaluation points (downsampled at ``voxel``), KD-tree and normals, each
+    computed once on first use (reusable by every alignment onto it)."""
 
     def __init__(self, tgt: FloatArray, voxel: float) -> None:
         self.pts = tgt
-        self.eval = voxel_downsample(tgt, voxel)
-        self.tree = cKDTree(tgt)
+        self.voxel = voxel
         self._normals = np.full((len(tgt), 2), np.nan)
         self._flat = np.zeros(len(tgt), dtype=bool)
 
+    @cached_property
+    def eval(self) -> FloatArray:
+        """The points downsampled at ``voxel`` (where fitness is evaluated)."""
+        return voxel_downsample(self.pts, self.voxel)
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """KD-tree of all the points."""
+        return cKDTree(self.pts)
+
     def normals_at(self, idx: np.ndarray) -> tuple[FloatArray, np.ndarray]:
-        """Normals of target points ``idx`` and whether each is line-like (computed once, on demand)."""
-        todo = np.unique(idx[np.isnan(self._normals[idx, 0])])
-        if len(todo):
+        """Normals of points ``idx`` and whether each is line-like (computed once, on demand)."""
+        missing = idx[np.isnan(self._normals[idx, 0])]
+        if len(missing):
+            todo = np.zeros(len(self.pts), dtype=bool)
+            todo[missing] = True
+            todo = np.flatnonzero(todo)  # sorted and unique
             self._normals[todo], self._flat[todo] = _normals(self.pts, self.tree, todo)
         return self._normals[idx], self._flat[idx]
+
+
+class _PreparedPatch:
+    """A patch prepared once for any number of registrations (:func:`_register`), as source or target:
+    its :class:`_Target` at half the fine voxel (fitness points, KD-tree, normals), its points at the
+    fine and the coarse ICP voxel, and, on first use as a target, its kiss-icp voxel maps."""
+
+    def __init__(self, points: FloatArray, cfg: LaserConfig) -> None:
+        self.surface = _Target(points, 0.5 * cfg.voxel)
+        self.fine = voxel_downsample(points, cfg.voxel)
+        self.coarse = voxel_downsample(points, 2.0 * cfg.voxel)
+        self._voxel = cfg.voxel
+        self._extent = cfg.max_range + cfg.patch_radius  # only points added with update() are culled by it
+        self._maps: tuple[object, object] | None = None
+
+    def voxel_maps(self) -> tuple[object, object]:
+        """kiss-icp voxel maps of all the patch's points at the fine and at the coarse voxel."""
+        if self._maps is None:
+            from kiss_icp.mapping import VoxelHashMap
+
+            pts = _lift(self.surface.pts)
+            fine = VoxelHashMap(voxel_size=self._voxel, max_distance=self._extent, max_points_per_voxel=20)
+            fine.add_points(pts)
+            coarse = VoxelHashMap(
+                voxel_size=2.0 * self._voxel, max_distance=self._extent, max_points_per_voxel=20
+            )
+            coarse.add_points(pts)
+            self._maps = (fine, coarse)
+        return self._maps
 
 
 class _Overlap:
     """Inlier test of two patches under a relative pose, both ways (source → target, target → source).
 
-    Evaluation points are the patches downsampled at ``voxel``; distances are to the full patches.
+    Evaluation points are each side's :attr:`_Target.eval`; distances are to the other side's full
+    points. KD-tree searches are pruned just beyond ``inlier_distance`` (farther points are outliers
+    whatever their distance), which leaves every inlier's distance and neighbour unchanged.
     """
 
-    def __init__(
-        self,
-        src: FloatArray,
-        tgt: FloatArray,
-        voxel: float,
-        inlier_distance: float,
-        target: _Target | None = None,
-    ) -> None:
-        self.target = _Target(tgt, voxel) if target is None else target
-        self.tgt = self.target.pts
-        self.tgt_eval = self.target.eval
-        self.tgt_tree = self.target.tree
-        self.src = src
-        self.src_eval = voxel_downsample(src, voxel)
+    def __init__(self, source: _Target, target: _Target, inlier_distance: float) -> None:
+        self.source = source
+        self.target = target
         self.inlier_distance = inlier_distance
-        self._src_tree: cKDTree | None = None
+        self._bound = inlier_distance * (1.0 + 1e-9)
 
     @property
-    def src_tree(self) -> cKDTree:
-        if self._src_tree is None:
-            self._src_tree = cKDTree(self.src)
-        return self._src_tree
+    def src_eval(self) -> FloatArray:
+        return self.source.eval
+
+    @property
+    def tgt(self) -> FloatArray:
+        return self.target.pts
 
     def normals_at(self, idx: np.ndarray) -> tuple[FloatArray, np.ndarray]:
         """Normals of target points ``idx`` and whether each is line-like."""
         return self.target.normals_at(idx)
 
+    def near_target(self, pts: FloatArray) -> tuple[FloatArray, np.ndarray]:
+        """Distance and index of the nearest target point of each of ``pts`` (exact within
+        ``inlier_distance``; beyond it the distance may be ``inf`` and the index ``len(target)``)."""
+        return self.target.tree.query(pts, distance_upper_bound=self._bound)
+
+    def _source_distances(self, poses: Sequence[FloatArray]) -> FloatArray:
+        """``(K, N)``: distances of the source evaluation points placed at each pose to the target."""
+        src = self.source.eval
+        d, _ = self.near_target(np.vstack([transform_points(p, src) for p in poses]))
+        return d.reshape(len(poses), len(src))
+
+    def _target_distances(self, poses: Sequence[FloatArray]) -> FloatArray:
+        """``(K, M)``: distances of the target evaluation points to the source placed at each pose."""
+        tgt = self.target.eval
+        moved = np.vstack([transform_points(inverse(p), tgt) for p in poses])
+        d, _ = self.source.tree.query(moved, distance_upper_bound=self._bound)
+        return d.reshape(len(poses), len(tgt))
+
     def __call__(self, pose: FloatArray) -> _Fit:
-        d_src, _ = self.tgt_tree.query(transform_points(pose, self.src_eval))
-        d_tgt, _ = self.src_tree.query(transform_points(inverse(pose), self.tgt_eval))
-        inl = d_src <= self.inlier_distance
-        return _Fit(
-            pose=pose,
-            source_fraction=float(inl.mean()),
-            target_fraction=float(np.mean(d_tgt <= self.inlier_distance)),
-            n_inliers=int(inl.sum()),
-            rmse=float(np.sqrt(np.mean(d_src[inl] ** 2))) if inl.any() else math.nan,
-        )
+        return self.fits([pose])[0]
+
+    def fits(self, poses: Sequence[FloatArray]) -> list[_Fit]:
+        """The fit of each pose (two KD-tree queries for all of them)."""
+        d_src = self._source_distances(poses)
+        d_tgt = self._target_distances(poses)
+        out = []
+        for pose, ds, dt in zip(poses, d_src, d_tgt, strict=True):
+            inl = ds <= self.inlier_distance
+            out.append(
+                _Fit(
+                    pose=pose,
+                    source_fraction=float(inl.mean()),
+                    target_fraction=float(np.mean(dt <= self.inlier_distance)),
+                    n_inliers=int(inl.sum()),
+                    rmse=float(np.sqrt(np.mean(ds[inl] ** 2))) if inl.any() else math.nan,
+                )
+            )
+        return out
+
+    def best_fraction(self, poses: Sequence[FloatArray]) -> float:
+        """``max(self(p).fraction for p in poses)``; a pose's target side is evaluated only when its
+        source fraction (an upper bound of its symmetric fraction) exceeds the maximum so far."""
+        source = np.mean(self._source_distances(poses) <= self.inlier_distance, axis=1)
+        best = -math.inf
+        for pose, s in zip(poses, source, strict=True):
+            if s > best:
+                t = float(np.mean(self._target_distances([pose])[0] <= self.inlier_distance))
+                best = max(best, min(float(s), t))
+        return best
 
 
 def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -> str:
@@ -939,7 +1017,7 @@ def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -
     angles = np.arange(8) * (np.pi / 4.0)
     shifts = [best.pose + cfg.distinct_xy * np.array([np.cos(a), np.sin(a), 0.0]) for a in angles]
     turns = [compose(best.pose, np.array([0.0, 0.0, s * cfg.distinct_yaw])) for s in (-1.0, 1.0)]
-    nearby = max(overlap(p).fraction for p in shifts + turns)
+    nearby = overlap.best_fraction(shifts + turns)
     if best.fraction - nearby < cfg.min_peak_drop:
         return (
             f"flat optimum: moving {cfg.distinct_xy} m or turning {cfg.distinct_yaw} rad keeps inlier "
@@ -1118,20 +1196,28 @@ def _point_to_plane(
     ``σ² = Σ e_k² / (N − 3)``. If the refinement wanders farther than ``distinct_xy``/``distinct_yaw``
     the ICP pose is kept.
     """
-    src, tgt, tree = overlap.src_eval, overlap.tgt, overlap.tgt_tree
+    src, tgt = overlap.src_eval, overlap.tgt
     prior = np.diag(np.asarray(prior_std, dtype=float) ** -2)
     centre = pose if prior_mean is None else np.asarray(prior_mean, dtype=float)
     current = pose.copy()
     info = prior
-    for _ in range(_GN_ITERATIONS):
+    seen: dict[bytes, int] = {}  # pose entering each iteration -> the first iteration it entered
+    done: list[tuple[FloatArray, FloatArray]] = []  # (information, pose) after each iteration
+    for it in range(_GN_ITERATIONS):
+        start = seen.setdefault(current.tobytes(), it)
+        if start < it:
+            # An iteration is a function of the pose alone, and none since ``start`` met the stopping
+            # test: the iterations repeat with period it - start. Take the last one's result directly.
+            info, current = done[start + (_GN_ITERATIONS - 1 - start) % (it - start)]
+            break
         moved = transform_points(current, src)
-        dist, idx = tree.query(moved)
-        close = dist <= cfg.inlier_distance
+        dist, idx = overlap.near_target(moved)
+        close = np.flatnonzero(dist <= cfg.inlier_distance)
         n, flat = overlap.normals_at(idx[close])
-        inl = np.flatnonzero(close)[flat]
+        inl = close[flat]
         n = n[flat]
         if len(inl) <= 3:
-            return pose, cho_solve(cho_factor(prior), np.eye(3))
+            return pose, _spd_inverse(prior)
         q = moved[inl]
         e = np.einsum("ij,ij->i", n, q - tgt[idx[inl]])
         arm = q - current[:2]
@@ -1140,16 +1226,24 @@ def _point_to_plane(
         info = prior + g.T @ g / sigma2
         offset = current - centre
         offset[2] = wrap_angle(offset[2])
-        step = -cho_solve(cho_factor(info), g.T @ e / sigma2 + prior @ offset)
+        step = -cho_solve(
+            cho_factor(info, check_finite=False), g.T @ e / sigma2 + prior @ offset, check_finite=False
+        )
         current = np.array(
             [current[0] + step[0], current[1] + step[1], float(wrap_angle(current[2] + step[2]))]
         )
+        done.append((info, current))
         if np.max(np.abs(step)) < 1e-7:
             break
     if _moved(pose, current, cfg.distinct_xy, cfg.distinct_yaw):
         current = pose
-    cov = cho_solve(cho_factor(info), np.eye(3))
+    cov = _spd_inverse(info)
     return current, 0.5 * (cov + cov.T)
+
+
+def _spd_inverse(matrix: FloatArray) -> FloatArray:
+    """Inverse of a symmetric positive-definite matrix (Cholesky)."""
+    return cho_solve(cho_factor(matrix, check_finite=False), np.eye(len(matrix)), check_finite=False)
 
 
 def _normals(
@@ -1187,15 +1281,31 @@ def patch_registrar(
     odometry-based guess meaningless). The outcome is :func:`laser_outcome`'s; None when a patch is
     missing or too small to register. ``counters`` (optional) accumulates ``registrations`` and
     ``registrations_valid``.
+
+    ``visits`` may grow between calls. Each patch is prepared for registration (downsampled, its KD-tree,
+    normals and voxel maps built) once and kept for the :data:`_PREPARED_PATCHES` most recently used
+    visits; a visit whose patch object changed is prepared afresh. The outcomes equal
+    :func:`register_patches`'.
     """
     cfg = LaserConfig() if config is None else config
+    prepared: dict[int, tuple[FloatArray, _PreparedPatch]] = {}
+
+    def prepare(k: int, patch: FloatArray, role: str) -> _PreparedPatch:
+        hit = prepared.pop(k, None)
+        if hit is None or hit[0] is not patch:
+            hit = (patch, _PreparedPatch(_as_points(patch, role), cfg))
+        prepared[k] = hit  # most recently used last
+        while len(prepared) > _PREPARED_PATCHES:
+            del prepared[next(iter(prepared))]
+        return hit[1]
 
     def registrar(i: int, j: int) -> RelativePose | NoMatch | None:
         a, b = visits[i].patch, visits[j].patch
         if a is None or b is None:
             return None
+        source, target = prepare(j, b, "source"), prepare(i, a, "target")
         try:
-            reg = register_patches(b, a, _IDENTITY, cfg)
+            reg = _register(source, target, _IDENTITY, cfg)
         except RegistrationError:
             return None
         if counters is not None:

@@ -179,6 +179,16 @@ def test_voxel_downsample_matches_brute_force_and_is_incremental():
         voxel_downsample(a, 0.0)
 
 
+def test_voxel_downsample_far_and_spread_out_points_match_brute_force():
+    """Negative, far-away and astronomically spread coordinates (the sort falls back from one integer
+    key per cell to the cell pairs) give the brute-force result too."""
+    rng = np.random.default_rng(4)
+    far = rng.uniform(-3.0, 3.0, (500, 2)) + np.array([-1e6, 2e6])
+    spread = np.vstack([rng.uniform(-1.0, 1.0, (50, 2)), [[1e15, -1e15], [-1e15, 1e15], [0.01, 0.02]]])
+    for pts, voxel in ((far, 0.25), (spread, 0.3), (spread, 1e-3)):
+        np.testing.assert_array_equal(voxel_downsample(pts, voxel), brute_downsample(pts, voxel))
+
+
 def test_build_patch_points_lie_on_walls_in_visit_frame():
     rng = np.random.default_rng(0)
     sigma, voxel, radius = 0.01, 0.05, 2.0
@@ -414,6 +424,197 @@ def test_corridor_is_a_flat_optimum():
     reg = register_patches(source, target)
     assert not reg.valid
     assert reg.reason.startswith("flat optimum")
+
+
+def brute_fit(source, target, pose, cfg):
+    """Fitness of one pose by brute force over all point distances: (source fraction, target fraction,
+    source inliers, rmse), as documented for :class:`ptm_ros.laser.Registration`."""
+    from scipy.spatial.distance import cdist
+
+    src = voxel_downsample(source, 0.5 * cfg.voxel)
+    tgt = voxel_downsample(target, 0.5 * cfg.voxel)
+    d_src = cdist(transform_points(pose, src), target).min(axis=1)
+    d_tgt = cdist(transform_points(inverse(pose), tgt), source).min(axis=1)
+    inl = d_src <= cfg.inlier_distance
+    rmse = math.sqrt(np.mean(d_src[inl] ** 2)) if inl.any() else math.nan
+    return inl.mean(), np.mean(d_tgt <= cfg.inlier_distance), int(inl.sum()), rmse
+
+
+def brute_peak(source, target, pose, cfg):
+    """Best symmetric fraction after moving ``pose`` by ``distinct_xy`` in 8 directions or turning it by
+    ``±distinct_yaw`` (the sharpness test), by brute force."""
+    moves = [pose + cfg.distinct_xy * np.array([np.cos(a), np.sin(a), 0.0]) for a in np.arange(8) * np.pi / 4]
+    moves += [compose(pose, [0.0, 0.0, s * cfg.distinct_yaw]) for s in (-1.0, 1.0)]
+    return max(min(brute_fit(source, target, m, cfg)[:2]) for m in moves)
+
+
+@pytest.mark.parametrize("world", ["room", "rectangle", "corridor", "unrelated"])
+def test_registration_fitness_and_decision_match_brute_force(world):
+    """The pruned KD-tree searches and the lazy sharpness test of the registration give what exhaustive
+    distances give: the reported fitness of the solution and of every heading's candidate, the sharpness
+    decision (and the fraction a flat optimum reports), and an ambiguous match really has a distinct
+    candidate within the margin."""
+    cfg = LaserConfig()
+    rng = np.random.default_rng(21)
+    segments, pose, other = {
+        "room": (ROOM, TRUE, None),
+        "rectangle": (RECTANGLE, TRUE, None),
+        "corridor": (CORRIDOR, np.zeros(3), None),
+        "unrelated": (ROOM, TRUE, JUNCTION),
+    }[world]
+    source, target = patch_pair(segments, pose, rng, source_segments=other)
+    reg = register_patches(source, target, (0.0, 0.0, 0.0), cfg)
+    src_frac, tgt_frac, n_inliers, rmse = brute_fit(source, target, reg.mean, cfg)
+    assert (reg.source_fraction, reg.target_fraction, reg.n_inliers) == (src_frac, tgt_frac, n_inliers)
+    assert reg.inlier_fraction == min(src_frac, tgt_frac)
+    assert math.isclose(reg.rmse, rmse, rel_tol=1e-9)
+    assert reg.n_points == len(voxel_downsample(source, 0.5 * cfg.voxel))
+    assert len(reg.candidates) == cfg.n_rotations
+    np.testing.assert_array_equal(reg.candidates[0][:3], reg.mean)
+    for x, y, yaw, fraction in reg.candidates[1:]:
+        assert fraction == min(brute_fit(source, target, np.array([x, y, yaw]), cfg)[:2])
+    fractions = [c[3] for c in reg.candidates]
+    assert fractions[1:] == sorted(fractions[1:], reverse=True)
+    if reg.inlier_fraction < cfg.min_inlier_fraction:
+        assert not reg.valid and reg.reason.startswith("inlier fraction")
+        assert world == "unrelated"
+        return
+    nearby = brute_peak(source, target, reg.mean, cfg)
+    flat = reg.inlier_fraction - nearby < cfg.min_peak_drop
+    assert flat == reg.reason.startswith("flat optimum") == (world == "corridor")
+    if flat:
+        assert f"keeps inlier fraction {nearby:.3f} of {reg.inlier_fraction:.3f}" in reg.reason
+    distinct = [
+        c[3] >= reg.inlier_fraction - cfg.ambiguity_margin
+        and (
+            math.hypot(*between(reg.mean, c[:3])[:2]) >= cfg.distinct_xy
+            or abs(between(reg.mean, c[:3])[2]) >= cfg.distinct_yaw
+        )
+        for c in reg.candidates[1:]
+    ]
+    assert (not flat and any(distinct)) == reg.reason.startswith("ambiguous") == (world == "rectangle")
+    assert reg.valid == (world == "room")
+
+
+def plain_gauss_newton(start, source, target, cfg, prior_std):
+    """The point-to-plane Gauss–Newton polish as documented, iteration by iteration (full KD-tree
+    searches, every iteration computed, normals computed afresh): (pose, covariance, poses visited)."""
+    from scipy.linalg import cho_factor, cho_solve
+    from scipy.spatial import cKDTree
+
+    from ptm_ros.laser import _normals
+
+    src, tree = voxel_downsample(source, 0.5 * cfg.voxel), cKDTree(target)
+    prior = np.diag(prior_std**-2.0)
+    current, info, visited = start.copy(), prior, []
+    for _ in range(30):
+        visited.append(current.tobytes())
+        moved = transform_points(current, src)
+        dist, idx = tree.query(moved)
+        close = np.flatnonzero(dist <= cfg.inlier_distance)
+        which = np.unique(idx[close])
+        normals, flat = _normals(target, tree, which)
+        at = np.searchsorted(which, idx[close])
+        inl, n = close[flat[at]], normals[at][flat[at]]
+        assert len(inl) > 3
+        q = moved[inl]
+        e = np.einsum("ij,ij->i", n, q - target[idx[inl]])
+        arm = q - current[:2]
+        g = np.column_stack([n, arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]])
+        sigma2 = max(float(e @ e) / (len(e) - 3), 1e-12)
+        info = prior + g.T @ g / sigma2
+        offset = current - start
+        offset[2] = wrap_angle(offset[2])
+        step = -cho_solve(cho_factor(info), g.T @ e / sigma2 + prior @ offset)
+        current = np.array(
+            [current[0] + step[0], current[1] + step[1], float(wrap_angle(current[2] + step[2]))]
+        )
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    between_ = between(start, current)
+    if math.hypot(between_[0], between_[1]) >= cfg.distinct_xy or abs(between_[2]) >= cfg.distinct_yaw:
+        current = start
+    cov = cho_solve(cho_factor(info), np.eye(3))
+    return current, 0.5 * (cov + cov.T), visited
+
+
+@pytest.mark.parametrize(
+    ("world", "seed", "spread"),
+    [("junction", 0, 0.05), ("junction", 10, 0.05), ("corridor", 10, 0.2), ("room", 3, 0.2)],
+)
+def test_point_to_plane_equals_the_plain_iteration(world, seed, spread):
+    """The polish (pruned searches, cached normals, a pose that repeats ends the loop with the result the
+    cycle reaches at the last iteration) is bit for bit the plain iteration, on cases that converge
+    and cases that cycle until the iteration limit (junction seed 10, corridor)."""
+    from ptm_ros.laser import _Overlap, _point_to_plane, _Target
+
+    cfg = LaserConfig()
+    segments = {"junction": JUNCTION, "corridor": CORRIDOR, "room": ROOM}[world]
+    rng = np.random.default_rng(seed)
+    source, target = patch_pair(segments, TRUE, rng, sigma=0.03)
+    start = TRUE + rng.normal(0.0, [spread, spread, spread / 2])
+    prior_std = np.array([3.0, 3.0, np.pi])
+    want, want_cov, visited = plain_gauss_newton(start, source, target, cfg, prior_std)
+    cycles = len(set(visited)) < len(visited)
+    assert cycles == (seed == 10)  # both kinds are exercised
+    overlap = _Overlap(
+        _Target(source, 0.5 * cfg.voxel), _Target(target, 0.5 * cfg.voxel), cfg.inlier_distance
+    )
+    got, got_cov = _point_to_plane(start, overlap, cfg, prior_std)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got_cov, want_cov)
+
+
+def test_patch_registrar_prepares_each_patch_once_and_equals_register_patches(monkeypatch):
+    """The registrar keeps every visit's patch prepared across pairs and roles (source of one pair,
+    target of another); its outcomes equal fresh :func:`register_patches` calls, also after the prepared
+    patches are evicted (a cache of 2) and when a visit's patch object is replaced."""
+    from dataclasses import replace as dc_replace
+
+    import ptm_ros.laser as laser
+    from ptm_ros.geometry import NoMatch
+    from ptm_ros.laser import laser_outcome, patch_registrar
+    from ptm_ros.visits import Visit
+
+    rng = np.random.default_rng(22)
+    cfg = LaserConfig()
+    room_a, room_b = patch_pair(ROOM, TRUE, rng)
+    rect, _ = patch_pair(RECTANGLE, TRUE, rng)
+    corridor, _ = patch_pair(CORRIDOR, np.zeros(3), rng)
+    patches = [room_b, rect, room_a, corridor, None]
+    visits = [Visit(index=k, stamp=float(k), pose=(0.0, 0.0, 0.0), patch=p) for k, p in enumerate(patches)]
+    counters: dict[str, int] = {}
+    registrar = patch_registrar(visits, cfg, counters)
+
+    def expected(i, j):
+        if visits[i].patch is None or visits[j].patch is None:
+            return None
+        return laser_outcome(
+            register_patches(visits[j].patch, visits[i].patch, (0.0, 0.0, 0.0), cfg), i, j, cfg
+        )
+
+    def check(i, j):
+        got, want = registrar(i, j), expected(i, j)
+        assert type(got) is type(want)
+        if isinstance(want, RelativePose):
+            np.testing.assert_array_equal(got.mean, want.mean)
+            np.testing.assert_array_equal(got.cov, want.cov)
+        if want is not None:
+            assert (got.i, got.j, got.log_bayes) == (want.i, want.j, want.log_bayes)
+        return got
+
+    pairs = [(0, 2), (2, 3), (0, 1), (1, 2), (0, 3), (1, 3), (3, 4)]
+    outcomes = {pair: check(*pair) for pair in pairs}
+    assert isinstance(outcomes[(0, 2)], RelativePose)  # the room seen twice
+    assert isinstance(outcomes[(0, 1)], NoMatch)
+    assert outcomes[(3, 4)] is None  # no patch
+    assert counters == {"registrations": 6, "registrations_valid": 1}
+    visits[2] = dc_replace(visits[2], patch=patch_pair(ROOM, TRUE, rng)[0])  # a new patch object for visit 2
+    assert isinstance(check(0, 2), RelativePose)
+    check(1, 2)
+    monkeypatch.setattr(laser, "_PREPARED_PATCHES", 2)
+    for pair in [(0, 1), (2, 3), (0, 3), (1, 2)]:
+        check(*pair)
 
 
 def test_tiny_or_empty_patches_raise():
