@@ -11,7 +11,11 @@ the unnormalised log posterior of any topology:
   to a constant each chained valid registration contributes log N(z; ·) + log V_reg (a likelihood
   ratio), and pairs never registered need not be computed; every chained registration (valid or not)
   also contributes the likelihood ratio of its fitness, one place vs different places
-  (:func:`ptm_ros.laser.fitness_log_bayes`);
+  (:func:`ptm_ros.laser.fitness_log_bayes`). A valid registration is a true match with probability
+  1 − ε and a symmetric alias (uniform over V_reg) with probability ε (``registration_outlier``); the
+  loops the odometry and topology predict worse than an alias
+  (:func:`ptm_ros.odometry.registration_aliases`) contribute log ε and no pose constraint, the others
+  log(1 − ε) besides their Gaussian (a max-mixture);
 * appearance likelihood: :mod:`ptm_ros.appearance` (eq. 22–28, 54–57), a product over blocks cached
   per block, because a topology's blocks recur across MCMC moves and particles; a visit without a
   panorama is a missing measurement and simply left out.
@@ -41,7 +45,7 @@ from ptm_ros.appearance import (
 )
 from ptm_ros.errors import ModelError
 from ptm_ros.geometry import NoMatch, Registrar, RelativePose
-from ptm_ros.odometry import MetricResult, OdometryConfig, metric_log_likelihood
+from ptm_ros.odometry import MetricResult, OdometryConfig, metric_log_likelihood, registration_aliases
 from ptm_ros.partitions import MAX_ENUMERATION, Labels, blocks, enumerate_partitions, is_canonical
 from ptm_ros.priors import PriorConfig, make_prior
 from ptm_ros.visits import Visit
@@ -67,6 +71,8 @@ class PosteriorTerms:
     metric: float
     appearance: float
     metric_result: MetricResult | None = None
+    loops: tuple[RelativePose, ...] = ()  # the laser loops used as true matches
+    outliers: tuple[RelativePose, ...] = ()  # the valid registrations explained as aliases
 
     @property
     def total(self) -> float:
@@ -148,18 +154,34 @@ class PosteriorModel:
             return cached
         prior = self.prior.log_prob(lab)
         metric, result = 0.0, None
+        loops: list[RelativePose] = []
+        outliers: list[RelativePose] = []
         if self.config.use_odometry and self.n > 1:
+            cfg = self.config.odometry
+            measured = self.loops(lab)
+            alias = registration_aliases(lab, self.visits, cfg, measured)
+            loops = [z for z, a in zip(measured, alias, strict=True) if not a]
+            outliers = [z for z, a in zip(measured, alias, strict=True) if a]
             rng = np.random.default_rng([self.seed, *lab])
-            loops = self.loops(lab)
-            result = metric_log_likelihood(lab, self.visits, self.config.odometry, loops, rng=rng)
+            result = metric_log_likelihood(lab, self.visits, cfg, loops, rng=rng)
             # likelihood ratio of each used registration against "not the same place" (uniform over
             # V_reg), so that every topology explains the same data (see the module docstring)
-            metric = result.log_likelihood + len(loops) * math.log(self.config.odometry.registration_volume)
+            metric = result.log_likelihood + len(loops) * math.log(cfg.registration_volume)
+            if cfg.registration_outlier > 0.0:
+                metric += len(loops) * math.log1p(-cfg.registration_outlier)
+                metric += len(outliers) * math.log(cfg.registration_outlier)
             metric += self.laser_evidence(lab)
         app = 0.0
         if self.appearance is not None:
             app = appearance_log_likelihood(lab, self.visits, self.appearance, cache=self._block_cache)
-        out = PosteriorTerms(prior=prior, metric=metric, appearance=app, metric_result=result)
+        out = PosteriorTerms(
+            prior=prior,
+            metric=metric,
+            appearance=app,
+            metric_result=result,
+            loops=tuple(loops),
+            outliers=tuple(outliers),
+        )
         self._terms_cache[lab] = out
         return out
 

@@ -94,6 +94,13 @@ chained pair (valid match or :class:`~ptm_ros.geometry.NoMatch`) adds its fitnes
 ``log_bayes`` (:func:`ptm_ros.laser.fitness_log_bayes`). The log evidence
 carries the same constant (it is relative to "every registered pair uninformative").
 
+A valid registration may still be a symmetric alias (a crossing passed in opposite directions by a 180°
+laser matches best turned by π): with probability ``ε = registration_outlier`` its outcome is uniform
+over ``V_reg``. The predictive is then the mixture :math:`(1-ε) N(z; \cdot) V_{reg} + ε` (relative to
+``1/V_reg``), and the state keeps the dominant component of the posterior: no update from an alias
+(the batch model's :func:`~ptm_ros.odometry.registration_aliases`). Without it, one trusted alias
+costs the true topology hundreds of nats and the filter splits the place.
+
 Thesis corrections:
 
 * Algorithms 7–8 draw a parent by weight and then one child: multinomial resampling, which duplicates
@@ -817,6 +824,14 @@ class TopologyFilter:
             rows6 -= np.take_along_axis(w1, sub[:, None, :], axis=2).transpose(0, 2, 1) @ w1  # rows of P'
             w2, v2, laser_ll[:n_z] = _laser_factor(mean[:n_z], rows6, lc, [z_of[int(r)] for r in with_z])
             laser_ll[:n_z] += math.log(cfg.registration_volume)  # ratio against "not one place": 1/V_reg
+            eps = cfg.registration_outlier
+            if eps > 0.0:  # a valid match may be an alias (uniform over V_reg): mixture predictive, and
+                # the state keeps the posterior's dominant component (no update from an alias)
+                match = math.log1p(-eps) + laser_ll[:n_z]
+                alias = match < math.log(eps)
+                laser_ll[:n_z] = np.logaddexp(match, math.log(eps))
+                w2[alias] = 0.0
+                v2[alias] = 0.0
             mean[:n_z] += np.einsum("zki,zk->zi", w2, v2)
             _downdate(cov[:n_z], np.concatenate([w1, w2], axis=1))
         _downdate(cov[n_z:n_rev], W[n_z:])

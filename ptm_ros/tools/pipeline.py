@@ -912,7 +912,8 @@ def map_trajectory(
     odom = run.odometry
     base = odom.poses if odometry is None else odometry
     model = PosteriorModel(visits, config.model, registrar=registrar)
-    poses, _, _ = optimize_poses(labels, visits, config.model.odometry, model.loops(labels))
+    loops = model.terms(labels).loops if config.model.use_odometry else model.loops(labels)
+    poses, _, _ = optimize_poses(labels, visits, config.model.odometry, loops)
     return smoothed_trajectory(odom.stamps, base, [v.stamp for v in visits], poses)
 
 

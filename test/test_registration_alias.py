@@ -1,0 +1,129 @@
+"""Valid laser registrations that are symmetric aliases (registration_outlier, ε): the batch posterior
+explains them as outliers (max-mixture), the particle filter as a two-component predictive, and both
+agree; with ε = 0 one alias is enough to lose the true topology."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from ptm_ros.errors import ConfigError
+from ptm_ros.geometry import RelativePose, between, compose
+from ptm_ros.odometry import OdometryConfig, registration_aliases
+from ptm_ros.partitions import bell, canonical
+from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
+from ptm_ros.priors import PriorConfig, make_prior
+from ptm_ros.rbpf import RbpfConfig, run_filter
+from ptm_ros.visits import Visit
+
+SQUARE = [(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)]
+ROUTE = [0, 1, 2, 3, 0, 1, 2]
+ODO = OdometryConfig(n_samples=0, a_xy=0.15**2)
+SD = np.array([0.05, 0.05, 0.01])
+ALIAS = (1, 5)  # this pair's registration is the place's 180° symmetric image, not the truth
+
+
+def simulate(seed: int = 1) -> tuple[list[Visit], np.ndarray]:
+    """Visits of ROUTE on SQUARE (facing the next place) with odometry drawn from ODO's noise."""
+    rng = np.random.default_rng(seed)
+    pts = np.asarray(SQUARE)
+    true = []
+    for i, p in enumerate(ROUTE):
+        nxt = pts[ROUTE[i + 1]] if i + 1 < len(ROUTE) else pts[ROUTE[i - 1]]
+        true.append(np.array([*pts[p], math.atan2(*(nxt - pts[p])[::-1])]))
+    visits, u = [], true[0].copy()
+    for i in range(len(ROUTE)):
+        travel = rotation = 0.0
+        if i > 0:
+            rel = between(true[i - 1], true[i])
+            travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
+            var_xy = ODO.a_xy * travel + ODO.b_xy
+            var_th = ODO.a_th * rotation + ODO.c_th * travel + ODO.b_th
+            u = compose(u, rel + rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
+        visits.append(Visit(i, float(i), tuple(u), travel=travel, rotation=rotation))
+    return visits, np.array(true)
+
+
+def aliasing_registrar(true: np.ndarray):
+    """Noisy true relative poses for pairs of one place, except ALIAS: a confident match turned by π
+    (what a forward-facing laser returns for a symmetric crossing passed in opposite directions)."""
+
+    def registrar(i, j):
+        if ROUTE[i] != ROUTE[j]:
+            return None
+        mean = between(true[i], true[j]) + np.random.default_rng([i, j]).normal(0.0, SD)
+        if (i, j) == ALIAS:
+            mean = compose(np.array([0.0, 0.0, math.pi]), mean)
+        return RelativePose(i, j, mean, np.diag(SD**2))
+
+    return registrar
+
+
+def model_of(visits, true, eps: float) -> PosteriorModel:
+    odo = replace(ODO, registration_outlier=eps)
+    cfg = ModelConfig(prior=PriorConfig(), odometry=odo, use_appearance=False)
+    return PosteriorModel(visits, cfg, registrar=aliasing_registrar(true))
+
+
+def test_registration_outlier_validation():
+    assert 0.0 < OdometryConfig().registration_outlier < 0.5
+    for bad in (-0.1, 1.0, math.nan, True, "0.1"):
+        with pytest.raises(ConfigError, match="registration_outlier"):
+            OdometryConfig(registration_outlier=bad)
+
+
+def test_registration_aliases_flag_only_the_alias():
+    visits, true = simulate()
+    reg = aliasing_registrar(true)
+    loops = [reg(0, 4), reg(*ALIAS), reg(2, 6)]
+    truth = canonical(ROUTE)
+    flags = registration_aliases(truth, visits, replace(ODO, registration_outlier=0.05), loops)
+    assert flags.tolist() == [False, True, False]
+    # ε = 0 trusts every loop; no loops, no flags
+    assert not registration_aliases(truth, visits, replace(ODO, registration_outlier=0.0), loops).any()
+    assert not registration_aliases(truth, visits, replace(ODO, registration_outlier=0.05), []).size
+
+
+def test_batch_posterior_explains_the_alias_as_an_outlier():
+    visits, true = simulate()
+    truth = canonical(ROUTE)
+    strict = normalize_log(exact_posterior(model_of(visits, true, 0.0)))
+    assert strict[truth] < 1e-6  # one trusted alias rules the true topology out
+    model = model_of(visits, true, 0.05)
+    robust = normalize_log(exact_posterior(model))
+    assert max(robust, key=robust.get) == truth
+    assert robust[truth] > 0.5
+    terms = model.terms(truth)
+    assert [(z.i, z.j) for z in terms.outliers] == [ALIAS]
+    assert {(z.i, z.j) for z in terms.loops} == {(0, 4), (2, 6)}
+    # the alias costs log ε against "different places" and moves no pose: the optimum is that of the
+    # topology's other measurements
+    reg = aliasing_registrar(true)
+    clean = PosteriorModel(
+        visits, model.config, registrar=lambda i, j: None if (i, j) == ALIAS else reg(i, j)
+    )
+    assert terms.metric_result is not None
+    np.testing.assert_allclose(terms.metric_result.poses, clean.terms(truth).metric_result.poses)
+    eps = model.config.odometry.registration_outlier
+    assert math.isclose(terms.metric - clean.terms(truth).metric, math.log(eps), abs_tol=1e-9)
+
+
+def test_filter_matches_the_batch_posterior_with_an_alias():
+    """All children kept: the filter's two-component predictive (state from the dominant component)
+    reproduces the batch max-mixture posterior."""
+    visits, true = simulate()
+    model = model_of(visits, true, 0.05)
+    exact = normalize_log(exact_posterior(model))
+    flt = run_filter(
+        visits,
+        RbpfConfig(particles=bell(len(visits))),
+        make_prior(PriorConfig()),
+        model.config.odometry,
+        registrar=aliasing_registrar(true),
+    )
+    assert total_variation(exact, flt.ptm_weights()) <= 0.02
+    weights = flt.ptm_weights()
+    assert max(weights, key=weights.get) == canonical(ROUTE)
