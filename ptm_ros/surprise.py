@@ -1054,17 +1054,36 @@ class LaserSurpriseDetector(_SurpriseDetector):
         )
         openness = None
         if cfg.localize_distance > 0.0:
-            sides = scan_statistic(
-                ranges,
-                angle_min,
-                angle_increment,
-                range_min,
-                min(range_max, cfg.max_range),
-                kind="sides",
-                side_half_angle=cfg.side_half_angle,
-            )
+            sides = self._sides(z, ranges, angle_min, angle_increment, range_min, range_max)
             openness = float(np.mean(sides))
         return self.on_statistic(stamp, z, openness=openness)
+
+    def _sides(  # noqa: PLR0917 - the LaserScan fields read best positionally
+        self,
+        z: FloatArray,
+        ranges: ArrayLike,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float,
+        range_max: float,
+    ) -> FloatArray:
+        """The ``sides`` statistic of a scan whose configured statistic is ``z``: taken from ``z`` when it
+        contains it (``sectors`` = left, front, right with the same side sectors: the same numbers, bit
+        for bit), else computed (:func:`scan_statistic`)."""
+        cfg = self.config
+        if cfg.statistic == "sides":
+            return z
+        if cfg.statistic == "sectors":
+            return z[[0, 2]]
+        return scan_statistic(
+            ranges,
+            angle_min,
+            angle_increment,
+            range_min,
+            min(range_max, cfg.max_range),
+            kind="sides",
+            side_half_angle=cfg.side_half_angle,
+        )
 
     def on_statistic(self, stamp: float, z: ArrayLike, *, openness: float | None = None) -> bool:
         """Feed one precomputed ``(d,)`` statistic (:meth:`on_scan` after :func:`scan_statistic`) and the

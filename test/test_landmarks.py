@@ -115,7 +115,8 @@ def test_laser_odometry_corrects_the_visit_poses(sim):
     merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
     corrected, ext = run_extractor(None, cfg, merged)
     raw, _ = run_extractor(None, cfg, merged, laser_odometry=LaserOdometryConfig(enabled=False))
-    assert ext.diagnostics.laser_odometry["matched"] > 0.9 * len(scans)
+    counters = ext.diagnostics.laser_odometry
+    assert counters["matched"] + counters["gated"] > 0.9 * len(scans)  # matched or inside the motion gate
     stamps = list(sim.odom_stamps)
 
     def errors(visits):
@@ -129,6 +130,64 @@ def test_laser_odometry_corrects_the_visit_poses(sim):
     assert len(corrected) >= 4
     assert np.sqrt(np.mean(xy_c**2)) < 0.7 * np.sqrt(np.mean(xy_r**2))
     assert np.sqrt(np.mean(th_c**2)) < np.sqrt(np.mean(th_r**2))
+
+
+def test_the_motion_gate_keeps_the_visits():
+    """At robot rates (odometry 100 Hz, scans 40 Hz) the laser odometry matches only the scans past its
+    motion gate (about one in three) and the visits stay those of matching every scan: visits every 2 s
+    (the same odometry samples) whose relative poses agree to the scan matcher's own noise (each
+    variant's correction random-walks on its own, so absolute poses drift apart by a few cm), both far
+    better than the wheel odometry's, through straight driving and a turn in place."""
+    from ptm_ros.io.simulator import CameraConfig
+    from ptm_ros.io.simulator import LaserConfig as SimLaser
+
+    config = SimConfig(odom_rate=100.0, laser=SimLaser(rate=40.0), camera=CameraConfig(enabled=False))
+    run = simulate(get_world("t-junction"), config, np.random.default_rng(9), visits=2)
+    lc = run.config.laser
+    end = run.odom_stamps[0] + 24.0
+    merged = sorted(
+        [(float(t), 0, k) for k, t in enumerate(run.odom_stamps) if t <= end]
+        + [(float(t), 1, k) for k, t in enumerate(run.scan_stamps) if t <= end]
+    )
+
+    def visits(laser_odometry):
+        detector = EquidistantDetector(EquidistantConfig(spacing=0.0, period=2.0))
+        ext = VisitExtractor(
+            detector,
+            laser=LaserConfig(refine=False),  # the patches are not compared here: skip their ICP
+            config=ExtractorConfig(use_images=False),
+            laser_odometry=laser_odometry,
+        )
+        out = []
+        for t, topic, k in merged:
+            if topic == 0:
+                out += ext.on_odometry(t, run.odom_poses[k])
+            else:
+                r = run.scan_ranges[k]
+                out += ext.on_scan(t, r, lc.angle_min, lc.angle_increment, lc.range_min, lc.range_max)
+        return out + ext.flush(), ext.diagnostics.laser_odometry
+
+    every, every_counters = visits(LaserOdometryConfig(match_xy=0.0, match_yaw=0.0))
+    gated, gated_counters = visits(LaserOdometryConfig())
+    scans = sum(topic == 1 for _, topic, _ in merged)
+    assert every_counters["gated"] == 0 and every_counters["matched"] > 0.9 * scans
+    assert gated_counters["gated"] > 0.5 * scans and gated_counters["matched"] > 0.2 * scans
+    assert len(every) >= 10
+    assert [v.stamp for v in gated] == [v.stamp for v in every]
+    k = [list(run.odom_stamps).index(v.stamp) for v in every]
+    assert np.ptp(np.unwrap(run.true_poses[k, 2])) > 2.0  # the window includes a turn
+    true = between(run.true_poses[k[:-1]], run.true_poses[k[1:]])
+    wheel = between(run.odom_poses[k[:-1]], run.odom_poses[k[1:]])
+
+    def steps(vs):
+        return between(np.array([v.pose for v in vs[:-1]]), np.array([v.pose for v in vs[1:]]))
+
+    diff = steps(gated) - steps(every)
+    assert np.max(np.hypot(diff[:, 0], diff[:, 1])) < 0.05
+    assert np.max(np.abs(wrap_angle(diff[:, 2]))) < 0.02
+    wheel_error = np.sqrt(np.mean(np.sum(np.square(wheel[:, :2] - true[:, :2]), axis=1)))
+    for est in (steps(gated), steps(every)):
+        assert np.sqrt(np.mean(np.sum(np.square(est[:, :2] - true[:, :2]), axis=1))) < 0.5 * wheel_error
 
 
 def test_bad_input_is_counted_not_raised():

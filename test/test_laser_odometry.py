@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import between, interpolate_poses, path_length, wrap_angle
+from ptm_ros.geometry import (
+    between,
+    compose,
+    interpolate_poses,
+    inverse,
+    path_length,
+    transform_points,
+    wrap_angle,
+)
 from ptm_ros.io.simulator import OdometryNoiseConfig, SimConfig, simulate
 from ptm_ros.io.worlds import get_world
 from ptm_ros.laser import scan_to_points
@@ -47,7 +55,9 @@ def test_the_heading_bias_is_removed(biased_run):
     lo_drift = heading_drift_per_metre(corrected, true)
     assert abs(raw_drift) > 0.03  # the simulated bias is there
     assert abs(lo_drift) < 0.1 * abs(raw_drift)
-    assert lo.counters.matched > 0.9 * len(wheel)
+    # every scan is matched or inside the motion gate (10 Hz at 0.5 m/s: 5 cm apart, about half gated)
+    assert lo.counters.matched + lo.counters.gated > 0.9 * len(wheel)
+    assert lo.counters.matched > 0.3 * len(wheel) and lo.counters.gated > 0
     # end-to-end position error (the start pose is shared): far smaller than the wheel odometry's
     start = between(true[0], true[-1])
     err_lo = np.hypot(*(between(corrected[0], corrected[-1])[:2] - start[:2]))
@@ -85,6 +95,62 @@ def test_a_teleport_is_rejected_not_followed(biased_run):
     assert np.array_equal(lo.correction, before)
 
 
+def room_scan(pose, step=0.02):
+    """Points (robot frame) of a 6 m x 4 m room with a pillar, seen from ``pose`` (no occlusion needed:
+    the matcher only needs consistent geometry)."""
+    t = np.arange(0.0, 1.0, step / 6.0)[:, None]
+    walls = [
+        ((0.0, 0.0), (6.0, 0.0)),
+        ((6.0, 0.0), (6.0, 4.0)),
+        ((6.0, 4.0), (0.0, 4.0)),
+        ((0.0, 4.0), (0.0, 0.0)),
+    ]
+    walls += [((2.0, 1.0), (2.5, 1.0)), ((2.5, 1.0), (2.5, 1.6))]  # a pillar's corner breaks the symmetry
+    world = np.vstack([np.asarray(a) + t * (np.asarray(b) - np.asarray(a)) for a, b in walls])
+    return transform_points(inverse(np.asarray(pose, dtype=float)), world)
+
+
+def test_motion_gate_matches_only_after_enough_motion():
+    """A scan closer than ``match_xy`` (and turned less than ``match_yaw``) to the last matched one is not
+    matched and keeps the correction; one beyond either threshold is matched."""
+    cfg = LaserOdometryConfig(match_xy=0.1, match_yaw=0.05)
+    lo = LaserOdometry(cfg)
+    start = np.array([3.0, 2.0, 0.2])
+    lo.on_scan(start, room_scan(start))  # the first scan starts the map (no match)
+    # the wheels under-report a 0.15 m step by 4 cm: the scan match corrects it
+    true1 = compose(start, [0.15, 0.0, 0.0])
+    wheel1 = compose(start, [0.11, 0.0, 0.0])
+    pose1 = lo.on_scan(wheel1, room_scan(true1))
+    assert lo.counters.matched == 1 and lo.counters.gated == 0
+    assert np.hypot(*(pose1[:2] - true1[:2])) < 0.01
+    correction = lo.correction
+    assert np.hypot(*correction[:2]) > 0.02  # the correction moved off the identity
+    # 5 cm further (below match_xy): gated, the pose is the kept correction applied to the wheels
+    wheel2 = compose(wheel1, [0.05, 0.0, 0.0])
+    pose2 = lo.on_scan(wheel2, room_scan(compose(true1, [0.05, 0.0, 0.0])))
+    assert lo.counters.gated == 1 and lo.counters.matched == 1
+    assert np.array_equal(lo.correction, correction)
+    assert np.array_equal(pose2, compose(correction, wheel2))
+    # 12 cm from the last matched scan (the gate measures from there, not from the gated scan): matched
+    wheel3 = compose(wheel1, [0.12, 0.0, 0.0])
+    lo.on_scan(wheel3, room_scan(compose(true1, [0.12, 0.0, 0.0])))
+    assert lo.counters.matched == 2 and lo.counters.gated == 1
+    # turning in place: 0.03 rad is gated, 0.06 rad (beyond match_yaw) is matched
+    lo.on_scan(compose(wheel3, [0.0, 0.0, 0.03]), room_scan(compose(true1, [0.12, 0.0, 0.03])))
+    assert lo.counters.matched == 2 and lo.counters.gated == 2
+    pose5 = lo.on_scan(compose(wheel3, [0.0, 0.0, 0.06]), room_scan(compose(true1, [0.12, 0.0, 0.06])))
+    assert lo.counters.matched == 3 and lo.counters.gated == 2
+    assert np.hypot(*(pose5[:2] - compose(true1, [0.12, 0.0, 0.06])[:2])) < 0.01
+
+
+def test_motion_gate_off_matches_every_scan():
+    lo = LaserOdometry(LaserOdometryConfig(match_xy=0.0, match_yaw=0.0))
+    pose = np.array([3.0, 2.0, 0.0])
+    for _ in range(3):  # a robot standing still: every scan is matched without the gate
+        lo.on_scan(pose, room_scan(pose))
+    assert lo.counters.matched == 2 and lo.counters.gated == 0
+
+
 @pytest.mark.parametrize(
     ("field", "value", "match"),
     [
@@ -92,6 +158,10 @@ def test_a_teleport_is_rejected_not_followed(biased_run):
         ("voxel", 0.1, "voxel"),
         ("max_correction_yaw", -1.0, "max_correction_yaw"),
         ("enabled", 1, "enabled"),
+        ("match_xy", -0.1, "match_xy"),
+        ("match_xy", 0.3, "keyframe_xy"),  # beyond the keyframe spacing (0.25)
+        ("match_yaw", math.nan, "match_yaw"),
+        ("match_yaw", True, "match_yaw"),
     ],
 )
 def test_bad_config(field, value, match):

@@ -669,3 +669,43 @@ def test_laser_surprise_finds_the_decision_points_of_simulated_worlds(world: str
     passages = len(run.passages)
     assert hits >= 0.95 * passages
     assert false_positives <= passages
+
+
+def test_on_scan_equals_on_statistic_with_the_sides_openness() -> None:
+    """:meth:`LaserSurpriseDetector.on_scan` takes the openness (mean ``sides`` statistic) from the
+    ``sectors`` statistic it already has: the same numbers as computing ``sides`` separately, so the trace
+    and the localised landmarks are identical, bit for bit."""
+    sim = pytest.importorskip("ptm_ros.io.simulator")
+    worlds = pytest.importorskip("ptm_ros.io.worlds")
+    config = sim.SimConfig(camera=sim.CameraConfig(enabled=False))
+    run = sim.simulate(worlds.get_world("t-junction"), config, np.random.default_rng(4), visits=3)
+    lc = run.config.laser
+    geometry = (lc.angle_min, lc.angle_increment, lc.range_min, lc.range_max)
+    cfg = LaserSurpriseConfig()
+    direct, manual = LaserSurpriseDetector(cfg), LaserSurpriseDetector(cfg)
+    events = sorted(
+        [(t, 0, k) for k, t in enumerate(run.odom_stamps)]
+        + [(t, 1, k) for k, t in enumerate(run.scan_stamps)]
+    )
+    fired = [[], []]
+    for t, kind, k in events:
+        if kind == 0:
+            direct.on_odometry(t, run.odom_poses[k])
+            manual.on_odometry(t, run.odom_poses[k])
+            continue
+        r = run.scan_ranges[k]
+        if direct.on_scan(
+            t,
+            r,
+            angle_min=geometry[0],
+            angle_increment=geometry[1],
+            range_min=geometry[2],
+            range_max=geometry[3],
+        ):
+            fired[0].append(direct.last_landmark_stamp)
+        z = scan_statistic(r, *geometry, kind="sectors")
+        sides = scan_statistic(r, *geometry, kind="sides")
+        if manual.on_statistic(t, z, openness=float(np.mean(sides))):
+            fired[1].append(manual.last_landmark_stamp)
+    assert len(fired[0]) >= 2 and fired[0] == fired[1]
+    assert np.array_equal(direct.trace.surprise, manual.trace.surprise)
