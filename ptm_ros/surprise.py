@@ -754,8 +754,8 @@ class _SurpriseDetector:
         self._odometry = OdometryTracker()
         self._odometry_seen = False
         self._trigger = BandTrigger(band_sigmas, warmup, min_travel)
-        self._rows: list[tuple[float, float, float, float, float]] = []
-        self._landmarks: list[float] = []
+        self._rows: deque[tuple[float, float, float, float, float]] = deque()
+        self._landmarks: deque[float] = deque()
         self._last_stamp: float | None = None
         self._travel_at_last = 0.0
         self.last_landmark_stamp: float | None = None
@@ -809,9 +809,18 @@ class _SurpriseDetector:
             raise DataError(msg)
         self._last_stamp = stamp
 
+    def limit_trace(self, rows: int) -> None:
+        """Keep only the latest ``rows`` measurements (and landmark stamps) in :attr:`trace`: a long-running
+        node's memory stays bounded (the detection itself never reads the trace)."""
+        if isinstance(rows, bool) or not isinstance(rows, int) or rows < 0:
+            msg = f"trace rows must be an integer >= 0, got {rows!r}"
+            raise ConfigError(msg)
+        self._rows = deque(self._rows, maxlen=rows)
+        self._landmarks = deque(self._landmarks, maxlen=rows)
+
     @property
     def trace(self) -> SurpriseTrace:
-        """Everything seen so far."""
+        """Everything seen so far (the latest measurements only after :meth:`limit_trace`)."""
         rows = np.array(self._rows, dtype=float).reshape(-1, 5)
         return SurpriseTrace(
             stamps=rows[:, 0].copy(),

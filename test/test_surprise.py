@@ -709,3 +709,22 @@ def test_on_scan_equals_on_statistic_with_the_sides_openness() -> None:
             fired[1].append(manual.last_landmark_stamp)
     assert len(fired[0]) >= 2 and fired[0] == fired[1]
     assert np.array_equal(direct.trace.surprise, manual.trace.surprise)
+
+
+def test_limit_trace_keeps_the_latest_rows_and_detects_the_same():
+    """A bounded trace (the node's memory bound) keeps the latest measurements and changes no decision."""
+    rng = np.random.default_rng(5)
+    z = np.concatenate([rng.normal(0.0, 0.05, (60, 3)), rng.normal(2.0, 0.05, (40, 3))])
+    full = LaserSurpriseDetector(LaserSurpriseConfig(localize_distance=0.0))
+    bounded = LaserSurpriseDetector(LaserSurpriseConfig(localize_distance=0.0))
+    bounded.limit_trace(7)
+    fired = [(full.on_statistic(float(t), v), bounded.on_statistic(float(t), v)) for t, v in enumerate(z)]
+    assert [a for a, _ in fired] == [b for _, b in fired] and any(a for a, _ in fired)
+    tail = full.trace
+    short = bounded.trace
+    assert len(short.stamps) == 7
+    np.testing.assert_array_equal(short.stamps, tail.stamps[-7:])
+    np.testing.assert_array_equal(short.surprise, tail.surprise[-7:])
+    np.testing.assert_array_equal(short.landmarks, tail.landmarks[-7:])
+    with pytest.raises(ConfigError, match="trace rows"):
+        bounded.limit_trace(-1)

@@ -144,6 +144,7 @@ MAX_POSITION = 1e7  # m: odometry farther from its origin is not a position
 QUATERNION_TOLERANCE = 1e-3  # |‖q‖ − 1| above this: normalised before decoding the yaw
 MAX_WAITING = 200  # scans/panoramas of a newer clock kept until the odometry's clock resets too
 RESYNC_AFTER = 100  # consecutive messages on another clock than the odometry's before adopting its clock
+TRACE_ROWS = 1000  # latest surprise measurements the detector keeps (unread by the node: memory bound)
 
 SKIP_REASONS = (
     "odometry-bad-stamp",
@@ -390,6 +391,8 @@ class LandmarkDetectorNode(Node):
     def _make_extractor(self) -> VisitExtractor:
         ext = make_extractor(self.config, self.kind, use_scans=self._use_scans, use_images=self._use_images)
         ext.config = replace(ext.config, stall_s=self._stall if self._stall > 0.0 else math.inf)
+        if hasattr(ext.detector, "limit_trace"):  # the surprise trace is for offline reports: bounded here
+            ext.detector.limit_trace(TRACE_ROWS)
         return ext
 
     @property
