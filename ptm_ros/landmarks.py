@@ -264,7 +264,7 @@ class VisitExtractor:
             return
         self.diagnostics.scan_beams_dropped += res.dropped
         if self.laser_odometry is not None and self._wheel is not None:
-            self.laser_odometry.on_scan(self._wheel, res.points)
+            self.laser_odometry.on_scan(self._wheel, res.points, stamp)
             self.diagnostics.laser_odometry = dict(vars(self.laser_odometry.counters))  # flat ints
             if self.config.record_corrections:
                 self.corrections.append((stamp, self.laser_odometry.correction))

@@ -151,10 +151,31 @@ def test_motion_gate_off_matches_every_scan():
     assert lo.counters.matched == 2 and lo.counters.gated == 0
 
 
+def test_match_interval_matches_a_standing_robot_every_interval():
+    """With stamps, a scan inside the motion gate is still matched once ``match_interval`` has passed since
+    the last match: a robot standing still at 40 Hz is matched every 4th scan (0.1 s >= 0.09 s), and
+    scans 0.1 s apart (10 Hz, the real logs and the simulator's default) are never gated."""
+    pose = np.array([3.0, 2.0, 0.0])
+    lo = LaserOdometry(LaserOdometryConfig(match_interval=0.09))
+    for k in range(9):  # 0.000, 0.025, ..., 0.200 s
+        lo.on_scan(pose, room_scan(pose), stamp=100.0 + 0.025 * k)
+    assert lo.counters.matched == 2 and lo.counters.gated == 6  # first scan starts the map; 0.1, 0.2 s
+    slow = LaserOdometry(LaserOdometryConfig(match_interval=0.09))
+    for k in range(4):
+        slow.on_scan(pose, room_scan(pose), stamp=100.0 + 0.1 * k)
+    assert slow.counters.matched == 3 and slow.counters.gated == 0
+    motion_only = LaserOdometry(LaserOdometryConfig(match_interval=0.0))  # 0: the motion gate alone
+    for k in range(4):
+        motion_only.on_scan(pose, room_scan(pose), stamp=100.0 + 0.1 * k)
+    assert motion_only.counters.matched == 0 and motion_only.counters.gated == 3
+
+
 @pytest.mark.parametrize(
     ("field", "value", "match"),
     [
         ("window", 0, "window"),
+        ("match_interval", -0.1, "match_interval"),
+        ("match_interval", math.inf, "match_interval"),
         ("voxel", 0.1, "voxel"),
         ("max_correction_yaw", -1.0, "max_correction_yaw"),
         ("enabled", 1, "enabled"),
