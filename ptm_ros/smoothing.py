@@ -12,15 +12,45 @@ and the two are blended by the fraction of odometry travel s ∈ [0, 1] from k t
 headings along the shortest arc). At the visits the result equals X* exactly; before the first and after
 the last visit the odometry is carried rigidly. This spreads each inter-visit correction along the path in
 proportion to distance travelled, as odometry error accumulates.
+
+Robust place coincidence (:func:`robust_visit_poses`, :func:`smooth_topology`). The metric likelihood
+asks every visit of a place to pass within σ_T of the place point, a Gaussian. Written over pairs, the
+same term is :math:`\\sum_{i<j \\in s} \\lVert x_i^{xy} - x_j^{xy}\\rVert^2 / (2\\,|s|\\,\\sigma_T^2)` (the
+sum of squared deviations from the place mean equals the pair sum divided by ``|s|``). That is right for
+*scoring* topologies, where a visit far from its place must cost dearly. For the *trajectory* of one
+chosen topology it is too brittle: a single wrong merge of the MAP topology (MIT CSAIL: two visits 8.4 m
+apart) or a wide place (real laser-surprise places: visits up to 3–4 m apart, σ_T = 0.5 m) pulls the
+whole pose graph towards an impossible coincidence. The smoothing therefore replaces each pair's Gaussian
+by a Cauchy (Student-t, ν = 1) density of the same scale :math:`s_{ij} = \\sigma_T \\sqrt{|s|}`,
+
+.. math::
+    -\\log p(x_i, x_j) = \\log\\big(1 + \\lVert x_i^{xy} - x_j^{xy}\\rVert^2 / s_{ij}^2\\big) + \\text{const},
+
+which is the Gaussian near coincidence and lets a pair that cannot coincide go. Odometry and the
+topology's laser registrations (validated measurements, :mod:`ptm_ros.laser`) stay Gaussian, as in
+:mod:`ptm_ros.odometry`. The optimum is found by iteratively reweighted least squares (each round a
+Levenberg–Marquardt solve with pair weights :math:`w = 1 / (1 + r^2)`), started at the Gaussian optimum
+of :func:`ptm_ros.odometry.optimize_poses`; each round lowers the Cauchy cost (majorise–minimise).
 """
 
 from __future__ import annotations
 
-import numpy as np
-from numpy.typing import ArrayLike, NDArray
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
-from ptm_ros.errors import ModelError
-from ptm_ros.geometry import between, compose, wrap_angle
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse.linalg import spsolve
+
+from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
+from ptm_ros.odometry import OdometryConfig, odometry_covariances, optimize_poses, relative_odometry
+from ptm_ros.partitions import Labels, blocks, canonical
+from ptm_ros.visits import Visit
+
+FloatArray = NDArray[np.float64]
 
 
 def smoothed_trajectory(
@@ -59,3 +89,233 @@ def smoothed_trajectory(
         out[lo : hi + 1] = np.column_stack([xy, yaw])
     out[idx] = x  # exactly the optimised poses at the visits
     return out
+
+
+@dataclass(frozen=True)
+class SmoothingConfig:
+    """Robust optimisation of the visit poses of one topology (:func:`robust_visit_poses`).
+
+    Attributes:
+        robust_places: Cauchy place coincidence (module docstring); False returns the Gaussian optimum of
+            :func:`ptm_ros.odometry.optimize_poses` unchanged.
+        max_rounds: reweighting rounds at most.
+        max_iterations: Levenberg–Marquardt iterations of each weighted solve.
+        tolerance: the reweighting stops when no pair weight changes by more than this.
+    """
+
+    robust_places: bool = True
+    max_rounds: int = 100
+    max_iterations: int = 50
+    tolerance: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.robust_places, bool):
+            msg = f"SmoothingConfig.robust_places must be a bool, got {self.robust_places!r}"
+            raise ConfigError(msg)
+        for name in ("max_rounds", "max_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                msg = f"SmoothingConfig.{name} must be an integer >= 1, got {value!r}"
+                raise ConfigError(msg)
+        tol = self.tolerance
+        if isinstance(tol, bool) or not isinstance(tol, int | float) or not (math.isfinite(tol) and tol > 0):
+            msg = f"SmoothingConfig.tolerance must be a finite number > 0, got {tol!r}"
+            raise ConfigError(msg)
+
+
+@dataclass(frozen=True)
+class VisitPoses:
+    """Optimised visit poses of one topology.
+
+    Attributes:
+        poses: ``(N, 3)`` visit poses (``poses[0]`` is the gauge ``u_0``; headings wrapped).
+        pairs: ``(P, 2)`` visit pairs ``i < j`` of the same place.
+        weights: ``(P,)`` final Cauchy weight ``1 / (1 + r²)`` of each pair (1: coincide; near 0: let go).
+        rounds: reweighting rounds run (0: the Gaussian optimum).
+    """
+
+    poses: FloatArray
+    pairs: NDArray[np.intp]
+    weights: FloatArray
+    rounds: int
+
+
+def place_pairs(labels: Sequence[int], sigma_topology: float) -> tuple[NDArray[np.intp], FloatArray]:
+    """Every pair ``i < j`` of visits of one place ``(P, 2)`` and its scale ``σ_T √|s|`` ``(P,)``: the
+    pairwise form of the Gaussian coincidence term of :mod:`ptm_ros.odometry` (module docstring)."""
+    pairs, scales = [], []
+    for block in blocks(labels):
+        k = len(block)
+        for a in range(k):
+            for b in range(a + 1, k):
+                pairs.append((block[a], block[b]))
+                scales.append(sigma_topology * math.sqrt(k))
+    return np.array(pairs, dtype=np.intp).reshape(-1, 2), np.array(scales, dtype=float)
+
+
+@dataclass(frozen=True)
+class _Graph:
+    """Gaussian relative factors (odometry, then same-place registrations) and the place pairs."""
+
+    a: NDArray[np.intp]
+    b: NDArray[np.intp]
+    z: FloatArray  # (Q, 3) measurements of between(x_a, x_b)
+    w: FloatArray  # (Q, 3, 3) whitening, W^T W = covariance^-1
+    pairs: NDArray[np.intp]  # (P, 2)
+    scales: FloatArray  # (P,)
+
+
+def _graph(
+    labels: Labels, visits: Sequence[Visit], odometry: OdometryConfig, loops: Sequence[RelativePose]
+) -> _Graph:
+    n = len(visits)
+    var = np.diagonal(odometry_covariances(visits, odometry), axis1=1, axis2=2)
+    odo_w = np.zeros((n - 1, 3, 3))
+    odo_w[:, np.arange(3), np.arange(3)] = 1.0 / np.sqrt(var)
+    same = [lp for lp in loops if labels[lp.i] == labels[lp.j]]
+    loop_w = [np.linalg.inv(np.linalg.cholesky(np.asarray(lp.cov, dtype=float))) for lp in same]
+    pairs, scales = place_pairs(labels, odometry.sigma_topology)
+    return _Graph(
+        a=np.concatenate([np.arange(n - 1), [lp.i for lp in same]]).astype(np.intp),
+        b=np.concatenate([np.arange(1, n), [lp.j for lp in same]]).astype(np.intp),
+        z=np.concatenate([relative_odometry(visits), np.reshape([lp.mean for lp in same], (-1, 3))]),
+        w=np.concatenate([odo_w, np.reshape(loop_w, (-1, 3, 3))]),
+        pairs=pairs,
+        scales=scales,
+    )
+
+
+def _relative(x: FloatArray, g: _Graph) -> tuple[FloatArray, FloatArray]:
+    """Whitened residuals ``W((x_a ⊖ x_b) ⊟ z)`` ``(Q, 3)`` and their Jacobians w.r.t. ``(x_a, x_b)``
+    ``(Q, 3, 6)``: with ``t = R(θ_a)^T (t_b - t_a)``, ``∂t/∂t_a = -R^T``, ``∂t/∂θ_a = (t_y, -t_x)``,
+    ``∂t/∂t_b = R^T``; the heading difference has derivatives -1 and +1."""
+    pa, pb = x[g.a], x[g.b]
+    c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
+    dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
+    tx, ty = c * dx + s * dy, -s * dx + c * dy
+    e = np.stack([tx - g.z[:, 0], ty - g.z[:, 1], wrap_angle(pb[:, 2] - pa[:, 2] - g.z[:, 2])], axis=1)
+    de = np.zeros((len(g.a), 3, 6))
+    de[:, 0, :3] = np.stack([-c, -s, ty], axis=1)
+    de[:, 1, :3] = np.stack([s, -c, -tx], axis=1)
+    de[:, 2, 2] = -1.0
+    de[:, 0, 3:5] = np.stack([c, s], axis=1)
+    de[:, 1, 3:5] = np.stack([-s, c], axis=1)
+    de[:, 2, 5] = 1.0
+    return np.einsum("qij,qj->qi", g.w, e), g.w @ de
+
+
+def _pair_residuals(x: FloatArray, g: _Graph) -> FloatArray:
+    """``(x_i^{xy} - x_j^{xy}) / s_ij`` of the place pairs, ``(P, 2)``."""
+    return (x[g.pairs[:, 0], :2] - x[g.pairs[:, 1], :2]) / g.scales[:, None]
+
+
+def _weighted_cost(x: FloatArray, g: _Graph, weights: FloatArray) -> float:
+    r, _ = _relative(x, g)
+    rp = _pair_residuals(x, g)
+    return 0.5 * (float(np.sum(r * r)) + float(weights @ np.sum(rp * rp, axis=1)))
+
+
+def _normal_equations(x: FloatArray, g: _Graph, weights: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
+    """``H = Jᵀ J`` (sparse) and ``Jᵀ r`` of the weighted residuals w.r.t. ``x_1..x_{N-1}`` (x_0 fixed)."""
+    r, jab = _relative(x, g)
+    q, p, n = len(g.a), len(g.pairs), len(x)
+    var = np.concatenate(
+        [3 * (g.a - 1)[:, None] + np.arange(3), 3 * (g.b - 1)[:, None] + np.arange(3)], axis=1
+    )
+    rows = np.broadcast_to(3 * np.arange(q)[:, None, None] + np.arange(3)[None, :, None], jab.shape)
+    cols = np.broadcast_to(var[:, None, :], jab.shape)
+    keep = cols >= 0  # visit 0 is the gauge
+    root_w = np.sqrt(weights)
+    pair_rows = 3 * q + 2 * np.arange(p)[:, None] + np.arange(2)  # (P, 2)
+    r_rows, r_cols, r_vals = [rows[keep]], [cols[keep]], [jab[keep]]
+    for side, sign in ((0, 1.0), (1, -1.0)):
+        c = 3 * (g.pairs[:, side] - 1)[:, None] + np.arange(2)
+        v = np.broadcast_to((sign * root_w / g.scales)[:, None], c.shape)
+        ok = c >= 0
+        r_rows.append(pair_rows[ok])
+        r_cols.append(c[ok])
+        r_vals.append(v[ok])
+    jac = sp.csr_matrix(
+        (np.concatenate(r_vals), (np.concatenate(r_rows), np.concatenate(r_cols))),
+        shape=(3 * q + 2 * p, 3 * (n - 1)),
+    )
+    res = np.concatenate([r.ravel(), (root_w[:, None] * _pair_residuals(x, g)).ravel()])
+    return (jac.T @ jac).tocsc(), jac.T @ res
+
+
+def _solve_weighted(x0: FloatArray, g: _Graph, weights: FloatArray, config: SmoothingConfig) -> FloatArray:
+    """Levenberg–Marquardt on ``½ Σ |r_rel|² + ½ Σ_p w_p |r_p|²`` from ``x0`` (``x_0`` fixed)."""
+    x = x0.copy()
+    cost = _weighted_cost(x, g, weights)
+    lam = 1e-6
+    for _ in range(config.max_iterations):
+        H, grad = _normal_equations(x, g, weights)
+        while lam < 1e12:
+            step = spsolve((H + sp.diags(lam * H.diagonal())).tocsc(), -grad)
+            x_new = x.copy()
+            x_new[1:] += np.reshape(step, (-1, 3))
+            cost_new = _weighted_cost(x_new, g, weights) if np.all(np.isfinite(step)) else math.inf
+            if cost_new <= cost:
+                break
+            lam *= 10.0
+        else:
+            break  # no step lowers the cost: converged to machine precision
+        decrease = cost - cost_new
+        x, cost, lam = x_new, cost_new, max(lam / 10.0, 1e-12)
+        if decrease <= 1e-10 * (1.0 + cost):
+            break
+    return x
+
+
+def _cauchy_weights(x: FloatArray, g: _Graph) -> FloatArray:
+    rp = _pair_residuals(x, g)
+    return 1.0 / (1.0 + np.sum(rp * rp, axis=1))
+
+
+def robust_visit_poses(
+    labels: Sequence[int],
+    visits: Sequence[Visit],
+    odometry: OdometryConfig,
+    loops: Sequence[RelativePose] = (),
+    config: SmoothingConfig | None = None,
+) -> VisitPoses:
+    """Visit poses of a topology under odometry, its same-place laser registrations and the Cauchy place
+    coincidence of the module docstring (iteratively reweighted from the Gaussian optimum).
+
+    ``labels``, ``visits``, ``odometry`` and ``loops`` are those of
+    :func:`ptm_ros.odometry.optimize_poses` (which validates them); registrations of visits of different
+    places are ignored, as there.
+    """
+    cfg = SmoothingConfig() if config is None else config
+    x, _, _ = optimize_poses(labels, visits, odometry, loops)  # validates; raises ModelError
+    g = _graph(canonical(labels), visits, odometry, loops)
+    weights = _cauchy_weights(x, g)
+    rounds = 0
+    while cfg.robust_places and len(g.pairs) and rounds < cfg.max_rounds:
+        rounds += 1
+        x = _solve_weighted(x, g, weights, cfg)
+        new = _cauchy_weights(x, g)
+        change = float(np.max(np.abs(new - weights)))
+        weights = new
+        if change <= cfg.tolerance:
+            break
+    out = x.copy()
+    out[:, 2] = wrap_angle(out[:, 2])
+    return VisitPoses(poses=out, pairs=g.pairs, weights=weights, rounds=rounds)
+
+
+def smooth_topology(
+    odom_stamps: ArrayLike,
+    odom_poses: ArrayLike,
+    labels: Sequence[int],
+    visits: Sequence[Visit],
+    odometry: OdometryConfig,
+    *,
+    loops: Sequence[RelativePose] = (),
+    config: SmoothingConfig | None = None,
+) -> FloatArray:
+    """The odometry trajectory ``(T, 3)`` smoothed for a topology: :func:`robust_visit_poses`, then the
+    path between the visits deformed to fit (:func:`smoothed_trajectory`). The visits' poses must come
+    from ``odom_poses`` at their stamps (odometry stamps)."""
+    res = robust_visit_poses(labels, visits, odometry, loops, config)
+    return smoothed_trajectory(odom_stamps, odom_poses, [v.stamp for v in visits], res.poses)

@@ -902,19 +902,17 @@ def map_trajectory(
     *,
     odometry: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The odometry trajectory smoothed for a topology: visit poses optimised under its same-place and
-    laser constraints (:func:`ptm_ros.odometry.optimize_poses`), the path between deformed to fit
-    (:func:`ptm_ros.smoothing.smoothed_trajectory`). ``odometry`` ``(T, 3)`` at the run's odometry stamps
-    is the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
-    from ptm_ros.odometry import optimize_poses
-    from ptm_ros.smoothing import smoothed_trajectory
+    """The odometry trajectory smoothed for a topology: visit poses optimised under odometry, its laser
+    registrations (aliases left out) and a robust place coincidence (:func:`ptm_ros.smoothing.
+    smooth_topology`), the path between deformed to fit. ``odometry`` ``(T, 3)`` at the run's odometry
+    stamps is the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
+    from ptm_ros.smoothing import smooth_topology
 
     odom = run.odometry
     base = odom.poses if odometry is None else odometry
     model = PosteriorModel(visits, config.model, registrar=registrar)
     loops = model.terms(labels).loops if config.model.use_odometry else model.loops(labels)
-    poses, _, _ = optimize_poses(labels, visits, config.model.odometry, loops)
-    return smoothed_trajectory(odom.stamps, base, [v.stamp for v in visits], poses)
+    return smooth_topology(odom.stamps, base, labels, visits, config.model.odometry, loops=loops)
 
 
 def score_against(ptm: Ptm, ground_truth: str | Path | GroundTruthTrajectory) -> Any:
