@@ -71,7 +71,13 @@ from scipy.sparse.linalg import spsolve
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.laser import LaserConfig, patch_registrar
-from ptm_ros.odometry import OdometryConfig, odometry_covariances, optimize_poses, relative_odometry
+from ptm_ros.odometry import (
+    OdometryConfig,
+    between_derivatives,
+    odometry_covariances,
+    optimize_poses,
+    relative_odometry,
+)
 from ptm_ros.partitions import Labels, canonical
 from ptm_ros.visits import Visit, poses_array
 
@@ -358,21 +364,10 @@ def _residuals(x: FloatArray, f: _Factors) -> tuple[FloatArray, FloatArray, Floa
 
 
 def _jacobian(x: FloatArray, f: _Factors, tx: FloatArray, ty: FloatArray) -> sp.csr_matrix:
-    """``∂r/∂(x_1..x_{N-1})``, sparse ``(3Q, 3(N-1))``: ``W ∂(x_a ⊖ x_b)/∂(x_a, x_b)`` per factor.
-
-    With ``t = R(θ_a)^T (t_b - t_a)``: ``∂t/∂t_a = -R^T``, ``∂t/∂θ_a = (t_y, -t_x)``, ``∂t/∂t_b = R^T``;
-    the heading difference has derivatives ``-1`` and ``+1``.
-    """
+    """``∂r/∂(x_1..x_{N-1})``, sparse ``(3Q, 3(N-1))``: ``W ∂(x_a ⊖ x_b)/∂(x_a, x_b)`` per factor
+    (:func:`ptm_ros.odometry.between_derivatives`)."""
     q, n = len(f.a), len(x)
-    c, s = np.cos(x[f.a, 2]), np.sin(x[f.a, 2])
-    de = np.zeros((q, 3, 6))
-    de[:, 0, :3] = np.stack([-c, -s, ty], axis=1)
-    de[:, 1, :3] = np.stack([s, -c, -tx], axis=1)
-    de[:, 2, 2] = -1.0
-    de[:, 0, 3:5] = np.stack([c, s], axis=1)
-    de[:, 1, 3:5] = np.stack([-s, c], axis=1)
-    de[:, 2, 5] = 1.0
-    jab = f.w @ de
+    jab = f.w @ between_derivatives(x, f.a, f.b, tx, ty)
     var = np.concatenate(
         [3 * (f.a - 1)[:, None] + np.arange(3), 3 * (f.b - 1)[:, None] + np.arange(3)], axis=1
     )

@@ -458,7 +458,7 @@ def _log_prior(
     return -config.penalty_max * np.einsum("sp,sp,sp->s", gap, gap, gap)
 
 
-def _between_derivatives(
+def between_derivatives(
     x: FloatArray, a: NDArray[np.intp], b: NDArray[np.intp], tx: FloatArray, ty: FloatArray
 ) -> FloatArray:
     """``∂(x_a ⊖ x_b)/∂(x_a, x_b)`` ``(Q, 3, 6)`` at poses ``x`` ``(N, 3)``, given ``t = (t_x, t_y)``.
@@ -487,7 +487,7 @@ def _pair_jacobians(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatArr
     """Residuals ``r`` ``(m,)`` at poses ``x`` ``(N, 3)``, Jacobian blocks ``[J_a J_b] = W ∂e/∂(x_a, x_b)``
     ``(Q, 3, 6)`` of the relative constraints ``W((x_a ⊖ x_b) ⊟ z)`` and their residuals ``(Q, 3)``."""
     e, tx, ty = _relative_errors(x[None], prob)
-    jab = prob.pair_w @ _between_derivatives(x, prob.pair_a, prob.pair_b, tx[0], ty[0])
+    jab = prob.pair_w @ between_derivatives(x, prob.pair_a, prob.pair_b, tx[0], ty[0])
     r_rel = (prob.pair_w @ e[0, :, :, None])[:, :, 0]
     r_top = prob.centering @ x[:, :2]
     return np.concatenate([r_rel.ravel(), r_top.ravel()]), jab, r_rel
@@ -683,7 +683,7 @@ def registration_aliases(
         i, j, mean, r_cov = _check_loop(z, k, prob.n)
         a, b = np.array([i]), np.array([j])
         rel = between(x[i], x[j])
-        jac = _between_derivatives(x, a, b, rel[:1], rel[1:2])[0]  # (3, 6): ∂/∂(x_i, x_j)
+        jac = between_derivatives(x, a, b, rel[:1], rel[1:2])[0]  # (3, 6): ∂/∂(x_i, x_j)
         cols = np.array([3 * (v - 1) + c for v in (i, j) for c in range(3)])  # x_0 is the fixed gauge
         free = cols >= 0
         c_ij = np.zeros((6, 6))
@@ -745,7 +745,7 @@ def _proposal_draws(z: FloatArray, opt: _Optimum, prob: _Problem, coordinates: s
     a = np.arange(n - 1)
     delta = between(x_star[:-1], x_star[1:])
     delta[:, 2] = x_star[1:, 2] - x_star[:-1, 2]  # unwrapped, so that recomposition returns X* at z = 0
-    de = _between_derivatives(x_star, a, a + 1, delta[:, 0], delta[:, 1])
+    de = between_derivatives(x_star, a, a + 1, delta[:, 0], delta[:, 1])
     y_full = np.concatenate([np.zeros((n_s, 1, 3)), y], axis=1)
     d_delta = np.einsum("kij,skj->ski", de[:, :, :3], y_full[:, :-1], optimize=True)
     d_delta += np.einsum("kij,skj->ski", de[:, :, 3:], y_full[:, 1:], optimize=True)

@@ -46,7 +46,13 @@ from scipy.sparse.linalg import spsolve
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
-from ptm_ros.odometry import OdometryConfig, odometry_covariances, optimize_poses, relative_odometry
+from ptm_ros.odometry import (
+    OdometryConfig,
+    between_derivatives,
+    odometry_covariances,
+    optimize_poses,
+    relative_odometry,
+)
 from ptm_ros.partitions import Labels, blocks, canonical
 from ptm_ros.visits import Visit
 
@@ -187,21 +193,13 @@ def _graph(
 
 def _relative(x: FloatArray, g: _Graph) -> tuple[FloatArray, FloatArray]:
     """Whitened residuals ``W((x_a ⊖ x_b) ⊟ z)`` ``(Q, 3)`` and their Jacobians w.r.t. ``(x_a, x_b)``
-    ``(Q, 3, 6)``: with ``t = R(θ_a)^T (t_b - t_a)``, ``∂t/∂t_a = -R^T``, ``∂t/∂θ_a = (t_y, -t_x)``,
-    ``∂t/∂t_b = R^T``; the heading difference has derivatives -1 and +1."""
+    ``(Q, 3, 6)`` (:func:`ptm_ros.odometry.between_derivatives`)."""
     pa, pb = x[g.a], x[g.b]
     c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
     dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
     tx, ty = c * dx + s * dy, -s * dx + c * dy
     e = np.stack([tx - g.z[:, 0], ty - g.z[:, 1], wrap_angle(pb[:, 2] - pa[:, 2] - g.z[:, 2])], axis=1)
-    de = np.zeros((len(g.a), 3, 6))
-    de[:, 0, :3] = np.stack([-c, -s, ty], axis=1)
-    de[:, 1, :3] = np.stack([s, -c, -tx], axis=1)
-    de[:, 2, 2] = -1.0
-    de[:, 0, 3:5] = np.stack([c, s], axis=1)
-    de[:, 1, 3:5] = np.stack([-s, c], axis=1)
-    de[:, 2, 5] = 1.0
-    return np.einsum("qij,qj->qi", g.w, e), g.w @ de
+    return np.einsum("qij,qj->qi", g.w, e), g.w @ between_derivatives(x, g.a, g.b, tx, ty)
 
 
 def _pair_residuals(x: FloatArray, g: _Graph) -> FloatArray:
