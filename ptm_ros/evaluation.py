@@ -35,6 +35,13 @@ true place ids are given, the mass of the exactly-true topology (thesis Ch. 5's 
 The number of true places is the number of single-linkage clusters of the true positions at ``r_s``
 (or the number of distinct true place ids when given).
 
+Contradictory pairs. Pairs closer than ``r_s`` must share a place and sharing is transitive, so a
+single-linkage cluster whose visits span more than ``r_d`` cannot be scored right by any topology: joined
+it has a false merge, split it has a missed one. Its scored pairs are the *contradictory pairs*; the
+*attainable consistent mass* is the mass of listed topologies with no wrong scored pair outside them
+(equal to the consistent mass when there are none). Both are reported beside the headline figures, which
+keep scoring every pair.
+
 Visits without ground truth (e.g. before the ground-truth trajectory starts) have a NaN row in
 ``true_xy``: every pair involving them is unscored, they are left out of the true places, and the
 exactly-true topology is then undefined. They are counted in ``n_visits_without_truth``.
@@ -170,6 +177,8 @@ class Score:
     consistent_mass: float
     true_topology_mass: float | None
     topologies: tuple[TopologyScore, ...] = field(repr=False)
+    n_contradictory_pairs: int = 0
+    attainable_consistent_mass: float = 0.0
     config: EvalConfig = field(default_factory=EvalConfig)
 
     @property
@@ -213,6 +222,8 @@ class Score:
             "posterior_mean_f1": self.mean_f1,
             "consistent_mass": self.consistent_mass,
             "true_topology_mass": self.true_topology_mass,
+            "n_contradictory_pairs": self.n_contradictory_pairs,
+            "attainable_consistent_mass": self.attainable_consistent_mass,
         }
         if per_topology:
             doc["topologies"] = [
@@ -282,6 +293,22 @@ def single_linkage_places(true_xy: ArrayLike, radius: float) -> NDArray[np.intp]
     return np.asarray(canonical(labels.tolist()), dtype=np.intp)
 
 
+def contradictory_pairs(
+    true_xy: ArrayLike, i: NDArray[np.intp], j: NDArray[np.intp], config: EvalConfig | None = None
+) -> NDArray[np.bool_]:
+    """Which scored pairs ``(i, j)`` lie inside one single-linkage cluster (gaps ``< r_s``) spanning more
+    than ``r_d``: no topology can score them all right (module docstring)."""
+    config = config or EvalConfig()
+    xy = np.asarray(true_xy, dtype=float)
+    places = single_linkage_places(xy, config.same_radius)
+    bad = np.zeros(int(np.max(places, initial=-1)) + 1, dtype=bool)
+    for c in range(len(bad)):
+        members = xy[places == c]
+        if len(members) > 1 and np.nanmax(pdist(members)) > config.different_radius:
+            bad[c] = True
+    return (places[i] == places[j]) & bad[places[i]]
+
+
 def topology_counts(
     labels: NDArray[np.integer], i: NDArray[np.intp], j: NDArray[np.intp], same: NDArray[np.bool_]
 ) -> NDArray[np.int64]:
@@ -345,6 +372,10 @@ def score_ptm(
     expected = PairCounts(*(float(v) for v in w @ counts))
     mean_f1 = float(sum(wk * s.counts.f1 for wk, s in zip(w, scores, strict=True)))
     consistent_mass = float(sum(s.probability for s in scores if s.consistent))
+    contra = contradictory_pairs(xy, i, j, config)
+    keep = ~contra
+    attainable = topology_counts(labels, i[keep], j[keep], same[keep])
+    attainable_mass = float(probs[(attainable[:, 1] + attainable[:, 2]) == 0].sum())
 
     true_mass: float | None = None
     if true_places is None:
@@ -375,6 +406,8 @@ def score_ptm(
         true_topology_mass=true_mass,
         topologies=scores,
         config=config,
+        n_contradictory_pairs=int(contra.sum()),
+        attainable_consistent_mass=attainable_mass,
     )
 
 

@@ -59,6 +59,26 @@ def test_perfect_map_scores_one_and_consistent_mass_is_its_mass() -> None:
     assert (s.n_scored_pairs, s.n_same_pairs, s.n_different_pairs) == (6, 1, 5)
 
 
+def test_contradictory_chain_is_reported_and_excluded_from_the_attainable_mass() -> None:
+    """Visits 0-4 chained by 1.2 m gaps (must share a place) with 0 and 4 4.8 m apart (must differ): no
+    topology scores all their pairs right; the far visit 5 is scored normally."""
+    xy = np.array([[0.0, 0.0], [1.2, 0.0], [2.4, 0.0], [3.6, 0.0], [4.8, 0.0], [50.0, 0.0]])
+    tops = [((0, 0, 0, 0, 0, 1), 0.5), ((0, 0, 0, 1, 1, 2), 0.3), ((0, 0, 0, 0, 0, 0), 0.2)]
+    s = score_ptm(make(xy, tops), xy)
+    for top, _ in tops:  # every topology gets some scored pair wrong
+        assert brute_counts(xy, top, 1.5, 4.0).errors > 0
+    assert s.consistent_mass == 0.0
+    # scored pairs inside the chain: the 4 neighbours (same) and (0, 4) at 4.8 m (different)
+    assert s.n_contradictory_pairs == 5
+    # outside the chain only the pairs with visit 5 are scored: the third topology merges it wrongly
+    assert s.attainable_consistent_mass == pytest.approx(0.8)
+    doc = s.as_dict()
+    assert doc["n_contradictory_pairs"] == 5 and doc["attainable_consistent_mass"] == pytest.approx(0.8)
+    clean = score_ptm(make(XY4, [((0, 1, 2, 0), 0.7), ((0, 0, 1, 0), 0.3)]), XY4)
+    assert clean.n_contradictory_pairs == 0
+    assert clean.attainable_consistent_mass == clean.consistent_mass == pytest.approx(0.7)
+
+
 def test_wrong_merge_precision_by_hand() -> None:
     # MAP merges B into A's place: predicted-same pairs (0,1), (0,3), (1,3); only (0,3) is truly same.
     s = score_ptm(make(XY4, [((0, 0, 1, 0), 1.0)]), XY4)

@@ -22,6 +22,9 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
   ``posterior_mean_f1`` — the mass-weighted mean of the topologies' F1;
 * ``consistent_mass`` — posterior mass of listed topologies with no scored pair wrong;
 * ``true_topology_mass`` — mass of the exactly-true topology, ``null`` without true place ids;
+* ``n_contradictory_pairs`` — scored pairs inside a single-linkage cluster spanning more than the
+  different-place radius (no topology scores them all right); ``attainable_consistent_mass`` — mass of
+  listed topologies with no wrong scored pair outside them;
 * ``topologies`` (unless ``--no-topologies``) — per listed topology: ``rank`` (0 = MAP),
   ``probability``, ``num_places``, ``tp``, ``fp``, ``fn``, ``tn``, ``precision``, ``recall``, ``f1``,
   ``consistent``.
