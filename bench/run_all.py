@@ -115,6 +115,8 @@ def score_row(score) -> dict:
         "map_recall",
         "posterior_f1",
         "consistent_mass",
+        "attainable_consistent_mass",
+        "n_contradictory_pairs",
         "true_topology_mass",
         "n_scored_pairs",
         "n_same_pairs",
@@ -223,6 +225,7 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "map_f1",
         "posterior_f1",
         "consistent_mass",
+        "attainable_consistent_mass",
         "true_topology_mass",
         "ate_smoothed_m",
         "ate_odometry_m",
@@ -238,7 +241,9 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "",
         "Scores against ground truth (same place < 1.5 m, different > 4 m): `map_f1` of the most probable "
         "topology, `posterior_f1` from expected pair counts, `consistent_mass` = mass with no scored pair "
-        "wrong. Reference methods commit to one topology (probability 1). `ate_smoothed_m` / "
+        "wrong, `attainable_consistent_mass` = the same outside pairs no topology can score right (a < 1.5 m "
+        "chain of visits spanning > 4 m; `n_contradictory_pairs` in results.json). Reference methods "
+        "commit to one topology (probability 1). `ate_smoothed_m` / "
         "`ate_odometry_m`: absolute trajectory error (RMSE after the best rigid 2-D alignment, m) of the "
         "smoothed trajectory of the most probable topology and of the raw odometry, at the odometry stamps "
         "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json).",
