@@ -182,6 +182,23 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path):
     assert "(map.png)" in md and "absolute trajectory error" in md
 
 
+def test_cli_warns_about_skipped_input(monkeypatch, tmp_path, capsys):
+    """Messages the extractor skipped (bad stamps, malformed scans, ...) are named on stderr, not dropped
+    silently."""
+    assert run_cli.skipped_warning({"skipped": {}}) == ""
+    assert run_cli.skipped_warning({}) == ""
+    line = run_cli.skipped_warning({"skipped": {"scan-malformed": 2, "odometry-stamp-backwards": 1}})
+    assert line.startswith("skipped 3 input messages (odometry-stamp-backwards 1, scan-malformed 2)")
+
+    result = SimpleNamespace(diagnostics={"skipped": {"scan-empty": 4}})
+    monkeypatch.setattr("ptm_ros.tools.pipeline.run_offline", lambda *a, **k: result)
+    monkeypatch.setattr(run_cli, "format_summary", lambda result, top: "summary")
+    assert run_cli.main([str(tmp_path), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "ptm-run: warning: skipped 4 input messages (scan-empty 4)" in captured.err
+    assert captured.out.strip() == "summary"
+
+
 def test_cli_reports_errors_with_exit_code(tmp_path, capsys):
     assert run_cli.main([str(tmp_path / "missing.bag"), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "ptm-run: error" in capsys.readouterr().err

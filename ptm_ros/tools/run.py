@@ -186,8 +186,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
+    warning = skipped_warning(result.diagnostics)
+    if warning:
+        print(f"{PROG}: warning: {warning}", file=sys.stderr)
     print(format_summary(result, args.top))
     return 0
+
+
+def skipped_warning(diagnostics: dict) -> str:
+    """One line naming the input messages the extractor skipped, by reason (``''`` when none): bad input
+    is reported, never dropped silently (the counts are also in ptm.json's ``diagnostics``)."""
+    skipped = {k: int(v) for k, v in (diagnostics.get("skipped") or {}).items() if v}
+    if not skipped:
+        return ""
+    reasons = ", ".join(f"{k} {v}" for k, v in sorted(skipped.items()))
+    return f"skipped {sum(skipped.values())} input messages ({reasons}); see diagnostics in ptm.json"
 
 
 if __name__ == "__main__":
