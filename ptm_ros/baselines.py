@@ -66,19 +66,18 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, cholesky, solve_triangular
-from scipy.sparse.linalg import spsolve
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.laser import LaserConfig, patch_registrar
 from ptm_ros.odometry import (
     OdometryConfig,
-    between_derivatives,
     odometry_covariances,
     optimize_poses,
     relative_odometry,
 )
 from ptm_ros.partitions import Labels, canonical
+from ptm_ros.posegraph import RelativeFactors, levenberg_marquardt, relative_jacobian, relative_residuals
 from ptm_ros.visits import Visit, poses_array
 
 FloatArray = NDArray[np.float64]
@@ -294,13 +293,9 @@ class RobustResult:
 
 
 @dataclass(frozen=True)
-class _Factors:
-    """Relative-pose factors ``W((x_a ⊖ x_b) ⊟ z)``: odometry first, then loops."""
+class _Factors(RelativeFactors):
+    """Relative-pose factors: odometry first, then ``n_loops`` loops."""
 
-    a: NDArray[np.intp]
-    b: NDArray[np.intp]
-    z: FloatArray  # (Q, 3)
-    w: FloatArray  # (Q, 3, 3) whitening, W^T W = cov^{-1}
     n_loops: int
 
 
@@ -353,32 +348,8 @@ def _factors(odometry: FloatArray, odometry_cov: FloatArray, loops: Sequence[Rel
     )
 
 
-def _residuals(x: FloatArray, f: _Factors) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Whitened residuals ``(Q, 3)`` and the translation ``t = x_a ⊖ x_b`` ``(Q,)`` ×2 at poses ``x``."""
-    pa, pb = x[f.a], x[f.b]
-    c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
-    dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
-    tx, ty = c * dx + s * dy, -s * dx + c * dy
-    e = np.stack([tx - f.z[:, 0], ty - f.z[:, 1], wrap_angle(pb[:, 2] - pa[:, 2] - f.z[:, 2])], axis=1)
-    return np.einsum("qij,qj->qi", f.w, e), tx, ty
-
-
-def _jacobian(x: FloatArray, f: _Factors, tx: FloatArray, ty: FloatArray) -> sp.csr_matrix:
-    """``∂r/∂(x_1..x_{N-1})``, sparse ``(3Q, 3(N-1))``: ``W ∂(x_a ⊖ x_b)/∂(x_a, x_b)`` per factor
-    (:func:`ptm_ros.odometry.between_derivatives`)."""
-    q, n = len(f.a), len(x)
-    jab = f.w @ between_derivatives(x, f.a, f.b, tx, ty)
-    var = np.concatenate(
-        [3 * (f.a - 1)[:, None] + np.arange(3), 3 * (f.b - 1)[:, None] + np.arange(3)], axis=1
-    )
-    rows = np.broadcast_to((3 * np.arange(q))[:, None, None] + np.arange(3)[None, :, None], jab.shape)
-    cols = np.broadcast_to(var[:, None, :], jab.shape)
-    keep = cols >= 0  # visit 0 is the gauge
-    return sp.csr_matrix((jab[keep], (rows[keep], cols[keep])), shape=(3 * q, 3 * (n - 1)))
-
-
 def _weighted_cost(x: FloatArray, f: _Factors, sqrt_w: FloatArray) -> float:
-    r, _, _ = _residuals(x, f)
+    r, _, _ = relative_residuals(x, f)
     return 0.5 * float(np.sum((sqrt_w[:, None] * r) ** 2))
 
 
@@ -387,39 +358,25 @@ def _solve_weighted(
 ) -> FloatArray:
     """Levenberg–Marquardt on ``½ Σ_q w_q |r_q|²`` (odometry weights 1, loops ``weights``), ``x_0`` fixed."""
     sqrt_w = np.sqrt(np.concatenate([np.ones(len(f.a) - f.n_loops), weights]))
-    x = x0.copy()
-    if len(x) == 1:
-        return x
-    cost = _weighted_cost(x, f, sqrt_w)
-    lam = 1e-6
-    for _ in range(config.max_iterations):
-        r, tx, ty = _residuals(x, f)
-        jac = sp.diags(np.repeat(sqrt_w, 3)) @ _jacobian(x, f, tx, ty)
-        rw = (sqrt_w[:, None] * r).ravel()
-        H = (jac.T @ jac).tocsc()
-        g = jac.T @ rw
-        improved = False
-        while lam < 1e12:
-            damped = H + sp.diags(lam * H.diagonal())
-            step = -spsolve(damped.tocsc(), g)
-            x_new = x.copy()
-            x_new[1:] += step.reshape(-1, 3)
-            cost_new = _weighted_cost(x_new, f, sqrt_w)
-            if np.all(np.isfinite(step)) and cost_new <= cost:
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            break
-        decrease = cost - cost_new
-        x, cost, lam = x_new, cost_new, max(lam / 10.0, 1e-12)
-        if decrease <= config.tolerance * (1.0 + cost):
-            break
-    return x
+    if len(x0) == 1:
+        return x0.copy()
+
+    def normal_equations(x: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
+        r, tx, ty = relative_residuals(x, f)
+        jac = sp.diags(np.repeat(sqrt_w, 3)) @ relative_jacobian(x, f, tx, ty)
+        return (jac.T @ jac).tocsc(), jac.T @ (sqrt_w[:, None] * r).ravel()
+
+    return levenberg_marquardt(
+        x0,
+        lambda x: _weighted_cost(x, f, sqrt_w),
+        normal_equations,
+        max_iterations=config.max_iterations,
+        tolerance=config.tolerance,
+    )
 
 
 def _loop_residuals2(x: FloatArray, f: _Factors) -> FloatArray:
-    r, _, _ = _residuals(x, f)
+    r, _, _ = relative_residuals(x, f)
     return np.sum(r[len(f.a) - f.n_loops :] ** 2, axis=1)
 
 

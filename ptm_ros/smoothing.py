@@ -42,18 +42,17 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-from scipy.sparse.linalg import spsolve
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
 from ptm_ros.odometry import (
     OdometryConfig,
-    between_derivatives,
     odometry_covariances,
     optimize_poses,
     relative_odometry,
 )
 from ptm_ros.partitions import Labels, blocks, canonical
+from ptm_ros.posegraph import RelativeFactors, levenberg_marquardt, relative_jacobian, relative_residuals
 from ptm_ros.visits import Visit
 
 FloatArray = NDArray[np.float64]
@@ -163,10 +162,7 @@ def place_pairs(labels: Sequence[int], sigma_topology: float) -> tuple[NDArray[n
 class _Graph:
     """Gaussian relative factors (odometry, then same-place registrations) and the place pairs."""
 
-    a: NDArray[np.intp]
-    b: NDArray[np.intp]
-    z: FloatArray  # (Q, 3) measurements of between(x_a, x_b)
-    w: FloatArray  # (Q, 3, 3) whitening, W^T W = covariance^-1
+    factors: RelativeFactors
     pairs: NDArray[np.intp]  # (P, 2)
     scales: FloatArray  # (P,)
 
@@ -181,25 +177,13 @@ def _graph(
     same = [lp for lp in loops if labels[lp.i] == labels[lp.j]]
     loop_w = [np.linalg.inv(np.linalg.cholesky(np.asarray(lp.cov, dtype=float))) for lp in same]
     pairs, scales = place_pairs(labels, odometry.sigma_topology)
-    return _Graph(
+    factors = RelativeFactors(
         a=np.concatenate([np.arange(n - 1), [lp.i for lp in same]]).astype(np.intp),
         b=np.concatenate([np.arange(1, n), [lp.j for lp in same]]).astype(np.intp),
         z=np.concatenate([relative_odometry(visits), np.reshape([lp.mean for lp in same], (-1, 3))]),
         w=np.concatenate([odo_w, np.reshape(loop_w, (-1, 3, 3))]),
-        pairs=pairs,
-        scales=scales,
     )
-
-
-def _relative(x: FloatArray, g: _Graph) -> tuple[FloatArray, FloatArray]:
-    """Whitened residuals ``W((x_a ⊖ x_b) ⊟ z)`` ``(Q, 3)`` and their Jacobians w.r.t. ``(x_a, x_b)``
-    ``(Q, 3, 6)`` (:func:`ptm_ros.odometry.between_derivatives`)."""
-    pa, pb = x[g.a], x[g.b]
-    c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
-    dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
-    tx, ty = c * dx + s * dy, -s * dx + c * dy
-    e = np.stack([tx - g.z[:, 0], ty - g.z[:, 1], wrap_angle(pb[:, 2] - pa[:, 2] - g.z[:, 2])], axis=1)
-    return np.einsum("qij,qj->qi", g.w, e), g.w @ between_derivatives(x, g.a, g.b, tx, ty)
+    return _Graph(factors=factors, pairs=pairs, scales=scales)
 
 
 def _pair_residuals(x: FloatArray, g: _Graph) -> FloatArray:
@@ -208,61 +192,43 @@ def _pair_residuals(x: FloatArray, g: _Graph) -> FloatArray:
 
 
 def _weighted_cost(x: FloatArray, g: _Graph, weights: FloatArray) -> float:
-    r, _ = _relative(x, g)
+    r, _, _ = relative_residuals(x, g.factors)
     rp = _pair_residuals(x, g)
     return 0.5 * (float(np.sum(r * r)) + float(weights @ np.sum(rp * rp, axis=1)))
 
 
 def _normal_equations(x: FloatArray, g: _Graph, weights: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
-    """``H = Jᵀ J`` (sparse) and ``Jᵀ r`` of the weighted residuals w.r.t. ``x_1..x_{N-1}`` (x_0 fixed)."""
-    r, jab = _relative(x, g)
-    q, p, n = len(g.a), len(g.pairs), len(x)
-    var = np.concatenate(
-        [3 * (g.a - 1)[:, None] + np.arange(3), 3 * (g.b - 1)[:, None] + np.arange(3)], axis=1
-    )
-    rows = np.broadcast_to(3 * np.arange(q)[:, None, None] + np.arange(3)[None, :, None], jab.shape)
-    cols = np.broadcast_to(var[:, None, :], jab.shape)
-    keep = cols >= 0  # visit 0 is the gauge
+    """``H = Jᵀ J`` (sparse) and ``Jᵀ r`` of the weighted residuals w.r.t. ``x_1..x_{N-1}`` (x_0 fixed):
+    the relative factors (:mod:`ptm_ros.posegraph`), then the place pairs scaled by ``√w``."""
+    r, tx, ty = relative_residuals(x, g.factors)
+    p, n = len(g.pairs), len(x)
     root_w = np.sqrt(weights)
-    pair_rows = 3 * q + 2 * np.arange(p)[:, None] + np.arange(2)  # (P, 2)
-    r_rows, r_cols, r_vals = [rows[keep]], [cols[keep]], [jab[keep]]
+    pair_rows = 2 * np.arange(p)[:, None] + np.arange(2)  # (P, 2)
+    r_rows, r_cols, r_vals = [], [], []
     for side, sign in ((0, 1.0), (1, -1.0)):
         c = 3 * (g.pairs[:, side] - 1)[:, None] + np.arange(2)
         v = np.broadcast_to((sign * root_w / g.scales)[:, None], c.shape)
-        ok = c >= 0
+        ok = c >= 0  # visit 0 is the gauge
         r_rows.append(pair_rows[ok])
         r_cols.append(c[ok])
         r_vals.append(v[ok])
-    jac = sp.csr_matrix(
-        (np.concatenate(r_vals), (np.concatenate(r_rows), np.concatenate(r_cols))),
-        shape=(3 * q + 2 * p, 3 * (n - 1)),
+    pair_jac = sp.csr_matrix(
+        (np.concatenate(r_vals), (np.concatenate(r_rows), np.concatenate(r_cols))), shape=(2 * p, 3 * (n - 1))
     )
+    jac = sp.vstack([relative_jacobian(x, g.factors, tx, ty), pair_jac], format="csr")
     res = np.concatenate([r.ravel(), (root_w[:, None] * _pair_residuals(x, g)).ravel()])
     return (jac.T @ jac).tocsc(), jac.T @ res
 
 
 def _solve_weighted(x0: FloatArray, g: _Graph, weights: FloatArray, config: SmoothingConfig) -> FloatArray:
     """Levenberg–Marquardt on ``½ Σ |r_rel|² + ½ Σ_p w_p |r_p|²`` from ``x0`` (``x_0`` fixed)."""
-    x = x0.copy()
-    cost = _weighted_cost(x, g, weights)
-    lam = 1e-6
-    for _ in range(config.max_iterations):
-        H, grad = _normal_equations(x, g, weights)
-        while lam < 1e12:
-            step = spsolve((H + sp.diags(lam * H.diagonal())).tocsc(), -grad)
-            x_new = x.copy()
-            x_new[1:] += np.reshape(step, (-1, 3))
-            cost_new = _weighted_cost(x_new, g, weights) if np.all(np.isfinite(step)) else math.inf
-            if cost_new <= cost:
-                break
-            lam *= 10.0
-        else:
-            break  # no step lowers the cost: converged to machine precision
-        decrease = cost - cost_new
-        x, cost, lam = x_new, cost_new, max(lam / 10.0, 1e-12)
-        if decrease <= 1e-10 * (1.0 + cost):
-            break
-    return x
+    return levenberg_marquardt(
+        x0,
+        lambda x: _weighted_cost(x, g, weights),
+        lambda x: _normal_equations(x, g, weights),
+        max_iterations=config.max_iterations,
+        tolerance=1e-10,
+    )
 
 
 def _cauchy_weights(x: FloatArray, g: _Graph) -> FloatArray:
