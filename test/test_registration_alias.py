@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_rbpf import simulate as simulate_route
 
 from ptm_ros.errors import ConfigError
 from ptm_ros.geometry import RelativePose, between, compose
@@ -28,23 +29,7 @@ ALIAS = (1, 5)  # this pair's registration is the place's 180° symmetric image,
 
 def simulate(seed: int = 1) -> tuple[list[Visit], np.ndarray]:
     """Visits of ROUTE on SQUARE (facing the next place) with odometry drawn from ODO's noise."""
-    rng = np.random.default_rng(seed)
-    pts = np.asarray(SQUARE)
-    true = []
-    for i, p in enumerate(ROUTE):
-        nxt = pts[ROUTE[i + 1]] if i + 1 < len(ROUTE) else pts[ROUTE[i - 1]]
-        true.append(np.array([*pts[p], math.atan2(*(nxt - pts[p])[::-1])]))
-    visits, u = [], true[0].copy()
-    for i in range(len(ROUTE)):
-        travel = rotation = 0.0
-        if i > 0:
-            rel = between(true[i - 1], true[i])
-            travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
-            var_xy = ODO.a_xy * travel + ODO.b_xy
-            var_th = ODO.a_th * rotation + ODO.c_th * travel + ODO.b_th
-            u = compose(u, rel + rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
-        visits.append(Visit(i, float(i), tuple(u), travel=travel, rotation=rotation))
-    return visits, np.array(true)
+    return simulate_route(ROUTE, SQUARE, ODO, seed=seed)
 
 
 def aliasing_registrar(true: np.ndarray):
