@@ -356,39 +356,29 @@ def _infer_rbpf(
 ) -> Inference:
     """The Rao-Blackwellized particle filter over the whole run (thesis Algorithm 8); with
     ``persistence``, continued from a saved state and/or saved along the way."""
-    from ptm_ros.rbpf import RbpfConfig, TopologyFilter, run_filter
+    from ptm_ros.rbpf import RbpfConfig, TopologyFilter
 
     inf = config.inference
     rbpf = RbpfConfig(particles=inf.particles, resample=inf.resample)
     odometry = config.model.odometry
-    if persistence is None:
-        flt = run_filter(
-            visits,
-            rbpf,
-            model.prior,
-            odometry,
-            appearance=model.appearance,
-            registrar=registrar,
-            seed=inf.seed,
-            progress=progress,
-        )
-        return rbpf_inference(flt, config)
-    if persistence.restored is None:
+    restored = None if persistence is None else persistence.restored
+    if restored is None:
         flt = TopologyFilter(
             rbpf, model.prior, odometry, appearance=model.appearance, registrar=registrar, seed=inf.seed
         )
     else:
-        flt = restore_filter(persistence.restored, rbpf, model, odometry, registrar)
+        flt = restore_filter(restored, rbpf, model, odometry, registrar)
+    save, every = (None, 1) if persistence is None else (persistence.save, persistence.every)
     todo = visits[len(flt.visits) :]
     items: Iterable[Visit] = todo if progress is None else progress(todo, len(todo))
-    saved_at = len(flt.visits) if persistence.restored is not None else -1
+    saved_at = len(flt.visits) if restored is not None else -1
     for visit in items:
         flt.update(visit)
-        if persistence.save is not None and len(flt.visits) % persistence.every == 0:
-            persistence.save(flt)
+        if save is not None and len(flt.visits) % every == 0:
+            save(flt)
             saved_at = len(flt.visits)
-    if persistence.save is not None and saved_at != len(flt.visits):
-        persistence.save(flt)
+    if save is not None and saved_at != len(flt.visits):
+        save(flt)
     return rbpf_inference(flt, config)
 
 
