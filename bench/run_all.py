@@ -2,8 +2,9 @@
 
 1. Component benchmarks (each writes its own JSON beside this script): the metric likelihood
    (``bench_odometry.py``), log P(T|Z) (``bench_posterior.py``), the particle filter (``bench_rbpf.py``),
-   MCMC (``bench_mcmc.py``), the surprise detectors (``bench_surprise.py``) and the node suite's CPU and
-   memory over DDS (``bench_nodes.py``), when present.
+   MCMC (``bench_mcmc.py``), the surprise detectors (``bench_surprise.py``), the node suite's CPU and
+   memory over DDS (``bench_nodes.py``) and the map publisher's online occupancy map against ``ptm-run``'s
+   (``bench_online_map.py``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -46,6 +47,7 @@ COMPONENTS = (
     "bench_mcmc.py",
     "bench_surprise.py",
     "bench_nodes.py",
+    "bench_online_map.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

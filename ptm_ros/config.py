@@ -16,6 +16,7 @@ from ptm_ros.detectors import EquidistantConfig
 from ptm_ros.errors import ConfigError
 from ptm_ros.laser import LaserConfig
 from ptm_ros.laser_odometry import LaserOdometryConfig
+from ptm_ros.mapping import MappingConfig
 from ptm_ros.mcmc import McmcConfig
 from ptm_ros.occupancy import OccupancyConfig
 from ptm_ros.posterior import ModelConfig
@@ -91,7 +92,8 @@ class PtmConfig:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     inference: InferenceConfig = field(default_factory=InferenceConfig)
     topics: TopicsConfig = field(default_factory=TopicsConfig)
-    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)  # ptm-run's map.pgm / map.png
+    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)  # map.pgm / map.png and /map
+    mapping: MappingConfig = field(default_factory=MappingConfig)  # the map publisher's online map
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:

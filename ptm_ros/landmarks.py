@@ -65,6 +65,7 @@ class ExtractorConfig:
     max_passage_s: float = 120.0  # s: longest passage a patch is built from (bounds memory)
     stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
     record_corrections: bool = False  # keep (stamp, correction) of every scan (offline smoothing; grows)
+    stream_poses: bool = False  # keep each odometry sample and scan used, with its pose, until taken
 
 
 @dataclass
@@ -127,6 +128,8 @@ class VisitExtractor:
         )
         self._wheel: NDArray[np.float64] | None = None  # latest wheel odometry pose
         self.corrections: list[tuple[float, NDArray[np.float64]]] = []  # if config.record_corrections
+        self._poses_out: list[tuple[float, NDArray[np.float64]]] = []  # if config.stream_poses
+        self._scans_out: list[tuple[float, tuple, NDArray[np.float64]]] = []  # if config.stream_poses
         self._queue: list[tuple[float, int, int, Any]] = []
         self._seq = 0
         self._watermark = {ODOM: -math.inf, SCAN: -math.inf, IMAGE: -math.inf}
@@ -180,6 +183,20 @@ class VisitExtractor:
             self.diagnostics.skip("image-bad-stamp")
             return []
         return self._push(IMAGE, float(stamp), image)
+
+    def take_poses(self) -> list[tuple[float, NDArray[np.float64]]]:
+        """``(stamp, pose)`` of every odometry sample processed since the last call, in stamp order: the
+        odometry the visits' poses are taken from (laser-corrected when enabled), for a map built beside
+        the visits (the detector node publishes it). Empty unless ``config.stream_poses``."""
+        out, self._poses_out = self._poses_out, []
+        return out
+
+    def take_scans(self) -> list[tuple[float, tuple, NDArray[np.float64]]]:
+        """``(stamp, (ranges, angle_min, angle_increment, range_min, range_max), pose)`` of every scan
+        processed since the last call (after the first odometry sample), with the pose of the latest
+        odometry sample (:meth:`take_poses`) at or before it. Empty unless ``config.stream_poses``."""
+        out, self._scans_out = self._scans_out, []
+        return out
 
     def flush(self) -> list[Visit]:
         """End of data: process everything queued and complete every pending visit."""
@@ -247,6 +264,8 @@ class VisitExtractor:
         self._odom_t.append(stamp)
         self._odom_p.append(pose)
         self._odom_w.append(wheel)
+        if self.config.stream_poses:
+            self._poses_out.append((stamp, pose))
         try:
             if hasattr(self.detector, "on_odometry") and self.detector.on_odometry(stamp, pose):
                 self._fire(stamp)
@@ -268,6 +287,8 @@ class VisitExtractor:
             self.diagnostics.laser_odometry = dict(vars(self.laser_odometry.counters))  # flat ints
             if self.config.record_corrections:
                 self.corrections.append((stamp, self.laser_odometry.correction))
+        if self.config.stream_poses and self._odom_p:  # posed as the latest odometry sample (streamed)
+            self._scans_out.append((stamp, scan, self._odom_p[-1]))
         if self.config.use_scans:
             self._scans.append((stamp, res.points))
         if hasattr(self.detector, "on_scan"):

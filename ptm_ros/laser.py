@@ -1274,7 +1274,11 @@ def _floor_cov(cov: FloatArray, min_std: FloatArray) -> FloatArray:
 
 
 def patch_registrar(
-    visits: Sequence[Visit], config: LaserConfig | None = None, counters: dict[str, int] | None = None
+    visits: Sequence[Visit],
+    config: LaserConfig | None = None,
+    counters: dict[str, int] | None = None,
+    *,
+    keep_prepared: int = _PREPARED_PATCHES,
 ) -> Registrar:
     """Registrar over a visit sequence: visit j's patch registered onto visit i's from ``(0, 0, 0)`` (the
     "same place" hypothesis; the rotations tried cover any heading, and odometry drift makes an
@@ -1283,9 +1287,9 @@ def patch_registrar(
     ``registrations_valid``.
 
     ``visits`` may grow between calls. Each patch is prepared for registration (downsampled, its KD-tree,
-    normals and voxel maps built) once and kept for the :data:`_PREPARED_PATCHES` most recently used
-    visits; a visit whose patch object changed is prepared afresh. The outcomes equal
-    :func:`register_patches`'.
+    normals and voxel maps built) once and kept for the ``keep_prepared`` (default
+    :data:`_PREPARED_PATCHES`) most recently used visits; a visit whose patch object changed is prepared
+    afresh. The outcomes equal :func:`register_patches`' whatever ``keep_prepared``.
     """
     cfg = LaserConfig() if config is None else config
     prepared: dict[int, tuple[FloatArray, _PreparedPatch]] = {}
@@ -1295,7 +1299,7 @@ def patch_registrar(
         if hit is None or hit[0] is not patch:
             hit = (patch, _PreparedPatch(_as_points(patch, role), cfg))
         prepared[k] = hit  # most recently used last
-        while len(prepared) > _PREPARED_PATCHES:
+        while len(prepared) > max(keep_prepared, 1):
             del prepared[next(iter(prepared))]
         return hit[1]
 

@@ -289,26 +289,31 @@ def build_grid(
         msg = "range_max must be > 0 for every scan"
         raise DataError(msg)
 
-    scans: list[_Beams] = []
-    skipped = 0
-    for t in range(T):
-        r = np.asarray(ranges[t], dtype=float).reshape(-1)
-        beams, bad = _scan_beams(
+    def beams_of(t: int) -> tuple[_Beams, int]:
+        return _scan_beams(
             P[t],
-            r,
+            np.asarray(ranges[t], dtype=float).reshape(-1),
             angle_min=a0[t],
             angle_increment=da[t],
             range_min=rmin[t],
             range_max=rmax[t],
             max_range=cfg.max_range,
         )
-        scans.append(beams)
-        skipped += bad
 
-    pts = np.concatenate([P[:, :2]] + [b.ends for b in scans], axis=0)
+    # Two passes over the scans (the extent first, then the rays), so that memory stays that of the grid
+    # and one scan however many scans there are (the map publisher redraws maps of thousands).
+    lo_pt, hi_pt = P[:, :2].min(axis=0), P[:, :2].max(axis=0)
+    skipped = n_beams = 0
+    for t in range(T):
+        beams, bad = beams_of(t)
+        skipped += bad
+        n_beams += len(beams.ends)
+        if len(beams.ends):
+            lo_pt = np.minimum(lo_pt, beams.ends.min(axis=0))
+            hi_pt = np.maximum(hi_pt, beams.ends.max(axis=0))
     res = cfg.resolution
-    lo = np.floor((pts.min(axis=0) - cfg.margin) / res) * res
-    hi = pts.max(axis=0) + cfg.margin
+    lo = np.floor((lo_pt - cfg.margin) / res) * res
+    hi = hi_pt + cfg.margin
     width, height = (np.floor((hi - lo) / res).astype(np.int64) + 1).tolist()
     if width * height > cfg.max_cells:
         msg = (
@@ -319,7 +324,8 @@ def build_grid(
 
     log_odds = np.zeros(height * width)
     observed = np.zeros(height * width, dtype=bool)
-    for beams in scans:
+    for t in range(T):
+        beams, _ = beams_of(t)
         if len(beams.ends) == 0:
             continue
         start = (beams.origin - lo) / res
@@ -339,7 +345,7 @@ def build_grid(
         origin=(float(lo[0]), float(lo[1]), 0.0),
         resolution=res,
         scans=T,
-        beams=sum(len(b.ends) for b in scans),
+        beams=n_beams,
         skipped=skipped,
     )
 

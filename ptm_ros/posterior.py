@@ -89,6 +89,34 @@ def _has_appearance(visits: Sequence[Visit], config: AppearanceConfig) -> bool:
     return (not need_sig or sigs >= 2) and (not need_words or words >= 2)
 
 
+def chained_outcomes(
+    labels: Sequence[int], registration: Callable[[int, int], RelativePose | NoMatch | None]
+) -> list[RelativePose | NoMatch | None]:
+    """The laser outcomes a topology looks at (eq. 47–49): each visit against the previous visit of its
+    place (``registration(i, j)``, i < j), in block order."""
+    return [registration(a, b) for block in blocks(labels) for a, b in pairwise(block)]
+
+
+def chained_registrations(
+    labels: Sequence[int], registration: Callable[[int, int], RelativePose | NoMatch | None]
+) -> tuple[RelativePose, ...]:
+    """The valid registrations among a topology's :func:`chained_outcomes` (failed or missing left out)."""
+    return tuple(z for z in chained_outcomes(labels, registration) if isinstance(z, RelativePose))
+
+
+def split_aliases(
+    labels: Sequence[int], visits: Sequence[Visit], config: OdometryConfig, measured: Sequence[RelativePose]
+) -> tuple[tuple[RelativePose, ...], tuple[RelativePose, ...]]:
+    """``(loops, outliers)``: a topology's valid registrations ``measured`` split into the ones used as pose
+    constraints and the ones explained as symmetric aliases (:func:`ptm_ros.odometry.registration_aliases`,
+    the max-mixture of ``registration_outlier``). The batch posterior, the smoothing of ``ptm-run`` and the
+    map publisher's online map all take a topology's loops from here."""
+    alias = registration_aliases(labels, visits, config, list(measured))
+    loops = tuple(z for z, a in zip(measured, alias, strict=True) if not a)
+    outliers = tuple(z for z, a in zip(measured, alias, strict=True) if a)
+    return loops, outliers
+
+
 class PosteriorModel:
     """log P(T | Z) for topologies of a fixed visit sequence, with caching (see module docstring)."""
 
@@ -137,14 +165,14 @@ class PosteriorModel:
 
     def loops(self, labels: Labels) -> tuple[RelativePose, ...]:
         """Laser measurements used by a topology: each visit against the previous visit of its place."""
-        return tuple(z for z in self._chained(labels) if isinstance(z, RelativePose))
+        return chained_registrations(labels, self.registration)
 
     def laser_evidence(self, labels: Labels) -> float:
         """Σ of the fitness evidence (``log_bayes``) of the laser outcomes of the chained pairs."""
         return float(sum(z.log_bayes for z in self._chained(labels) if z is not None))
 
     def _chained(self, labels: Labels) -> list[RelativePose | NoMatch | None]:
-        return [self.registration(a, b) for block in blocks(labels) for a, b in pairwise(block)]
+        return chained_outcomes(labels, self.registration)
 
     def terms(self, labels: Sequence[int]) -> PosteriorTerms:
         """All parts of the unnormalised log posterior of a topology (cached)."""
@@ -154,14 +182,11 @@ class PosteriorModel:
             return cached
         prior = self.prior.log_prob(lab)
         metric, result = 0.0, None
-        loops: list[RelativePose] = []
-        outliers: list[RelativePose] = []
+        loops: tuple[RelativePose, ...] = ()
+        outliers: tuple[RelativePose, ...] = ()
         if self.config.use_odometry and self.n > 1:
             cfg = self.config.odometry
-            measured = self.loops(lab)
-            alias = registration_aliases(lab, self.visits, cfg, measured)
-            loops = [z for z, a in zip(measured, alias, strict=True) if not a]
-            outliers = [z for z, a in zip(measured, alias, strict=True) if a]
+            loops, outliers = split_aliases(lab, self.visits, cfg, self.loops(lab))
             rng = np.random.default_rng([self.seed, *lab])
             result = metric_log_likelihood(lab, self.visits, cfg, loops, rng=rng)
             # likelihood ratio of each used registration against "not the same place" (uniform over
@@ -179,8 +204,8 @@ class PosteriorModel:
             metric=metric,
             appearance=app,
             metric_result=result,
-            loops=tuple(loops),
-            outliers=tuple(outliers),
+            loops=loops,
+            outliers=outliers,
         )
         self._terms_cache[lab] = out
         return out

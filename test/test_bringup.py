@@ -17,11 +17,13 @@ from ros_helpers import (
     next_domain_id,
     processes_mentioning,
 )
+from test_mapping import aligned
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.occupancy import OCCUPIED, UNKNOWN, load_map
 from ptm_ros.ptm import load_ptm
 from ptm_ros.tools import bringup
 from ptm_ros.tools import run as run_cli
@@ -71,6 +73,15 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
         run_cli.main([str(sim_bag), "--out", str(tmp_path / "run"), "--params", str(plain), "--no-report"])
         == 0
     )
+    # The occupancy map drawn online by the map publisher (keyframe scans along the MAP topology's
+    # smoothed trajectory) agrees with ptm-run's (every scan) on nearly every cell both know.
+    on_map, off_map = load_map(out / "map.yaml"), load_map(tmp_path / "run" / "map.yaml")
+    assert on_map.resolution == off_map.resolution and (out / "map.png").is_file()
+    a, b = aligned(on_map.data, on_map.origin, off_map.data, off_map.origin, off_map.resolution)
+    known = (a != UNKNOWN) & (b != UNKNOWN)
+    assert known.sum() > 1000 and np.mean(a[known] == b[known]) > 0.95, np.mean(a[known] == b[known])
+    assert np.sum(a == OCCUPIED) > 0.8 * np.sum(b == OCCUPIED)
+    assert "map.yaml" in proc.stdout
 
     online = load_ptm(out / "ptm.json")
     offline = load_ptm(tmp_path / "run" / "ptm.json")

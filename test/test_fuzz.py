@@ -29,6 +29,7 @@ from ros_helpers import ros_context
 
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
+from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
 from ptm_ros.partitions import enumerate_partitions
 from ptm_ros.ptm import Landmark, make_ptm
@@ -149,6 +150,7 @@ def detector(ros, **extra: Any) -> Any:
         )
     )
     node._visit_pub, node._pose_pub, node._diag_pub = Recorder(), Recorder(), Recorder()
+    node._odom_pub, node._scan_pub = Recorder(), Recorder()
     return node
 
 
@@ -427,6 +429,8 @@ def wild_message(b: Base, rng: np.random.Generator) -> Any:
             )
             if field == "ranges":
                 r = np.array(msg.ranges, dtype=np.float32)
+                if r.size < 2:  # already cut short by an earlier edit of this message
+                    continue
                 k = rng.integers(0, r.size, size=int(rng.integers(1, r.size)))
                 r[k] = rng.choice(
                     np.array([math.nan, math.inf, -math.inf, -1.0, 0.0, 1e30, 3e38], dtype=np.float32),
@@ -501,8 +505,21 @@ def test_detector_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros,
         if json.loads(m.data).get("schema") == common.END_SCHEMA
     ]
     assert ends == [
-        {"schema": common.END_SCHEMA, "visits": len(published_visits(clean)), "session": node.session_id}
+        {
+            "schema": common.END_SCHEMA,
+            "visits": len(published_visits(clean)),
+            "session": node.session_id,
+            "keyframes": len(node._scan_pub.items),
+        }
     ]
+    # the map stream of the new session (odometry samples, keyframe scans) is the clean run's too
+    lo, hi = again[0].stamp, again[-1].stamp
+
+    def stamps(recorder: Recorder) -> list[float]:
+        return [t for t in (common.header_stamp(m.header) for m in recorder.items) if lo <= t <= hi]
+
+    assert stamps(node._scan_pub) == stamps(clean._scan_pub) and len(stamps(clean._scan_pub)) > 20
+    assert stamps(node._odom_pub) == stamps(clean._odom_pub) and len(stamps(clean._odom_pub)) > 100
 
 
 # ------------------------------------------------------------------------------------ topology filter
@@ -854,4 +871,84 @@ def test_map_publisher_storms(ros):
     assert [(p.pose.position.x, p.pose.position.y) for p in got.poses] == [
         (p.pose.position.x, p.pose.position.y) for p in expected.poses
     ]
+    assert node.counters["internal_errors"] == 0
+
+
+def map_publisher(ros) -> Any:
+    """A map publisher that draws on request only (``mapping.period`` large) and records what it sends."""
+    from rclpy.parameter import Parameter
+
+    from ptm_ros.nodes.map_publisher import MapPublisherNode
+
+    params = {"out_dir": "/nonexistent", "mapping.period": 1e6}
+    node = ros.add(
+        MapPublisherNode(
+            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
+        )
+    )
+    node._path_pub, node._diag_pub, node._map_pub, node._trajectory_pub = (Recorder() for _ in range(4))
+    return node
+
+
+def draw(node: Any, visits: list[Visit], session: str) -> Any:
+    """Give the map publisher a session's visits and an ensemble of them (each visit its own place and
+    the first and last visits one place), and draw the map."""
+    from std_msgs.msg import String
+
+    from ptm_ros.nodes.landmark_detector import visit_message
+    from ptm_ros.nodes.topology_filter import graph_document
+
+    for v in visits:
+        node._on_visit(String(data=visit_message(v, session)))
+    n = len(visits)
+    singles, loop = tuple(range(n)), (*range(n - 1), 0)
+    ptm = make_ptm([Landmark.from_visit(v) for v in visits], {singles: 0.4, loop: 0.6})
+    node._on_graph(String(data=json.dumps(graph_document(ptm, complete=True))))
+    return node.build_map()
+
+
+def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream, clean_visits):
+    from std_msgs.msg import String
+
+    rng = np.random.default_rng(21)
+    callback = {"odometry": "_on_odom", "scan": "_on_scan"}
+    stream = [b for b in sim_stream if b.stream in callback]
+    clean = map_publisher(ros)
+    for b in stream:
+        getattr(clean, callback[b.stream])(message(b))
+    expected = draw(clean, clean_visits, "clean")
+    assert expected is not None and expected.grid is not None and len(clean._map_pub.items) == 1
+    assert clean.online.counters.resets == 0
+
+    node = map_publisher(ros)
+    sent = dict.fromkeys(callback, 0)
+    for b in stream:  # the run with wild odometry samples and scans in between
+        for _ in range(int(rng.poisson(2.0))):
+            getattr(node, callback[b.stream])(wild_message(b, rng))
+            sent[b.stream] += 1
+        getattr(node, callback[b.stream])(message(b))
+    texts = [wild_text(rng, visit_to_json(v)) for v in clean_visits for _ in range(200)]
+    for text in texts:  # wild visit messages: dropped or taken, never a crash
+        node._on_visit(String(data=text))
+    for _ in range(200):  # and wild ensembles
+        node._on_graph(String(data=wild_text(rng, graph_text(rng))))
+    assert node.counters["internal_errors"] == 0
+    c = node.online.counters
+    clean_sent = {s: sum(b.stream == s for b in stream) for s in callback}
+    assert c.poses + node.counters["odometry_invalid"] == clean_sent["odometry"] + sent["odometry"]
+    assert c.scans + node.counters["scans_invalid"] == clean_sent["scan"] + sent["scan"]
+    assert node.counters["odometry_invalid"] > 0 and node.counters["scans_invalid"] > 0
+    node.build_map()  # whatever it holds now: a map or a counted refusal, no exception
+    assert node.counters["internal_errors"] == 0
+
+    # The same run again, its clock restarted 500 s earlier (a new detector session): mapped exactly.
+    shift = stream[0].stamp - 500.0 - stream[-1].stamp
+    for b in stream:
+        getattr(node, callback[b.stream])(message(b, b.stamp + shift))
+    again = [replace(v, stamp=v.stamp + shift) for v in clean_visits]
+    got = draw(node, again, "again")
+    assert got is not None and got.grid is not None and node.online.counters.resets >= 1
+    np.testing.assert_allclose(got.trajectory, expected.trajectory, atol=1e-9)
+    np.testing.assert_array_equal(got.grid.observed, expected.grid.observed)
+    np.testing.assert_allclose(got.grid.log_odds, expected.grid.log_odds, atol=1e-9)
     assert node.counters["internal_errors"] == 0

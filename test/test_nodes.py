@@ -34,10 +34,18 @@ from ptm_ros.nodes.topology_filter import (
     parse_visit_message,
     topology_alpha,
 )
+from ptm_ros.occupancy import load_map, to_ros_data, trinary
 from ptm_ros.partitions import enumerate_partitions
 from ptm_ros.persistence import load_filter_state, save_filter_state
 from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
-from ptm_ros.tools.pipeline import detect_visits, infer, make_extractor, make_registrar
+from ptm_ros.tools.pipeline import (
+    corrected_odometry,
+    detect_visits,
+    infer,
+    make_extractor,
+    make_registrar,
+    run_extractor,
+)
 
 # --------------------------------------------------------------------------------------------- fixtures
 
@@ -600,10 +608,13 @@ def odometry_msg(stamp, pose, frame="odom"):
     return msg
 
 
-def test_filter_and_map_publisher_over_dds(sim_visits, tmp_path, monkeypatch, capfd):
+def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkeypatch, capfd):
     from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import OccupancyGrid as GridMsg
+    from nav_msgs.msg import Odometry
     from nav_msgs.msg import Path as PathMsg
     from rclpy.parameter import Parameter
+    from sensor_msgs.msg import LaserScan
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
@@ -671,6 +682,45 @@ def test_filter_and_map_publisher_over_dds(sim_visits, tmp_path, monkeypatch, ca
         reply = ros.call(probe, Trigger, "/map_publisher/save_ptm")
         assert reply.success and json.loads(reply.message)["complete"] is True
         assert json.loads((tmp_path / "ptm.json").read_text()) == doc
+        # The metric map: the visits' odometry (laser-corrected, as the detector publishes it) and the scans.
+        reply = ros.call(probe, Trigger, "/map_publisher/save_map")
+        assert not reply.success and "no map yet" in reply.message  # no odometry or scan yet
+        run = read_run(sim_bag)
+        extractor = run_extractor(run, load_config(None, {"detector": {"kind": "equidistant"}}))
+        detect_visits(run, config, extractor=extractor)
+        odom = corrected_odometry(run, extractor)
+        odom_pub = probe.create_publisher(Odometry, "landmark_odom", common.MAP_STREAM_QOS)
+        scan_pub = probe.create_publisher(LaserScan, "landmark_scans", common.MAP_STREAM_QOS)
+        wait_for(lambda: odom_pub.get_subscription_count() > 0 and scan_pub.get_subscription_count() > 0)
+        for t, pose in zip(run.odometry.stamps, odom, strict=True):
+            odom_pub.publish(odometry_msg(t, pose))
+        sc = run.scans
+        for k, t in enumerate(sc.stamps):
+            msg = LaserScan()
+            msg.header.stamp = common.time_msg(t)
+            msg.angle_min, msg.angle_increment = float(sc.angle_min[k]), float(sc.angle_increment[k])
+            msg.angle_max = msg.angle_min + (len(sc.ranges[k]) - 1) * msg.angle_increment
+            msg.range_min, msg.range_max = float(sc.range_min[k]), float(sc.range_max[k])
+            msg.ranges = [float(r) for r in sc.ranges[k]]
+            scan_pub.publish(msg)
+        wait_for(lambda: mp.online.counters.scans == len(sc.stamps), timeout=30.0)
+        reply = ros.call(probe, Trigger, "/map_publisher/save_map")  # draws everything received
+        info = json.loads(reply.message)
+        assert reply.success and info["complete"] is False  # no bag player announced the scans
+        assert info["input"]["keyframes"] == info["scans"] > 0 and info["input"]["resets"] == 0
+        late = Inbox(probe, GridMsg, "map", common.LATCHED_QOS)  # subscribes after the map was drawn
+        trajectory = Inbox(probe, PathMsg, "ptm_trajectory", common.LATCHED_QOS)
+        expected = to_ros_data(mp.map.grid)
+        grid = wait_for(
+            lambda: late.last() is not None and np.array_equal(late.last().data, expected) and late.last()
+        )
+        assert (grid.info.width, grid.info.height) == (mp.map.grid.width, mp.map.grid.height)
+        assert grid.info.resolution == pytest.approx(0.05) and grid.header.frame_id == ptm.frame_id
+        assert np.sum(expected > 65) > 100 and np.sum((expected >= 0) & (expected < 25)) > 1000  # walls, free
+        saved = load_map(tmp_path / "map.yaml")  # the map_server files: the map's trinary classes
+        assert np.array_equal(saved.data, trinary(mp.map.grid))
+        wait_for(lambda: trajectory.last() is not None and len(trajectory.last().poses) == info["scans"])
+
         reply = ros.call(probe, Trigger, "/topology_filter/save_ptm")
         assert reply.success and load_config(tmp_path / "filter" / "config.yaml") == config
         saved = from_json_dict(json.loads((tmp_path / "filter" / "ptm.json").read_text()))
@@ -1008,7 +1058,12 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(m
         assert (d["forward_jumps"], d["teleports"], d["sessions"], d["clock_resets"]) == (1, 1, 2, 0)
         assert sum(node.skipped.values()) == 0 and d["fed"]["odometry"] == 400
         end = json.loads(node._visit_pub.items[-1].data)
-        assert end == {"schema": common.END_SCHEMA, "visits": len(second), "session": node.session_id}
+        assert end == {
+            "schema": common.END_SCHEMA,
+            "visits": len(second),
+            "session": node.session_id,
+            "keyframes": 0,  # odometry alone: no scan to send
+        }
 
 
 def test_detector_reports_a_topic_that_falls_silent(monkeypatch):

@@ -114,6 +114,14 @@ REPLAY_QOS = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
 )
 
+#: The detector's stream for the map (``landmark_odom``, ``landmark_scans``: a few messages per metre of
+#: travel): reliable and unbounded, nothing lost; a late subscriber starts from what follows.
+MAP_STREAM_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
 #: Display topics (landmark poses): reliable, a deep queue.
 DISPLAY_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 

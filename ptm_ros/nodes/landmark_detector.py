@@ -9,6 +9,12 @@ interleaves them. Publishes every completed visit on
   lossless, plus ``"session"``: the id of the detector session the visit belongs to; reliable, keep all,
   transient local so a late or restarted filter gets every visit);
 * ``landmark_poses`` (geometry_msgs/PoseStamped, the visit's odometry pose) for display;
+* ``landmark_odom`` (nav_msgs/Odometry, pose only) and ``landmark_scans`` (sensor_msgs/LaserScan; both
+  reliable, keep all): for the map publisher's metric map (:mod:`ptm_ros.mapping`), the odometry the
+  visits' poses are measured in (corrected by the laser odometry when it is on) every
+  ``mapping.pose_xy`` / ``pose_yaw`` of motion or ``pose_interval`` s, and the keyframe scans (every
+  ``mapping.keyframe_xy`` / ``keyframe_yaw``), each with an odometry sample at its stamp
+  (:class:`ptm_ros.mapping.KeyframeStream`); the end marker (below) counts the keyframes sent;
 * ``/diagnostics`` every second: messages received per topic, the counters below and the extractor's.
 
 QoS of the sensor subscriptions: parameter ``sensor_qos`` — ``reliable`` (default; keep all, so a
@@ -24,7 +30,8 @@ does). When the bag player announces
 its end on ``end_of_input`` (messages per topic), the detector waits until it has received that many on
 each of its topics (or ``end_timeout`` s without progress), completes the pending visits
 (:meth:`VisitExtractor.flush`) and publishes the end marker ``{"schema": "ptm_ros.visits_end/1",
-"visits": N, "session": ID}`` on ``landmark_visits`` (N: the visits of the current session). Service
+"visits": N, "session": ID, "keyframes": K}`` on ``landmark_visits`` (N: the visits of the current
+session; K: the keyframe scans sent on ``landmark_scans`` since the node started). Service
 ``~/flush`` (std_srvs/Trigger) does the same on request.
 
 Bad input (issue #9). No message stops the node or reaches the extractor unchecked; each kind of problem
@@ -82,6 +89,7 @@ guard (:func:`ptm_ros.nodes.common.guarded`, ``internal_errors``).
 
 from __future__ import annotations
 
+import array
 import json
 import math
 import time
@@ -107,6 +115,7 @@ from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
 from ptm_ros.io.bag import quaternion_to_yaw
 from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, diagnostics_dict, visit_to_json
+from ptm_ros.mapping import KeyframeStream
 from ptm_ros.nodes.common import (
     CLOCK_RESET,
     DISPLAY_QOS,
@@ -114,6 +123,7 @@ from ptm_ros.nodes.common import (
     END_SCHEMA,
     FORWARD_JUMP,
     LATCHED_QOS,
+    MAP_STREAM_QOS,
     SENSOR_QOS,
     STREAM_QOS,
     TELEPORT,
@@ -252,6 +262,19 @@ def image_payload(msg: Any, appearance: AppearanceConfig) -> tuple[NDArray[Any] 
     return image, None
 
 
+def keyframe_scan(stamp: float, scan: ScanPayload, frame_id: str) -> LaserScan:
+    """The ``landmark_scans`` message of a keyframe: the scan as received (its ranges as float32)."""
+    ranges, amin, ainc, rmin, rmax = scan
+    msg = LaserScan()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id
+    msg.angle_min, msg.angle_increment = float(amin), float(ainc)
+    msg.angle_max = float(amin) + (len(ranges) - 1) * float(ainc)
+    msg.range_min, msg.range_max = float(rmin), float(rmax)
+    msg.ranges = array.array("f", np.asarray(ranges, dtype=np.float32).tobytes())
+    return msg
+
+
 def _same_pose(a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
     return bool(np.array_equal(a, b))
 
@@ -370,6 +393,11 @@ class LandmarkDetectorNode(Node):
 
         self._visit_pub = self.create_publisher(String, "landmark_visits", STREAM_QOS)
         self._pose_pub = self.create_publisher(PoseStamped, "landmark_poses", DISPLAY_QOS)
+        self._odom_pub = self.create_publisher(Odometry, "landmark_odom", MAP_STREAM_QOS)
+        self._scan_pub = self.create_publisher(LaserScan, "landmark_scans", MAP_STREAM_QOS)
+        self.child_frame_id = "base_link"
+        self.scan_frame_id = "laser"
+        self.keyframes_published = 0
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         qos = sensor_qos(qos_kind)
         self._subs = {
@@ -389,8 +417,11 @@ class LandmarkDetectorNode(Node):
         )
 
     def _make_extractor(self) -> VisitExtractor:
+        self._keyframes = KeyframeStream(self.config.mapping)  # a new session: a new stream
         ext = make_extractor(self.config, self.kind, use_scans=self._use_scans, use_images=self._use_images)
-        ext.config = replace(ext.config, stall_s=self._stall if self._stall > 0.0 else math.inf)
+        ext.config = replace(
+            ext.config, stall_s=self._stall if self._stall > 0.0 else math.inf, stream_poses=True
+        )
         if hasattr(ext.detector, "limit_trace"):  # the surprise trace is for offline reports: bounded here
             ext.detector.limit_trace(TRACE_ROWS)
         return ext
@@ -435,6 +466,8 @@ class LandmarkDetectorNode(Node):
                     self._log_once("quaternion", "normalised an odometry orientation that was not unit")
                 if msg.header.frame_id:
                     self.frame_id = msg.header.frame_id
+                if msg.child_frame_id:
+                    self.child_frame_id = msg.child_frame_id
                 self._admit("odometry", stamp, pose)
         self._check_end()
 
@@ -450,6 +483,8 @@ class LandmarkDetectorNode(Node):
             if rejected is not None:
                 self._skip(*rejected)
             else:
+                if msg.header.frame_id:
+                    self.scan_frame_id = msg.header.frame_id
                 self._admit("scan", stamp, payload)
         self._check_end()
 
@@ -593,7 +628,25 @@ class LandmarkDetectorNode(Node):
                 self._seen_skips.add(reason)
                 self._log_once(reason, f"skipped a message: {reason}")
 
+    def _stream_for_map(self) -> None:
+        """Send the map publisher the decimated odometry and the keyframe scans processed since the last
+        call (:class:`ptm_ros.mapping.KeyframeStream`)."""
+        for stamp, pose, scan in self._keyframes.select(
+            self.extractor.take_poses(), self.extractor.take_scans()
+        ):
+            if scan is None:
+                odom = Odometry()
+                odom.header.frame_id = self.frame_id
+                odom.header.stamp = time_msg(stamp)
+                odom.child_frame_id = self.child_frame_id
+                odom.pose.pose = pose_msg(*pose)
+                self._odom_pub.publish(odom)
+            else:
+                self._scan_pub.publish(keyframe_scan(stamp, scan, self.scan_frame_id))
+                self.keyframes_published += 1
+
     def _emit(self, visits: Sequence[Visit]) -> None:
+        self._stream_for_map()
         for v in visits:
             self._visit_pub.publish(String(data=visit_message(v, self.session_id)))
             ps = PoseStamped()
@@ -651,7 +704,12 @@ class LandmarkDetectorNode(Node):
                 self._drop_waiting(stream, f"{stream} messages of a clock the odometry never reached")
             self.finished = True
             self._emit(self.extractor.flush())
-            end = {"schema": END_SCHEMA, "visits": self.session_visits, "session": self.session_id}
+            end = {
+                "schema": END_SCHEMA,
+                "visits": self.session_visits,
+                "session": self.session_id,
+                "keyframes": self.keyframes_published,  # landmark_scans sent, all sessions
+            }
             self._visit_pub.publish(String(data=json.dumps(end)))
             self.get_logger().info(f"input finished: {self.published} landmark visits")
         return self.published

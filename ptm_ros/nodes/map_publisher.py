@@ -7,24 +7,56 @@ visit order**, at the estimated position of the place the MAP topology assigns t
 odometry position of the visit when the document carries no place positions), with the visit's odometry
 heading and header stamp; so revisits of a place coincide and the path draws the topological map.
 
+The metric map (issue #8, :mod:`ptm_ros.mapping`). The node also subscribes the detector's
+``landmark_visits`` (the visits, with their laser patches), ``landmark_odom`` (the odometry the visits are
+measured in, every ``mapping.pose_xy`` / ``pose_yaw`` of motion) and ``landmark_scans`` (the keyframe
+scans, every ``mapping.keyframe_xy`` / ``keyframe_yaw``) and keeps an :class:`ptm_ros.mapping.OnlineMap`
+of them. Whenever the MAP topology or the keyframes changed — at most every ``mapping.period``
+seconds, and never for more than a fifth of the time — it smooths, in a background thread while the
+callbacks keep taking samples, the odometry for the MAP topology
+(its same-place constraints and the laser registrations of its places, the function ``ptm-run`` uses)
+and publishes
+
+* ``map`` (nav_msgs/OccupancyGrid, reliable + transient local; ``occupancy.*`` parameters): the scans
+  drawn along the smoothed trajectory, in the frame of the ensemble (the odometry's);
+* ``ptm_trajectory`` (nav_msgs/Path, reliable + transient local): the smoothed pose of each keyframe.
+
+Service ``~/save_map`` (std_srvs/Trigger) draws the map from everything received and writes
+``<out_dir>/map.pgm`` + ``map.yaml`` (nav2 map_server format: ``ros2 run nav2_map_server map_server
+--ros-args -p yaml_filename:=map.yaml`` loads it) and ``map.png``; its response message is JSON
+``{"yaml", "pgm", "png", "width", "height", "resolution", "scans", "maps", "map_ms", "complete",
+"input"}`` (maps drawn so far, the time the latest took; ``input``: the map's counters; ``complete``: the
+ensemble is complete and every keyframe scan the detector's end marker counts was received, so the map
+covers the whole input). A map needs the visits of the ensemble (matched by stamp) and their session's
+odometry; until both are there it waits. A new detector session (visit 0 of another session id; odometry
+going back in time or jumping) starts the map afresh.
+
 Service ``~/save_ptm`` (std_srvs/Trigger) writes the latest document to ``<out_dir>/ptm.json`` (it
 refuses, ``success: false``, while it has no document or one without visits, as ``ptm-run`` does); its
 response message is JSON ``{"path", "visits", "topologies", "complete"}`` (``complete``: the filter had
 every visit of a finished input), which ``ptm-bringup`` uses to know the run is fully mapped.
-``/diagnostics`` every second: documents received, invalid ones, visits of the latest.
+``/diagnostics`` every second: documents received, invalid ones, visits of the latest, and the map's
+counters (odometry samples and scans received and kept, maps drawn and the time of the latest, resets).
 
 Bad input (issue #9): a document that is not JSON (also nested too deep, or numbers beyond float range),
 not a valid ptm.json, or has non-finite stamps, poses or place positions, positions of the wrong shape
 or a ``stream`` section that is not a mapping with a boolean ``complete`` is dropped (``invalid``); a
 repetition of the latest document is dropped (``duplicates``); the previous document stays in force.
-Each is logged once and counted; a bug reached by some input is caught by the callback's last-resort
-guard (``internal_errors``).
+A visit message that cannot be parsed, or a visit out of sequence (``visits_ignored``), an odometry
+sample with a bad stamp or non-finite pose (``odometry_invalid``) and a scan with a bad stamp or
+malformed fields (``scans_invalid``) are skipped; a map the smoothing cannot draw (``map_errors``) leaves
+the previous map in place. Each is logged once and counted; a bug reached by some input is caught by the
+callback's last-resort guard (``internal_errors``).
 """
 
 from __future__ import annotations
 
+import array
 import json
 import math
+import queue
+import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -32,27 +64,75 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import OccupancyGrid as GridMsg
+from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from sensor_msgs.msg import LaserScan
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ptm_ros.errors import DataError
+from ptm_ros.config import PtmConfig
+from ptm_ros.errors import DataError, PtmError
+from ptm_ros.geometry import Registrar
+from ptm_ros.laser import patch_registrar
+from ptm_ros.mapping import MapInputs, MapResult, OnlineMap, draw_map
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
+    MAP_STREAM_QOS,
+    STREAM_QOS,
     OnceLogger,
     check_parameter_names,
+    declare_config,
     declare_node_parameter,
     diagnostic_status,
     guarded,
+    odometry_sample,
     pose_msg,
     run_node,
     time_msg,
+    valid_stamp,
 )
+from ptm_ros.nodes.landmark_detector import scan_payload
+from ptm_ros.nodes.topology_filter import parse_visit_envelope
+from ptm_ros.occupancy import OccupancyGrid, save_map, save_png, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
+from ptm_ros.tools.pipeline import cached
+from ptm_ros.visits import Visit
 
 NODE_NAME = "map_publisher"
+PREPARED_PATCHES = 16  # patches kept prepared for registration (each MAP pair is registered once, cached)
+CLOSE_WAIT_S = 3.0  # s the node waits for a drawing in progress when it is destroyed
+BUILD_SHARE = 4.0  # a map that took d seconds to draw waits 4 d before the next: at most 1/5 of a core
+
+
+def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float) -> GridMsg:
+    """The ``nav_msgs/OccupancyGrid`` of a grid (:func:`ptm_ros.occupancy.to_ros_data`)."""
+    msg = GridMsg()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = time_msg(stamp)
+    msg.info.map_load_time = msg.header.stamp
+    msg.info.resolution = float(grid.resolution)
+    msg.info.width, msg.info.height = grid.width, grid.height
+    msg.info.origin = pose_msg(grid.origin[0], grid.origin[1], grid.origin[2])
+    msg.data = array.array("b", to_ros_data(grid).tobytes())
+    return msg
+
+
+def trajectory_msg(result: MapResult, frame_id: str) -> PathMsg:
+    """The smoothed keyframe poses of a map as a ``nav_msgs/Path``."""
+    path = PathMsg()
+    path.header.frame_id = frame_id
+    for t, (x, y, yaw) in zip(result.keyframe_stamps, result.keyframe_poses, strict=True):
+        ps = PoseStamped()
+        ps.header.frame_id = frame_id
+        ps.header.stamp = time_msg(float(t))
+        ps.pose = pose_msg(float(x), float(y), float(yaw))
+        path.poses.append(ps)
+    if path.poses:
+        path.header.stamp = path.poses[-1].header.stamp
+    return path
 
 
 def map_path(ptm: Ptm) -> PathMsg:
@@ -132,18 +212,54 @@ class MapPublisherNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         check_parameter_names(self)
         self.out_dir = declare_node_parameter(
-            self, "out_dir", "out/map_publisher", "directory ~/save_ptm writes ptm.json to", read_only=False
+            self, "out_dir", "out/map_publisher", "where ~/save_ptm and ~/save_map write", read_only=False
         )
+        self.config: PtmConfig = declare_config(self)
         self.doc: dict[str, Any] | None = None
         self.ptm: Ptm | None = None
-        self.counters = {"messages": 0, "invalid": 0, "duplicates": 0, "internal_errors": 0}
+        self.counters = {
+            "messages": 0,
+            "invalid": 0,
+            "duplicates": 0,
+            "internal_errors": 0,
+            "visits_ignored": 0,
+            "odometry_invalid": 0,
+            "scans_invalid": 0,
+            "maps": 0,
+            "map_errors": 0,
+        }
+        self.online = OnlineMap(self.config.mapping)
+        self.map: MapResult | None = None
+        self.map_ms = 0.0
+        self._visits: list[Visit] = []
+        self._visit_session: str | None = None
+        self._registrar = self._session_registrar()
+        self._dirty = False
+        self._next_build = 0.0  # time.monotonic() before which no map is drawn
+        self._closing = False
+        self._idle = threading.Event()  # no map being drawn in the background
+        self._idle.set()
+        self._jobs: queue.Queue[tuple[Any, ...] | None] = queue.Queue()
+        self._lock = threading.Lock()  # counters and the latest map, shared with the drawing thread
+        self.scans_received = 0
+        self.scans_expected: int | None = None  # keyframes the detector sent, from its end marker
         self._text: str | None = None  # the latest document as received
         self._log_once = OnceLogger(self.get_logger())
         self._path_pub = self.create_publisher(PathMsg, "ptm_path", LATCHED_QOS)
+        self._map_pub = self.create_publisher(GridMsg, "map", LATCHED_QOS)
+        self._trajectory_pub = self.create_publisher(PathMsg, "ptm_trajectory", LATCHED_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(String, "ptm_graph", self._on_graph, LATCHED_QOS)
+        self.create_subscription(String, "landmark_visits", self._on_visit, STREAM_QOS)
+        self.create_subscription(Odometry, "landmark_odom", self._on_odom, MAP_STREAM_QOS)
+        self.create_subscription(LaserScan, "landmark_scans", self._on_scan, MAP_STREAM_QOS)
         self.create_service(Trigger, "~/save_ptm", self._on_save)
-        self.create_timer(1.0, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.create_service(Trigger, "~/save_map", self._on_save_map)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(1.0, self._publish_diagnostics, clock=steady)
+        self.create_timer(0.1, self._on_map_timer, clock=steady)
+        self._worker = threading.Thread(target=self._work, name="map_publisher-draw", daemon=True)
+        self._worker.start()
 
     @property
     def complete(self) -> bool:
@@ -166,6 +282,211 @@ class MapPublisherNode(Node):
         path = map_path(ptm)
         self.doc, self.ptm, self._text = doc, ptm, msg.data
         self._path_pub.publish(path)
+        self._dirty = True
+
+    # ------------------------------------------------------------------------------ metric map
+
+    @guarded
+    def _on_visit(self, msg: String) -> None:
+        try:
+            visit, session = parse_visit_envelope(msg.data)
+        except DataError as err:
+            self._ignore_visit("visit-invalid", f"dropped an invalid landmark_visits message: {err}")
+            return
+        if not isinstance(visit, Visit):  # an end marker: the keyframes the detector sent until then
+            keyframes = json.loads(msg.data).get("keyframes")
+            if isinstance(keyframes, int) and not isinstance(keyframes, bool) and keyframes >= 0:
+                self.scans_expected = keyframes
+            return
+        if visit.index == 0 and (session != self._visit_session or not self._visits or session is None):
+            self._visits = [visit]  # a new detector session: its own registrations
+            self._visit_session = session
+            self._registrar = self._session_registrar()
+        elif session == self._visit_session and visit.index == len(self._visits):
+            self._visits.append(visit)
+        else:
+            self._ignore_visit("visit-sequence", f"visit {visit.index} of session {session} out of sequence")
+            return
+        self._dirty = True
+
+    def _session_registrar(self) -> Registrar:
+        """Laser registration of the current session's visits, each pair once (cached)."""
+        return cached(patch_registrar(self._visits, self.config.laser, keep_prepared=PREPARED_PATCHES))
+
+    def _ignore_visit(self, key: str, text: str) -> None:
+        self.counters["visits_ignored"] += 1
+        self._log_once(key, text)
+
+    @guarded
+    def _on_odom(self, msg: Odometry) -> None:
+        stamp = valid_stamp(msg.header)
+        _, pose = odometry_sample(msg)
+        if stamp is None or not all(map(math.isfinite, pose)):
+            self.counters["odometry_invalid"] += 1
+            self._log_once("odometry-invalid", "skipped a landmark_odom sample with a bad stamp or pose")
+            return
+        if self.online.add_pose(stamp, pose):
+            self._log_once("map-reset", "the visits' odometry restarted (new session): the map starts afresh")
+
+    @property
+    def scans_complete(self) -> bool:
+        """Whether the detector's end marker came and every keyframe scan it counts has been received."""
+        return self.scans_expected is not None and self.scans_received >= self.scans_expected
+
+    @guarded
+    def _on_scan(self, msg: LaserScan) -> None:
+        self.scans_received += 1
+        stamp = valid_stamp(msg.header)
+        payload, rejected = scan_payload(msg)
+        if stamp is None or payload is None:
+            self.counters["scans_invalid"] += 1
+            reason = "bad stamp" if stamp is None else f"{rejected[0]}: {rejected[1]}" if rejected else "?"
+            self._log_once("scan-invalid", f"skipped a scan for the map: {reason}")
+            return
+        before = self.online.keyframes
+        self.online.add_scan(stamp, *payload)
+        self._dirty = self._dirty or self.online.keyframes != before
+
+    def _map_inputs(self) -> tuple[list[Visit], tuple[int, ...]] | None:
+        """The visits of the latest ensemble (matched by index and stamp) and its MAP labels; None while
+        the ensemble is empty or its visits have not all arrived."""
+        ptm = self.ptm
+        if ptm is None or not ptm.landmarks or not ptm.topologies:
+            return None
+        n = len(ptm.landmarks)
+        visits = self._visits[:n]
+        if len(visits) < n or any(
+            abs(v.stamp - lm.stamp) > 1e-6 for v, lm in zip(visits, ptm.landmarks, strict=True)
+        ):
+            return None
+        return visits, tuple(ptm.topologies[0].labels)
+
+    def _snapshot(self) -> tuple[MapInputs, tuple[int, ...], str, Registrar] | None:
+        """What the map of the latest ensemble is drawn from (copies), or None when it cannot be yet."""
+        inputs = self._map_inputs()
+        if inputs is None or self.ptm is None:
+            return None
+        visits, labels = inputs
+        try:
+            snap = self.online.snapshot(visits)
+        except DataError as err:
+            self.counters["map_errors"] += 1
+            self._log_once("map-inputs", f"cannot draw the map: {err}")
+            return None
+        return snap, labels, self.ptm.frame_id, self._registrar
+
+    def _draw(
+        self, snap: MapInputs, labels: tuple[int, ...], frame: str, registrar: Registrar
+    ) -> MapResult | None:
+        """Draw a map (any thread) and publish it; None (counted) when the smoothing cannot."""
+        start = time.monotonic()
+        try:
+            result = draw_map(snap, labels, self.config.model, self.config.occupancy, registrar)
+        except PtmError as err:
+            with self._lock:
+                self.counters["map_errors"] += 1
+            self._log_once("map-error", f"could not draw the map: {err}")
+            return None
+        finally:
+            self.map_ms = 1e3 * (time.monotonic() - start)
+            self._next_build = time.monotonic() + max(
+                self.config.mapping.period, BUILD_SHARE * self.map_ms / 1e3
+            )
+        with self._lock:
+            self.map = result
+            self.counters["maps"] += 1
+        if self._closing:
+            return result
+        if result.grid is not None:
+            self._map_pub.publish(grid_msg(result.grid, frame, float(result.stamps[-1])))
+        self._trajectory_pub.publish(trajectory_msg(result, frame))
+        return result
+
+    @guarded
+    def _draw_in_background(self, *snap: Any) -> None:
+        self._draw(*snap)
+
+    def _work(self) -> None:
+        """The drawing thread: one for the node's life (so its allocations stay in one malloc arena)."""
+        while (job := self._jobs.get()) is not None:
+            try:
+                self._draw_in_background(*job)
+            finally:
+                self._idle.set()
+
+    def _wait_for_drawing(self, timeout: float | None = None) -> None:
+        self._idle.wait(timeout)
+
+    def build_map(self) -> MapResult | None:
+        """Draw and publish the map of the latest ensemble's MAP topology now, in this thread (after a
+        drawing still running in the background); None when it cannot."""
+        self._wait_for_drawing()
+        snap = self._snapshot()
+        return None if snap is None else self._draw(*snap)
+
+    @guarded
+    def _on_map_timer(self) -> None:
+        """Hand the drawing thread a map to draw when due (callbacks keep taking samples meanwhile)."""
+        if not self._idle.is_set() or self._closing:
+            return
+        if not self._dirty or time.monotonic() < self._next_build or self._map_inputs() is None:
+            return
+        self._dirty = False
+        snap = self._snapshot()
+        if snap is not None:
+            self._idle.clear()
+            self._jobs.put(snap)
+
+    def destroy_node(self) -> None:
+        """Wait (a bounded time) for a drawing still running, stop the drawing thread, destroy the node;
+        a drawing that ends later publishes nothing."""
+        self._closing = True
+        self._wait_for_drawing(CLOSE_WAIT_S)
+        self._jobs.put(None)
+        self._worker.join(CLOSE_WAIT_S)
+        super().destroy_node()
+
+    @guarded
+    def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        fresh = self.build_map() if self._dirty or self.map is None else None
+        if fresh is not None:
+            self._dirty = False
+        result = fresh or self.map  # the latest map when the current inputs cannot be drawn yet
+        if result is None or result.grid is None:
+            why = "no map yet: it needs the ensemble, its visits, their odometry and scans"
+            response.success, response.message = False, why
+            return response
+        out = Path(self.get_parameter("out_dir").value)
+        try:
+            pgm, yml = save_map(result.grid, out / "map", self.config.occupancy)
+            png = save_png(
+                result.grid,
+                out / "map.png",
+                trajectory=result.trajectory,
+                title=f"occupancy grid ({result.grid.resolution:g} m cells, {result.grid.scans} scans)",
+            )
+        except OSError as err:
+            response.success, response.message = False, f"cannot write the map to {out}: {err}"
+            return response
+        grid = result.grid
+        response.success = True
+        response.message = json.dumps(
+            {
+                "yaml": str(yml),
+                "pgm": str(pgm),
+                "png": str(png),
+                "width": grid.width,
+                "height": grid.height,
+                "resolution": grid.resolution,
+                "scans": grid.scans,
+                "maps": self.counters["maps"],
+                "map_ms": round(self.map_ms, 1),
+                "complete": self.complete and self.scans_complete,
+                "input": {"scans_received": self.scans_received, **vars(self.online.counters)},
+            }
+        )
+        self.get_logger().info(f"wrote {yml} ({grid.width} x {grid.height} cells, {grid.scans} scans)")
+        return response
 
     @guarded
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -205,6 +526,8 @@ class MapPublisherNode(Node):
             "visits": 0 if self.ptm is None else len(self.ptm.landmarks),
             "topologies": 0 if self.ptm is None else len(self.ptm.topologies),
             "complete": self.complete,
+            "map_ms": round(self.map_ms, 1),
+            **{f"map_{k}": v for k, v in vars(self.online.counters).items()},
         }
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -214,7 +537,7 @@ class MapPublisherNode(Node):
                 NODE_NAME,
                 f"{values['visits']} visits, {values['topologies']} topologies",
                 values,
-                warn=self.counters["invalid"] + self.counters["internal_errors"] > 0,
+                warn=any(self.counters[k] for k in ("invalid", "internal_errors", "map_errors")),
             )
         ]
         self._diag_pub.publish(msg)

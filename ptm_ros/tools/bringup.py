@@ -13,7 +13,9 @@ The bag's ``topics.odom`` / ``scan`` / ``panorama`` are remapped onto the detect
 
 End of a bag: the player announces it, the detector completes its last visits, the filter processes
 them and marks its ensemble complete; ``ptm-bringup`` asks the map publisher (``/map_publisher/save_ptm``)
-to write ``DIR/ptm.json`` — the ensemble it received over DDS — as soon as that ensemble is complete.
+to write ``DIR/ptm.json`` — the ensemble it received over DDS — as soon as that ensemble is complete,
+and then the occupancy map it drew online along the MAP topology's smoothed trajectory
+(``/map_publisher/save_map``: ``DIR/map.yaml``, ``map.pgm``, ``map.png``).
 On SIGINT / SIGTERM it stops the player, has the detector complete its pending visits (``~/flush``),
 gives the filter up to 30 s to map them (a second SIGINT skips the wait) and writes whatever the map
 publisher has (nothing when it holds no visit). Then it stops every process: SIGINT to
@@ -56,6 +58,7 @@ NODES = ("map_publisher", "topology_filter", "landmark_detector")
 STOP_TIMEOUTS = (5.0, 3.0, 2.0)  # s after SIGINT, after SIGTERM, after SIGKILL
 SIGINT_GRACE_S = 30.0  # s the filter gets to map the last visits after SIGINT (a second SIGINT skips)
 STATE_FILE = "topology_filter/state.npz"  # the filter's saved state, relative to --out
+MAP_TIMEOUT_S = 120.0  # s the map publisher gets, after the ensemble is complete, to draw every keyframe
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -238,6 +241,7 @@ class Plan:
     wait: float
     timeout: float
     respawn: int = 0
+    scans: bool = True  # the input has scans (an occupancy map is drawn)
 
     def restart_command(self, name: str) -> list[str]:
         """The command of a respawned node: the filter resumes from its saved state (if any)."""
@@ -296,8 +300,15 @@ def make_plan(args: argparse.Namespace) -> Plan:
         replay = [x for x in (t.odom, t.scan, t.panorama) if x in topics]
         player = [sys.executable, "-m", "ptm_ros.nodes.bag_player", str(args.bag.resolve())]
         player += ["--rate", f"{args.rate:g}", "--wait", f"{args.wait:g}", "--topics", *replay]
+    has_scans = args.bag is None or (t.scan in topics and topics[t.scan].count > 0)
     return Plan(
-        out=out, nodes=nodes, player=player, wait=args.wait, timeout=args.timeout, respawn=args.respawn
+        out=out,
+        nodes=nodes,
+        player=player,
+        wait=args.wait,
+        timeout=args.timeout,
+        respawn=args.respawn,
+        scans=has_scans,
     )
 
 
@@ -325,6 +336,7 @@ class Bringup:
             self.save_client,
             self.node.create_client(Trigger, "/topology_filter/save_ptm"),
             self.node.create_client(Trigger, "/landmark_detector/flush"),
+            self.node.create_client(Trigger, "/map_publisher/save_map"),
         ]
         self.graph_complete = False  # the filter's latest ensemble covers a finished input
         self.node.create_subscription(String, "/ptm_graph", self._on_graph, LATCHED_QOS)
@@ -460,7 +472,34 @@ class Bringup:
 
     def announce(self, reply: dict[str, Any]) -> int:
         self.log(f"wrote {reply['path']}: {reply['visits']} visits, {reply['topologies']} topologies")
+        self.save_map()
         return 0
+
+    def save_map(self) -> None:
+        """Ask the map publisher to write the occupancy map (``DIR/map.yaml`` + ``map.pgm`` + ``map.png``);
+        with a bag, until the map covers every keyframe scan the detector sent (at most
+        :data:`MAP_TIMEOUT_S`). A bag without scans has no map (logged, not an error)."""
+        if not self.plan.scans:
+            self.log("no occupancy map: the input has no scans")
+            return
+        deadline = time.monotonic() + MAP_TIMEOUT_S
+        while True:
+            result = self.call(self._clients[3], timeout=60.0)
+            info = json.loads(result.message) if result is not None and result.success else None
+            if (info is not None and info["complete"]) or time.monotonic() > deadline or self.stop_requested:
+                break
+            self.executor.spin_once(timeout_sec=0.5)
+        if result is None:
+            self.log("no occupancy map: the map publisher did not answer")
+        elif info is None:
+            self.log(f"no occupancy map: {result.message}")
+        else:
+            if not info["complete"]:
+                self.log("warning: the map does not cover every keyframe scan (the map publisher lags)")
+            self.log(
+                f"wrote {info['yaml']}: {info['width']} x {info['height']} cells, {info['scans']} scans "
+                f"(map {info['maps']} drawn online, {info['map_ms']:.0f} ms; input {info['input']})"
+            )
 
     def write_what_we_have(self) -> int:
         """Have the map publisher write whatever it has (on SIGINT or after an error)."""

@@ -40,7 +40,7 @@ from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
 from ptm_ros.detectors import EquidistantDetector
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.geometry import Registrar, interpolate_poses
+from ptm_ros.geometry import Registrar
 from ptm_ros.io.bag import RunData, read_run
 from ptm_ros.io.groundtruth import GroundTruthTrajectory, interpolate_pose, load_ground_truth
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
@@ -814,37 +814,16 @@ def ate_notes(ate: Mapping[str, Any] | None) -> list[str]:
     ]
 
 
-def scan_poses(run: RunData, trajectory: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(mask, poses)``: which scans lie within the odometry's time span, and their poses ``(S, 3)``
-    interpolated from ``trajectory (T, 3)`` given at the odometry stamps."""
-    odom, scans = run.odometry, run.scans
-    t = np.asarray(scans.stamps, dtype=float)
-    mask = (t >= odom.stamps[0]) & (t <= odom.stamps[-1])
-    return mask, interpolate_poses(odom.stamps, trajectory, t[mask])
-
-
 def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> Any | None:
-    """The occupancy grid (:func:`ptm_ros.occupancy.build_grid`) of the run's scans placed along
-    ``trajectory (T, 3)`` (at the odometry stamps); None when no scan lies within the odometry's span."""
-    from ptm_ros.occupancy import build_grid
+    """The occupancy grid of the run's scans placed along ``trajectory (T, 3)`` (at the odometry stamps):
+    :func:`ptm_ros.mapping.grid_along`, as the map publisher draws it online; None without a scan within
+    the odometry's span."""
+    from ptm_ros.mapping import grid_along
 
     sc = run.scans
     if sc is None or len(sc.stamps) == 0:
         return None
-    mask, poses = scan_poses(run, trajectory)
-    if not np.any(mask):
-        return None
-    keep = np.flatnonzero(mask)
-    ranges = sc.ranges[mask] if isinstance(sc.ranges, np.ndarray) else [sc.ranges[k] for k in keep]
-    return build_grid(
-        poses,
-        ranges,
-        sc.angle_min[mask],
-        sc.angle_increment[mask],
-        sc.range_max[mask],
-        range_min=sc.range_min[mask],
-        config=config.occupancy,
-    )
+    return grid_along(run.odometry.stamps, trajectory, sc, config.occupancy)
 
 
 def write_occupancy_map(
@@ -892,17 +871,14 @@ def map_trajectory(
     *,
     odometry: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The odometry trajectory smoothed for a topology: visit poses optimised under odometry, its laser
-    registrations (aliases left out) and a robust place coincidence (:func:`ptm_ros.smoothing.
-    smooth_topology`), the path between deformed to fit. ``odometry`` ``(T, 3)`` at the run's odometry
-    stamps is the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
-    from ptm_ros.smoothing import smooth_topology
+    """The odometry trajectory smoothed for a topology (:func:`ptm_ros.mapping.topology_trajectory`, the
+    function the map publisher's online map calls). ``odometry`` ``(T, 3)`` at the run's odometry stamps is
+    the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
+    from ptm_ros.mapping import topology_trajectory
 
     odom = run.odometry
     base = odom.poses if odometry is None else odometry
-    model = PosteriorModel(visits, config.model, registrar=registrar)
-    loops = model.terms(labels).loops if config.model.use_odometry else model.loops(labels)
-    return smooth_topology(odom.stamps, base, labels, visits, config.model.odometry, loops=loops)
+    return topology_trajectory(odom.stamps, base, labels, visits, config.model, registration=registrar)
 
 
 def score_against(ptm: Ptm, ground_truth: str | Path | GroundTruthTrajectory) -> Any:

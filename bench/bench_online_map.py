@@ -1,0 +1,140 @@
+"""The map publisher's online occupancy map against ``ptm-run``'s offline map (issue #8).
+
+For each run (the real runs of ``../shared/datasets`` and the simulated multi-loop world), replays the bag
+through ``ptm-bringup`` (detector, filter and map publisher over DDS; ``--rate``, default 0 = as fast as
+the nodes take it) and runs ``ptm-run`` on the same bag with the same parameters, then compares:
+
+* the ensembles: same MAP topology (labels), same visits;
+* the maps (both nav2 map_server files, trinary): cells known to both that have the same class
+  (``agreement``), occupied cells online / offline, grid sizes;
+* the map publisher's work: maps drawn during the replay, the time of the last one, keyframe scans.
+
+Writes ``bench/online_map.json``.
+
+    PYTHONPATH=. .venv/bin/python bench/bench_online_map.py [--only intel ...] [--rate 0] [--work out/bench]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+sys.path.insert(0, str(BENCH))
+
+from run_all import prepare_runs  # noqa: E402 - a sibling benchmark script
+
+from ptm_ros.occupancy import OCCUPIED, UNKNOWN, MapFile, load_map  # noqa: E402
+from ptm_ros.ptm import load_ptm  # noqa: E402
+
+
+def aligned(a: MapFile, b: MapFile) -> tuple[np.ndarray, np.ndarray]:
+    """The overlapping windows of two maps of one resolution whose origins lie on one lattice."""
+    res = b.resolution
+    d = np.rint((np.asarray(b.origin[:2]) - np.asarray(a.origin[:2])) / res).astype(int)  # b's (0, 0) in a
+    lo = np.maximum(0, d)
+    hi = np.minimum(a.data.shape[::-1], d + np.array(b.data.shape[::-1]))
+    return (
+        a.data[lo[1] : hi[1], lo[0] : hi[0]],
+        b.data[lo[1] - d[1] : hi[1] - d[1], lo[0] - d[0] : hi[0] - d[0]],
+    )
+
+
+def ros_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(REPO / "config" / "fastdds.xml"))
+    env.setdefault("ROS_DOMAIN_ID", str(30 + os.getpid() % 150))
+    env.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+    env["PYTHONPATH"] = str(REPO)
+    return env
+
+
+def bench_run(name: str, bag: Path, work: Path, rate: float) -> dict[str, Any]:
+    bin_dir = Path(sys.executable).parent
+    online, offline = work / "online" / name, work / "offline" / name
+    t0 = time.perf_counter()
+    cmd = [str(bin_dir / "ptm-bringup"), "--bag", str(bag), "--rate", str(rate), "--out", str(online)]
+    proc = subprocess.run(
+        [*cmd, "--no-report"],
+        env=ros_env(),
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    wall_online = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    off = subprocess.run(
+        [str(bin_dir / "ptm-run"), str(bag), "--out", str(offline), "--no-report", "--quiet"],
+        env=ros_env(),
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    wall_offline = time.perf_counter() - t0
+    row: dict[str, Any] = {
+        "run": name,
+        "bringup_exit": proc.returncode,
+        "ptm_run_exit": off.returncode,
+        "wall_bringup_s": round(wall_online, 1),
+        "wall_ptm_run_s": round(wall_offline, 1),
+    }
+    if proc.returncode != 0 or off.returncode != 0 or not (online / "map.yaml").is_file():
+        row["log_tail"] = (proc.stdout + proc.stderr)[-2000:]
+        return row
+    p_on, p_off = load_ptm(online / "ptm.json"), load_ptm(offline / "ptm.json")
+    row["visits"] = len(p_on.landmarks)
+    row["same_visits"] = p_on.landmarks == p_off.landmarks
+    row["same_map_topology"] = p_on.topologies[0].labels == p_off.topologies[0].labels
+    m_on, m_off = load_map(online / "map.yaml"), load_map(offline / "map.yaml")
+    a, b = aligned(m_on, m_off)
+    known = (a != UNKNOWN) & (b != UNKNOWN)
+    row["agreement"] = round(float(np.mean(a[known] == b[known])), 4)
+    row["cells_known_both"] = int(known.sum())
+    row["occupied_online"] = int(np.sum(m_on.data == OCCUPIED))
+    row["occupied_offline"] = int(np.sum(m_off.data == OCCUPIED))
+    row["grid_online"] = list(m_on.data.shape[::-1])
+    row["grid_offline"] = list(m_off.data.shape[::-1])
+    for line in proc.stdout.splitlines():
+        if "wrote" in line and "map.yaml" in line and "[ptm-bringup]" in line:
+            row["bringup_map_line"] = line.split("] ", 1)[1]
+    return row
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--only", nargs="*", default=None)
+    p.add_argument("--rate", type=float, default=0.0)
+    p.add_argument("--work", type=Path, default=REPO / "out" / "bench")
+    args = p.parse_args()
+    runs = [r for r in prepare_runs(args.work, args.only) if r[1] == "real" or r[0] == "multi-loop"]
+    rows = []
+    for name, _, bag, _ in runs:
+        row = bench_run(name, bag, args.work / "online_map", args.rate)
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    out = {
+        "generated": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "command": "PYTHONPATH=. .venv/bin/python bench/bench_online_map.py",
+        "rate": args.rate,
+        "load_average": list(os.getloadavg()),
+        "runs": rows,
+    }
+    (BENCH / "online_map.json").write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
