@@ -36,20 +36,8 @@ sys.path.insert(0, str(BENCH))
 
 from run_all import prepare_runs  # noqa: E402 - a sibling benchmark script
 
-from ptm_ros.occupancy import OCCUPIED, UNKNOWN, MapFile, load_map  # noqa: E402
+from ptm_ros.occupancy import OCCUPIED, UNKNOWN, aligned_windows, load_map  # noqa: E402
 from ptm_ros.ptm import load_ptm  # noqa: E402
-
-
-def aligned(a: MapFile, b: MapFile) -> tuple[np.ndarray, np.ndarray]:
-    """The overlapping windows of two maps of one resolution whose origins lie on one lattice."""
-    res = b.resolution
-    d = np.rint((np.asarray(b.origin[:2]) - np.asarray(a.origin[:2])) / res).astype(int)  # b's (0, 0) in a
-    lo = np.maximum(0, d)
-    hi = np.minimum(a.data.shape[::-1], d + np.array(b.data.shape[::-1]))
-    return (
-        a.data[lo[1] : hi[1], lo[0] : hi[0]],
-        b.data[lo[1] - d[1] : hi[1] - d[1], lo[0] - d[0] : hi[0] - d[0]],
-    )
 
 
 def ros_env() -> dict[str, str]:
@@ -99,7 +87,7 @@ def bench_run(name: str, bag: Path, work: Path, rate: float) -> dict[str, Any]:
     row["same_visits"] = p_on.landmarks == p_off.landmarks
     row["same_map_topology"] = p_on.topologies[0].labels == p_off.topologies[0].labels
     m_on, m_off = load_map(online / "map.yaml"), load_map(offline / "map.yaml")
-    a, b = aligned(m_on, m_off)
+    a, b = aligned_windows(m_on.data, m_on.origin, m_off.data, m_off.origin, m_off.resolution)
     known = (a != UNKNOWN) & (b != UNKNOWN)
     row["agreement"] = round(float(np.mean(a[known] == b[known])), 4)
     row["cells_known_both"] = int(known.sum())

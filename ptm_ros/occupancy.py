@@ -350,6 +350,26 @@ def build_grid(
     )
 
 
+def aligned_windows(
+    a: NDArray[Any], a_origin: Sequence[float], b: NDArray[Any], b_origin: Sequence[float], resolution: float
+) -> tuple[NDArray[Any], NDArray[Any]]:
+    """The overlapping windows of two ``(H, W)`` grids of one resolution (row 0 = lowest y) whose origins
+    lie on one lattice (as :func:`build_grid` places them): cell ``[r, c]`` of both windows is the same
+    place. Used to compare two maps of one run (e.g. the map publisher's and ``ptm-run``'s).
+
+    Raises:
+        DataError: the grids do not overlap.
+    """
+    # the (column, row) of b's cell (0, 0) in a
+    d = np.rint((np.asarray(b_origin[:2]) - np.asarray(a_origin[:2])) / resolution).astype(int)
+    lo = np.maximum(0, d)
+    hi = np.minimum(a.shape[::-1], d + np.array(b.shape[::-1]))
+    if not np.all(hi > lo):
+        msg = "the grids do not overlap"
+        raise DataError(msg)
+    return a[lo[1] : hi[1], lo[0] : hi[0]], b[lo[1] - d[1] : hi[1] - d[1], lo[0] - d[0] : hi[0] - d[0]]
+
+
 def probabilities(grid: OccupancyGrid) -> FloatArray:
     """``(H, W)`` occupancy probabilities ``1 / (1 + exp(-l))``; never observed cells read 0.5."""
     return np.asarray(expit(grid.log_odds), dtype=float)

@@ -17,13 +17,13 @@ from ros_helpers import (
     next_domain_id,
     processes_mentioning,
 )
-from test_mapping import aligned
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
 from ptm_ros.occupancy import OCCUPIED, UNKNOWN, load_map
+from ptm_ros.occupancy import aligned_windows as aligned
 from ptm_ros.ptm import load_ptm
 from ptm_ros.tools import bringup
 from ptm_ros.tools import run as run_cli

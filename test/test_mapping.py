@@ -14,6 +14,7 @@ from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
 from ptm_ros.mapping import KeyframeStream, MappingConfig, OnlineMap
+from ptm_ros.occupancy import aligned_windows as aligned
 from ptm_ros.tools.pipeline import (
     cached,
     corrected_odometry,
@@ -114,17 +115,6 @@ def test_default_online_map_keeps_keyframes_and_matches_the_full_map(loop_run):
     known = ka & kb
     assert known.sum() > 1000
     assert np.mean((a > 0)[known] == (b > 0)[known]) > 0.95
-
-
-def aligned(a, a_origin, b, b_origin, resolution):
-    """The overlapping windows of two grids (row 0 = lowest y) whose origins lie on one lattice."""
-    d = np.rint((np.asarray(b_origin[:2]) - np.asarray(a_origin[:2])) / resolution).astype(
-        int
-    )  # b's (0,0) in a
-    lo = np.maximum(0, d)  # a's (x, y) index range
-    hi = np.minimum(a.shape[::-1], d + np.array(b.shape[::-1]))
-    assert np.all(hi > lo), "the grids do not overlap"
-    return a[lo[1] : hi[1], lo[0] : hi[0]], b[lo[1] - d[1] : hi[1] - d[1], lo[0] - d[0] : hi[0] - d[0]]
 
 
 def visit(k: int, t: float, x: float) -> Visit:

@@ -363,3 +363,17 @@ def test_intel_map_from_corrected_poses_is_sharper_than_raw(datasets_dir: Path) 
     assert 200_000 < known_c < 450_000
     assert known_r > 1.4 * known_c
     assert occ_c / known_c > 3.0 * (occ_r / known_r)
+
+
+def test_aligned_windows_pair_the_cells_of_one_place():
+    from ptm_ros.occupancy import aligned_windows
+
+    a = np.arange(4 * 5).reshape(4, 5)  # origin (0, 0): cell [r, c] at (c, r) * 0.5 m
+    b = np.arange(3 * 3).reshape(3, 3) + 100  # origin (1.0, 0.5): b[0, 0] is a[1, 2]
+    wa, wb = aligned_windows(a, (0.0, 0.0, 0.0), b, (1.0, 0.5, 0.0), 0.5)
+    assert wa.tolist() == [[7, 8, 9], [12, 13, 14], [17, 18, 19]]
+    assert wb.tolist() == [[100, 101, 102], [103, 104, 105], [106, 107, 108]]
+    wb2, wa2 = aligned_windows(b, (1.0, 0.5, 0.0), a, (0.0, 0.0, 0.0), 0.5)  # either order
+    assert wa2.tolist() == wa.tolist() and wb2.tolist() == wb.tolist()
+    with pytest.raises(DataError, match="overlap"):
+        aligned_windows(a, (0.0, 0.0, 0.0), b, (10.0, 0.0, 0.0), 0.5)
