@@ -301,7 +301,6 @@ class OnlineMap:
         self._x = array("d")
         self._y = array("d")
         self._yaw = array("d")
-        self._latest: tuple[float, FloatArray] | None = None  # newest sample
         self._pending: deque[_Scan] = deque()
         self._kf: list[_Scan] = []
         self._kf_pose: FloatArray | None = None  # odometry pose of the last keyframe
@@ -312,11 +311,16 @@ class OnlineMap:
         return len(self._kf)
 
     @property
+    def _latest(self) -> tuple[float, FloatArray] | None:
+        """The newest odometry sample (every sample is kept), None before the first."""
+        if not self._t:
+            return None
+        return self._t[-1], np.array([self._x[-1], self._y[-1], self._yaw[-1]])
+
+    @property
     def span(self) -> tuple[float, float] | None:
         """``(first, latest)`` odometry stamp of the session; None before the first sample."""
-        if self._latest is None:
-            return None
-        return (self._t[0], self._latest[0])
+        return (self._t[0], self._t[-1]) if self._t else None
 
     # ------------------------------------------------------------------------------------ input
 
@@ -339,7 +343,6 @@ class OnlineMap:
                 self._clear()
                 reset = True
         self._keep(stamp, p)
-        self._latest = (float(stamp), p)
         self._settle()
         return reset
 
@@ -354,7 +357,7 @@ class OnlineMap:
     ) -> None:
         """One laser scan (LaserScan fields; validated by the caller); used once the odometry reaches it."""
         self.counters.scans += 1
-        if not math.isfinite(stamp) or (self._latest is not None and stamp < self._t[0]):
+        if not math.isfinite(stamp) or (self._t and stamp < self._t[0]):
             self.counters.scans_unposed += 1
             return
         r = np.asarray(ranges, dtype=np.float32).reshape(-1)
@@ -381,10 +384,10 @@ class OnlineMap:
 
     def _settle(self) -> None:
         """Pose the pending scans the odometry has reached; keep the keyframes among them."""
-        if self._latest is None:
+        if not self._t:
             return
         cfg = self.config
-        while self._pending and self._pending[0].stamp <= self._latest[0]:
+        while self._pending and self._pending[0].stamp <= self._t[-1]:
             scan = self._pending.popleft()
             if scan.stamp < self._t[0] or (self._kf and scan.stamp <= self._kf[-1].stamp):
                 self.counters.scans_unposed += 1
