@@ -119,7 +119,7 @@ PROPOSALS = ("auto", "split-merge", "odometry", "appearance")
 #: Estimates of the PTM :func:`run_mcmc` can return.
 ESTIMATES = ("visited", "histogram")
 #: Initial topologies of the chains.
-INITIAL_STATES = ("singletons", "one-place", "random")
+INITIAL_STATES = ("singletons", "one-place", "random", "rbpf")
 
 _LOG_HALF = math.log(0.5)
 #: Largest block whose splits are ever enumerated (2^19 splits).
@@ -155,7 +155,10 @@ class McmcConfig:
         chains: independent chains (each an MC³ ladder) with their own seeds, compared for convergence.
         processes: worker processes running the chains (1 = in this process, where the chains also
             share the model's posterior cache; forking is also unwelcome inside a multi-threaded node).
-        initial: "singletons" (thesis), "one-place" or "random" (uniform over topologies, per chain).
+        initial: "singletons" (thesis), "one-place", "random" (uniform over topologies, per chain) or
+            "rbpf": the particle filter's most probable topologies, chain ``c`` from the ``c``-th (a data-
+            driven start for long runs, where chains from singletons stay trapped; ``ptm-run`` runs the
+            filter first, :func:`ptm_ros.tools.pipeline.infer`; :func:`run_mcmc` needs them as ``initial``).
         estimate: the PTM returned as ``probabilities``: "visited" (default) or "histogram".
         tolerance: TV below which sample doubling and chain agreement declare convergence.
         burn_in: fraction of each chain's sweeps left out of the histogram estimate.
@@ -1173,6 +1176,22 @@ def _initial_state(kind: str, n: int, rng: np.random.Generator) -> Labels:
     return random_partition(n, rng)
 
 
+def _given_starts(initial: Sequence[int] | Sequence[Sequence[int]] | None, n: int) -> list[Labels] | None:
+    """The chains' initial topologies from one label sequence or a sequence of them (None: not given)."""
+    if initial is None:
+        return None
+    items = list(initial)
+    many = bool(items) and all(isinstance(v, Sequence) and not isinstance(v, str) for v in items)
+    out: list[Labels] = []
+    for state in items if many else [items]:
+        start = tuple(int(v) for v in state)  # type: ignore[union-attr]
+        if len(start) != n or not is_canonical(start):
+            msg = f"initial topology must be a canonical label sequence of {n} visits, got {start}"
+            raise ModelError(msg)
+        out.append(start)
+    return out
+
+
 def _generators(rng: np.random.Generator | int | None, n: int) -> list[np.random.Generator]:
     if isinstance(rng, np.random.Generator):
         return list(rng.spawn(n))
@@ -1192,21 +1211,24 @@ class McmcSampler:
         config: McmcConfig | None = None,
         rng: np.random.Generator | int | None = None,
         *,
-        initial: Sequence[int] | None = None,
+        initial: Sequence[int] | Sequence[Sequence[int]] | None = None,
         proposal: ProposalKernel | None = None,
     ) -> None:
         self.model = model
         self.config = config or McmcConfig()
         self.proposal = proposal if proposal is not None else make_proposal(model, self.config)
         gens = _generators(rng, self.config.chains)
-        if initial is not None:
-            start = tuple(int(v) for v in initial)
-            if len(start) != model.n or not is_canonical(start):
-                msg = f"initial topology must be a canonical label sequence of {model.n} visits, got {start}"
-                raise ModelError(msg)
+        starts = _given_starts(initial, model.n)
+        if starts is None and self.config.initial == "rbpf":
+            msg = 'McmcConfig.initial = "rbpf" needs the filter\'s topologies as the initial argument'
+            raise ConfigError(msg)
         ladders = []
-        for gen in gens:
-            state = start if initial is not None else _initial_state(self.config.initial, model.n, gen)
+        for c, gen in enumerate(gens):
+            state = (
+                _initial_state(self.config.initial, model.n, gen)
+                if starts is None
+                else starts[c % len(starts)]
+            )
             ladders.append(_Ladder(model, self.proposal, self.config, state, gen))
         self.records = [_Record() for _ in ladders]
         for rec, lad in zip(self.records, ladders, strict=True):
@@ -1349,13 +1371,14 @@ def run_mcmc(
     config: McmcConfig | None = None,
     rng: np.random.Generator | int | None = None,
     *,
-    initial: Sequence[int] | None = None,
+    initial: Sequence[int] | Sequence[Sequence[int]] | None = None,
 ) -> McmcResult:
     """The PTM of ``model`` by MCMC with sample doubling until converged or capped (module docstring).
 
     ``rng``: a generator or an integer seed (each chain gets an independent child stream); the result
     is a function of the seed unless ``config.max_seconds`` ends the run. ``initial`` overrides
-    ``config.initial`` for every chain.
+    ``config.initial``: one topology for every chain, or a sequence of topologies (chain ``c`` starts
+    from the ``c``-th, cycled).
     """
     cfg = config or McmcConfig()
     with McmcSampler(model, cfg, rng, initial=initial) as sampler:

@@ -45,7 +45,7 @@ from ptm_ros.appearance import (
 )
 from ptm_ros.errors import ModelError
 from ptm_ros.geometry import NoMatch, Registrar, RelativePose
-from ptm_ros.odometry import MetricResult, OdometryConfig, metric_log_likelihood, registration_aliases
+from ptm_ros.odometry import AliasTest, MetricResult, OdometryConfig, alias_test, metric_log_likelihood
 from ptm_ros.partitions import MAX_ENUMERATION, Labels, blocks, enumerate_partitions, is_canonical
 from ptm_ros.priors import PriorConfig, make_prior
 from ptm_ros.visits import Visit
@@ -108,12 +108,17 @@ def split_aliases(
     labels: Sequence[int], visits: Sequence[Visit], config: OdometryConfig, measured: Sequence[RelativePose]
 ) -> tuple[tuple[RelativePose, ...], tuple[RelativePose, ...]]:
     """``(loops, outliers)``: a topology's valid registrations ``measured`` split into the ones used as pose
-    constraints and the ones explained as symmetric aliases (:func:`ptm_ros.odometry.registration_aliases`,
+    constraints and the ones explained as symmetric aliases (:func:`ptm_ros.odometry.alias_test`,
     the max-mixture of ``registration_outlier``). The batch posterior, the smoothing of ``ptm-run`` and the
     map publisher's online map all take a topology's loops from here."""
-    alias = registration_aliases(labels, visits, config, list(measured))
-    loops = tuple(z for z, a in zip(measured, alias, strict=True) if not a)
-    outliers = tuple(z for z, a in zip(measured, alias, strict=True) if a)
+    return _split(measured, alias_test(labels, visits, config, list(measured)))
+
+
+def _split(
+    measured: Sequence[RelativePose], test: AliasTest
+) -> tuple[tuple[RelativePose, ...], tuple[RelativePose, ...]]:
+    loops = tuple(z for z, a in zip(measured, test.aliases, strict=True) if not a)
+    outliers = tuple(z for z, a in zip(measured, test.aliases, strict=True) if a)
     return loops, outliers
 
 
@@ -186,9 +191,13 @@ class PosteriorModel:
         outliers: tuple[RelativePose, ...] = ()
         if self.config.use_odometry and self.n > 1:
             cfg = self.config.odometry
-            loops, outliers = split_aliases(lab, self.visits, cfg, self.loops(lab))
+            measured = self.loops(lab)
+            test = alias_test(lab, self.visits, cfg, list(measured))
+            loops, outliers = _split(measured, test)
             rng = np.random.default_rng([self.seed, *lab])
-            result = metric_log_likelihood(lab, self.visits, cfg, loops, rng=rng)
+            # optimised from the optimum without laser loops (the alias test's), not from the odometry:
+            # the loops kept agree with it, so a few iterations suffice (the same optimum, to tolerance)
+            result = metric_log_likelihood(lab, self.visits, cfg, loops, rng=rng, initial=test.poses)
             # likelihood ratio of each used registration against "not the same place" (uniform over
             # V_reg), so that every topology explains the same data (see the module docstring)
             metric = result.log_likelihood + len(loops) * math.log(cfg.registration_volume)

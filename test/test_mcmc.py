@@ -432,6 +432,21 @@ def test_config_errors(kwargs, match):
 def test_bad_initial_topology(model5):
     with pytest.raises(ModelError, match="canonical label sequence of 5 visits"):
         McmcSampler(model5, McmcConfig(), 0, initial=(1, 0, 0, 0, 0))
+    with pytest.raises(ModelError, match="canonical label sequence of 5 visits"):
+        McmcSampler(model5, McmcConfig(), 0, initial=[(0, 0, 0, 0, 0), (0, 1)])
+    with pytest.raises(ConfigError, match="rbpf"):
+        McmcSampler(model5, McmcConfig(initial="rbpf"), 0)
+
+
+def test_each_chain_starts_from_its_given_topology(model6):
+    """A sequence of topologies: chain c starts from the c-th (cycled); "rbpf" takes them from the caller."""
+    starts = [(0, 1, 0, 1, 0, 1), (0, 0, 0, 0, 0, 0)]
+    config = McmcConfig(chains=3, initial="rbpf", betas=(1.0,))
+    with McmcSampler(model6, config, 0, initial=starts) as sampler:
+        first = [next(iter(rec.visited)) for rec in sampler.records]
+    assert first == [starts[0], starts[1], starts[0]]
+    res = run_mcmc(model6, replace(config, min_iterations=50, max_iterations=50), 0, initial=starts)
+    assert res.samples == 150
     with pytest.raises(ConfigError, match="ladder"):
         thesis_ladder(0, 1.0)
 

@@ -167,6 +167,28 @@ def test_jacobian_matches_finite_differences() -> None:
     np.testing.assert_allclose(dense, fd, atol=1e-6 * max(1.0, np.abs(dense).max()))
 
 
+def test_newton_hessian_matches_finite_differences_of_the_gradient() -> None:
+    """The optimiser's full Hessian (JᵀJ plus the residuals' curvature) is ∂g/∂X of g = Jᵀr, at a point
+    far from the optimum (large residuals, where JᵀJ alone is far off)."""
+    from ptm_ros.odometry import _build_problem, _normal_equations
+
+    visits, labels, loops = _mixed_problem()
+    cfg = OdometryConfig()
+    prob = _build_problem(labels, visits, cfg, loops)
+    X = np.array([v.pose for v in visits]) + np.random.default_rng(4).normal(0, 0.5, (len(visits), 3))
+    _, info, grad, hess = _normal_equations(X, prob, newton=True)
+    assert hess is not None
+    fd = np.zeros_like(hess)
+    h = 1e-6
+    for col in range(len(grad)):
+        step = np.zeros_like(X)
+        step[1 + col // 3, col % 3] = h
+        fd[:, col] = (_normal_equations(X + step, prob)[2] - _normal_equations(X - step, prob)[2]) / (2 * h)
+    scale = np.abs(hess).max()
+    np.testing.assert_allclose(hess, fd, atol=1e-6 * scale)
+    assert np.abs(info - fd).max() > 1e-3 * scale  # the curvature term matters here
+
+
 def test_log_integrand_matches_independent_formula() -> None:
     visits, labels, loops = _mixed_problem()
     cfg = OdometryConfig(penalty_radius=6.0)
@@ -438,6 +460,19 @@ def test_laser_pair_consistency_and_registration_volume() -> None:
     log_v = math.log(cfg.registration_volume)
     assert with_pair.log_likelihood - without.log_likelihood == pytest.approx(-log_v, abs=1e-9)
     assert with_pair.log_laplace - without.log_laplace == pytest.approx(-log_v, abs=1e-9)
+
+
+def test_laplace_estimate_beyond_max_sampled_visits() -> None:
+    """Beyond ``max_sampled_visits`` visits: the Laplace estimate exactly; up to it, importance sampling."""
+    visits = square_loop()
+    merged = (0, 1, 2, 3, 0)
+    sampled = metric_log_likelihood(merged, visits, OdometryConfig(max_sampled_visits=5))
+    laplace = metric_log_likelihood(merged, visits, OdometryConfig(max_sampled_visits=4))
+    assert sampled.ess > 0.0 and sampled.log_likelihood != laplace.log_likelihood
+    assert laplace.ess == 0.0
+    assert laplace.log_likelihood == laplace.log_laplace == sampled.log_laplace
+    with pytest.raises(ConfigError, match="max_sampled_visits"):
+        OdometryConfig(max_sampled_visits=0)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -241,6 +241,25 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert ptms["mcmc"].inference["converged"] is True
 
 
+def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path):
+    """``initial: rbpf``: the chains start from the filter's topologies and ptm.json compares the PTMs."""
+    from ptm_ros.posterior import total_variation
+
+    model = {"use_laser": False, "odometry": {"n_samples": 0}}
+    inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {"initial": "rbpf", "chains": 2}}
+    ptm = run_offline(tjunction_bag, tmp_path / "m", small_config(model=model, inference=inference)).ptm
+    exact_cfg = small_config(model=model, inference={"method": "exact", "top": 10_000})
+    exact = run_offline(tjunction_bag, tmp_path / "e", exact_cfg, write_report=False).ptm
+    versus = ptm.inference["versus_rbpf"]
+    assert ptm.inference["initial"] == "rbpf"
+    assert 1 <= versus["rbpf_topologies"] <= 50
+    assert versus["tv"] < 0.01 and versus["tv_reweighted"] < 0.01  # small run: both PTMs are exact
+    assert versus["map_equal"] is (versus["map_gain_nats"] == 0.0)
+    assert versus["rbpf_map_among"] is True  # the filter's MAP starts chain 0
+    dist = {t.labels: t.probability for t in ptm.topologies}
+    assert total_variation({t.labels: t.probability for t in exact.topologies}, dist) < 0.01
+
+
 def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_path):
     """A surprise detector's trace is drawn in the report; MCMC's cold-chain states (when
     ``McmcResult`` carries them) give the SRQ plot."""

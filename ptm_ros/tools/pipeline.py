@@ -46,7 +46,7 @@ from ptm_ros.io.groundtruth import GroundTruthTrajectory, interpolate_pose, load
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
 from ptm_ros.laser import patch_registrar
 from ptm_ros.partitions import Labels
-from ptm_ros.posterior import PosteriorModel, exact_posterior, normalize_log, top_k
+from ptm_ros.posterior import PosteriorModel, exact_posterior, normalize_log, top_k, total_variation
 from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
 
@@ -261,7 +261,11 @@ def infer(
     if inf.method == "rbpf":
         return _infer_rbpf(visits, model, config, registrar, progress, persistence=persistence)
     if inf.method == "mcmc":
-        return _infer_mcmc(model, config)
+        ensemble = None
+        if inf.mcmc.initial == "rbpf":  # the filter's whole ensemble: the chains' starts and the yardstick
+            every = replace(config, inference=replace(inf, top=inf.particles))
+            ensemble = _infer_rbpf(visits, model, every, registrar, progress).probabilities
+        return _infer_mcmc(model, config, ensemble)
     msg = f"inference method {inf.method!r} is not available"
     raise ConfigError(msg)
 
@@ -276,14 +280,22 @@ def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[L
     return out
 
 
-def _infer_mcmc(model: PosteriorModel, config: PtmConfig) -> Inference:
-    """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged."""
+def _infer_mcmc(
+    model: PosteriorModel, config: PtmConfig, ensemble: Mapping[Labels, float] | None = None
+) -> Inference:
+    """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
+    particle filter's ``ensemble`` (``initial: rbpf``), chain c starts from its c-th topology and the
+    details compare the two PTMs (:func:`compare_to_filter`)."""
     from ptm_ros.mcmc import run_mcmc
 
     inf = config.inference
-    res = run_mcmc(model, inf.mcmc, inf.seed)
+    starts = None if ensemble is None else list(ensemble)[: inf.mcmc.chains]
+    res = run_mcmc(model, inf.mcmc, inf.seed, initial=starts)
     ranked = dict(top_k(res.probabilities, inf.top))
     d = res.diagnostics
+    versus = (
+        {} if ensemble is None else {"versus_rbpf": compare_to_filter(model, res.probabilities, ensemble)}
+    )
     return Inference(
         probabilities=ranked,
         positions=_metric_positions(model, ranked),
@@ -300,9 +312,33 @@ def _infer_mcmc(model: PosteriorModel, config: PtmConfig) -> Inference:
             "n_evaluated": d.n_evaluated,
             "samples": res.samples,
             "acceptance": dict(d.acceptance),
+            "initial": inf.mcmc.initial,
+            **versus,
             **cold_chain_details(res),
         },
     )
+
+
+def compare_to_filter(
+    model: PosteriorModel, mcmc: Mapping[Labels, float], rbpf: Mapping[Labels, float]
+) -> dict[str, Any]:
+    """How an MCMC PTM differs from a particle filter's (issue #7): total variation to the filter's PTM
+    and to its topologies re-weighted by the batch posterior (so only the support differs), and the log
+    posterior of each MAP under the batch model (``map_gain_nats`` > 0: MCMC found a topology the filter
+    ranked lower or lost)."""
+    mcmc_map = max(mcmc, key=mcmc.__getitem__)
+    rbpf_map = max(rbpf, key=rbpf.__getitem__)
+    reweighted = normalize_log({lab: model.log_posterior(lab) for lab in rbpf})
+    gain = model.log_posterior(mcmc_map) - model.log_posterior(rbpf_map)
+    return {
+        "rbpf_topologies": len(rbpf),
+        "tv": total_variation(mcmc, rbpf),
+        "tv_reweighted": total_variation(mcmc, reweighted),
+        "map_equal": mcmc_map == rbpf_map,
+        "map_gain_nats": float(gain),
+        "rbpf_map_mass": float(mcmc.get(rbpf_map, 0.0)),
+        "rbpf_map_among": rbpf_map in mcmc,
+    }
 
 
 def _json_state(state: Any) -> Any:
