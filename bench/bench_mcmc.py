@@ -38,7 +38,8 @@ JSON (other parts already there are kept):
   log posteriors under one :class:`~ptm_ros.posterior.PosteriorModel`, whether they are equal and why not,
   their F1 against ground truth, wall times, convergence, the SRQ deviation of each cold chain, and the
   TV between MCMC and the RBPF's topologies re-weighted by the batch posterior (which separates "the
-  filter lost a topology" from "the filter weighs its topologies differently").
+  filter lost a topology" from "the filter weighs its topologies differently"), the visit pairs'
+  same-place marginals of the two PTMs, and whether a filter with 1000 particles holds MCMC's MAPs.
 
 Usage: ``PYTHONPATH=. .venv/bin/python bench/bench_mcmc.py [--quick] [--out FILE] [--processes 2]``;
 ``... bench/bench_mcmc.py --real [--runs intel aces mit-csail] [--cap 300]``.
@@ -494,6 +495,10 @@ def compare(model: PosteriorModel, rbpf: dict, rbpf_map: tuple[int, ...], res) -
         "map_equal": versus["map_equal"],
         "map_log_posterior": lp_m,
         "map_minus_rbpf_map_nats": versus["map_gain_nats"],
+        "pairs_in_play": versus["pairs_in_play"],
+        "pair_max_diff": versus["pair_max_diff"],
+        "pair_mean_diff": versus["pair_mean_diff"],
+        "pairs_differing": versus["pairs_differing"],
         "map": topology_row(model, mcmc_map),
         "map_pair_disagreements_with_rbpf_map": pair_disagreements(mcmc_map, rbpf_map),
         "rbpf_map_mass_in_mcmc": probs.get(rbpf_map, 0.0),
@@ -517,6 +522,10 @@ def compare(model: PosteriorModel, rbpf: dict, rbpf_map: tuple[int, ...], res) -
         "cold_thin": res.cold_thin,
         "top5": [p for _, p in list(probs.items())[:5]],
     }
+
+
+#: Particles of the second, larger filter that checks whether MCMC's MAPs are within a filter's reach.
+BIG_FILTER_PARTICLES = 1000
 
 
 def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
@@ -574,6 +583,27 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
             f"{out['stop_reason']}; {out['explanation']}",
             flush=True,
         )
+    # does a filter with 10x the particles hold the MAPs MCMC found (why the 100-particle filter missed them)
+    big = BIG_FILTER_PARTICLES
+    t0 = time.perf_counter()
+    more = pipeline.infer(
+        visits,
+        dataclasses.replace(config, inference=dataclasses.replace(inf, method="rbpf", particles=big)),
+        registrar=registrar,
+    )
+    ranked = list(more.probabilities)
+    row[f"rbpf_{big}"] = {
+        "wall_s": time.perf_counter() - t0,
+        "topologies": len(ranked),
+        "map_equal_to_rbpf_map": ranked[0] == rbpf_map,
+        "score": ptm_score(visits, more.probabilities, gt),
+    }
+    for start in ("singletons", "rbpf"):
+        lab = tuple(row[f"mcmc_{start}"]["map_labels"])
+        row[f"mcmc_{start}"][f"map_rank_in_rbpf_{big}"] = (
+            ranked.index(lab) + 1 if lab in more.probabilities else None
+        )
+        row[f"mcmc_{start}"][f"map_mass_in_rbpf_{big}"] = more.probabilities.get(lab, 0.0)
     load["after"] = os.getloadavg()
     row["load_average"] = load
     return row
@@ -598,9 +628,17 @@ def print_real(rows: list[dict[str, Any]]) -> None:
                 f"{m['wall_s']:7.1f} {m['converged']!s:>5s}"
             )
     print("  TVrw: TV between MCMC and the RBPF's topologies re-weighted by the batch posterior")
+    big = BIG_FILTER_PARTICLES
     for r in rows:
         for start in ("singletons", "rbpf"):
-            print(f"  {r['run']} from {start}: {r[f'mcmc_{start}']['explanation']}")
+            m = r[f"mcmc_{start}"]
+            print(
+                f"  {r['run']} from {start}: {m['explanation']}; same-place marginals of "
+                f"{m['pairs_in_play']} pairs: max |diff| {m['pair_max_diff']:.3f}, "
+                f"mean {m['pair_mean_diff']:.4f}, {m['pairs_differing']} differ by > 0.1; "
+                f"MCMC's MAP in a {big}-particle filter: rank "
+                f"{m[f'map_rank_in_rbpf_{big}']}, mass {m[f'map_mass_in_rbpf_{big}']:.3g}"
+            )
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -265,6 +265,19 @@ def total_variation(p: Mapping[Labels, float], q: Mapping[Labels, float]) -> flo
     return 0.5 * math.fsum(abs(p.get(k, 0.0) - q.get(k, 0.0)) for k in keys)
 
 
+def same_place_probabilities(probabilities: Mapping[Labels, float], n: int) -> NDArray[np.float64]:
+    """``(n, n)`` marginal probability that visits i and j are one place, ``Σ_T P(T) [T_i = T_j]`` over
+    a distribution of topologies of ``n`` visits (1 on the diagonal for a normalised distribution)."""
+    out = np.zeros((n, n))
+    items = [(lab, p) for lab, p in probabilities.items() if p > 0.0]
+    for start in range(0, len(items), 256):  # (chunk, n, n) booleans at a time
+        chunk = items[start : start + 256]
+        lab = np.array([lab for lab, _ in chunk], dtype=np.int64).reshape(len(chunk), n)
+        w = np.array([p for _, p in chunk], dtype=float)
+        out += np.einsum("t,tij->ij", w, lab[:, :, None] == lab[:, None, :])
+    return out
+
+
 def top_k(probabilities: Mapping[Labels, float], k: int) -> list[tuple[Labels, float]]:
     """The k most probable topologies, most probable first (ties broken by labels)."""
     return sorted(probabilities.items(), key=lambda kv: (-kv[1], kv[0]))[:k]

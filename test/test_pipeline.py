@@ -256,6 +256,7 @@ def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tm
     assert versus["tv"] < 0.01 and versus["tv_reweighted"] < 0.01  # small run: both PTMs are exact
     assert versus["map_equal"] is (versus["map_gain_nats"] == 0.0)
     assert versus["rbpf_map_among"] is True  # the filter's MAP starts chain 0
+    assert versus["pair_max_diff"] < 0.05 and versus["pairs_differing"] == 0 < versus["pairs_in_play"]
     dist = {t.labels: t.probability for t in ptm.topologies}
     assert total_variation({t.labels: t.probability for t in exact.topologies}, dist) < 0.01
 

@@ -18,6 +18,7 @@ from ptm_ros.posterior import (
     PosteriorModel,
     exact_posterior,
     normalize_log,
+    same_place_probabilities,
     top_k,
     total_variation,
 )
@@ -135,6 +136,19 @@ def test_bad_labels_rejected():
         model.log_posterior((0, 1))
     with pytest.raises(ModelError, match="at least one visit"):
         PosteriorModel([])
+
+
+def test_same_place_probabilities_by_hand():
+    """Σ_T P(T) [T_i = T_j] for a three-topology ensemble of 3 visits, written out pair by pair."""
+    probs = {(0, 0, 1): 0.5, (0, 1, 0): 0.3, (0, 1, 2): 0.2}
+    same = same_place_probabilities(probs, 3)
+    expected = np.array([[1.0, 0.5, 0.3], [0.5, 1.0, 0.0], [0.3, 0.0, 1.0]])
+    np.testing.assert_allclose(same, expected, atol=1e-12)
+    # all B_7 = 877 topologies of 7 visits with random weights (several chunks), against a plain loop
+    w = np.random.default_rng(0).random(877)
+    many = dict(zip(enumerate_partitions(7), (w / w.sum()).tolist(), strict=True))
+    loop = sum(p * (np.array(lab)[:, None] == np.array(lab)[None, :]) for lab, p in many.items())
+    np.testing.assert_allclose(same_place_probabilities(many, 7), loop, atol=1e-12)
 
 
 def test_total_variation_and_normalisation():

@@ -46,7 +46,14 @@ from ptm_ros.io.groundtruth import GroundTruthTrajectory, interpolate_pose, load
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
 from ptm_ros.laser import patch_registrar
 from ptm_ros.partitions import Labels
-from ptm_ros.posterior import PosteriorModel, exact_posterior, normalize_log, top_k, total_variation
+from ptm_ros.posterior import (
+    PosteriorModel,
+    exact_posterior,
+    normalize_log,
+    same_place_probabilities,
+    top_k,
+    total_variation,
+)
 from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
 
@@ -323,13 +330,19 @@ def compare_to_filter(
     model: PosteriorModel, mcmc: Mapping[Labels, float], rbpf: Mapping[Labels, float]
 ) -> dict[str, Any]:
     """How an MCMC PTM differs from a particle filter's (issue #7): total variation to the filter's PTM
-    and to its topologies re-weighted by the batch posterior (so only the support differs), and the log
+    and to its topologies re-weighted by the batch posterior (so only the support differs), the log
     posterior of each MAP under the batch model (``map_gain_nats`` > 0: MCMC found a topology the filter
-    ranked lower or lost)."""
+    ranked lower or lost), and the same-place marginals of the visit pairs either PTM gives >= 0.01
+    (:func:`same_place_probabilities`): largest and mean absolute difference, and how many differ by more
+    than 0.1. With many near-equal topologies (long runs) two samplers can share little of their support
+    (TV near 1) yet agree on which visits are one place."""
     mcmc_map = max(mcmc, key=mcmc.__getitem__)
     rbpf_map = max(rbpf, key=rbpf.__getitem__)
     reweighted = normalize_log({lab: model.log_posterior(lab) for lab in rbpf})
     gain = model.log_posterior(mcmc_map) - model.log_posterior(rbpf_map)
+    p_mcmc, p_rbpf = (same_place_probabilities(d, model.n)[np.triu_indices(model.n, 1)] for d in (mcmc, rbpf))
+    in_play = np.maximum(p_mcmc, p_rbpf) >= 0.01  # pairs either PTM deems possibly one place
+    upper = np.abs(p_mcmc - p_rbpf)[in_play]
     return {
         "rbpf_topologies": len(rbpf),
         "tv": total_variation(mcmc, rbpf),
@@ -338,6 +351,10 @@ def compare_to_filter(
         "map_gain_nats": float(gain),
         "rbpf_map_mass": float(mcmc.get(rbpf_map, 0.0)),
         "rbpf_map_among": rbpf_map in mcmc,
+        "pairs_in_play": int(upper.size),
+        "pair_max_diff": float(upper.max(initial=0.0)),
+        "pair_mean_diff": float(upper.mean()) if upper.size else 0.0,
+        "pairs_differing": int(np.count_nonzero(upper > 0.1)),
     }
 
 
