@@ -363,6 +363,41 @@ def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
         common.check_params_files(["--params-file", str(tmp_path / "missing.yaml")])
 
 
+def test_an_error_raised_by_the_shutdown_itself_is_a_clean_stop(monkeypatch):
+    """run_node: the spin raising once the context is shut down (the signal handler racing a take) ends
+    with 0 and destroys the node; the same error with the context alive is a bug and propagates."""
+    import rclpy
+    from rclpy.node import Node
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(next_domain_id()))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    destroyed = []
+
+    class Probe(Node):
+        def __init__(self) -> None:
+            super().__init__("probe")
+
+        def destroy_node(self) -> None:
+            destroyed.append(True)
+            super().destroy_node()
+
+    def raced(node: Node) -> None:
+        rclpy.shutdown()
+        raise RuntimeError("Failed to take: the given context is not valid")
+
+    monkeypatch.setattr(rclpy, "spin", raced)
+    assert common.run_node(Probe, ["probe"], "probe") == 0
+    assert destroyed == [True]
+
+    def bug(node: Node) -> None:
+        raise RuntimeError("a bug in a callback")
+
+    monkeypatch.setattr(rclpy, "spin", bug)
+    with pytest.raises(RuntimeError, match="a bug"):
+        common.run_node(Probe, ["probe"], "probe")
+    assert destroyed == [True, True] and not rclpy.ok()
+
+
 # ------------------------------------------------------------------------------------- filter session
 
 

@@ -847,7 +847,10 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, nam
 
     A :class:`ConfigError` while building the node (a bad parameter) or a bad ``--params-file``
     (:func:`check_params_files`, or rcl refusing the arguments) is logged as fatal and gives exit code 2;
-    SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern).
+    SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern). An error raised by
+    the spin once the context is shut down is the shutdown racing the executor (a wait or a take on a
+    context being invalidated by the signal handler): logged, and still a clean stop; with the context
+    alive it is a bug and propagates (exit code 1).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -869,6 +872,10 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, nam
             rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception as err:
+            if rclpy.ok():
+                raise
+            node.get_logger().warning(f"stopped while shutting down: {type(err).__name__}: {err}")
         finally:
             node.destroy_node()
         return 0

@@ -438,12 +438,13 @@ class MapPublisherNode(Node):
             self._jobs.put(snap)
 
     def destroy_node(self) -> None:
-        """Wait (a bounded time) for a drawing still running, stop the drawing thread, destroy the node;
-        a drawing that ends later publishes nothing."""
+        """Wait (at most :data:`CLOSE_WAIT_S` in all) for a drawing still running and for the drawing thread
+        to stop, destroy the node; a drawing that ends later publishes nothing."""
         self._closing = True
+        deadline = time.monotonic() + CLOSE_WAIT_S  # one budget: ptm-bringup sends SIGTERM after 5 s
         self._wait_for_drawing(CLOSE_WAIT_S)
         self._jobs.put(None)
-        self._worker.join(CLOSE_WAIT_S)
+        self._worker.join(max(0.0, deadline - time.monotonic()))
         super().destroy_node()
 
     @guarded
