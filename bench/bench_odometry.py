@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ptm_ros.geometry import between, compose
-from ptm_ros.odometry import OdometryConfig, metric_log_likelihood
+from ptm_ros.odometry import MAX_VISITS, OdometryConfig, metric_log_likelihood
 from ptm_ros.visits import Visit
 
 SIZES = (10, 33, 100)
@@ -76,8 +76,9 @@ def median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
 
 def run(repeats: int, seed: int) -> list[dict[str, object]]:
     laplace = OdometryConfig(n_samples=0)
-    sampled = OdometryConfig(n_samples=200)
-    absolute = OdometryConfig(n_samples=200, proposal="absolute")
+    # importance sampling at every N, also beyond the model's default cut-over to Laplace
+    sampled = OdometryConfig(n_samples=200, max_sampled_visits=MAX_VISITS)
+    absolute = OdometryConfig(n_samples=200, proposal="absolute", max_sampled_visits=MAX_VISITS)
     rows: list[dict[str, object]] = []
     for n in SIZES:
         visits, truth = synthetic_loop(n, laplace, np.random.default_rng(seed))

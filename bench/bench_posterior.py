@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_odometry import N_PLACES, synthetic_loop
 
-from ptm_ros.odometry import OdometryConfig
+from ptm_ros.odometry import MAX_VISITS, OdometryConfig
 from ptm_ros.posterior import ModelConfig, PosteriorModel
 from ptm_ros.visits import Visit
 
@@ -59,7 +59,8 @@ def main() -> None:
         visits, truth = synthetic_loop(n, OdometryConfig(n_samples=0), rng)
         visits = with_signatures(visits, rng)
         for name, n_samples in (("laplace", 0), ("is200", 200)):
-            cfg = ModelConfig(odometry=OdometryConfig(n_samples=n_samples), use_laser=False)
+            odo = OdometryConfig(n_samples=n_samples, max_sampled_visits=MAX_VISITS)  # IS at every N
+            cfg = ModelConfig(odometry=odo, use_laser=False)
             # appearance model fitting (once per run) is excluded: build it outside the timed call
             wall, cpu, ess = time_fresh((visits, cfg), truth, args.repeats)
             rows.append({"n_visits": n, "metric": name, "median_ms": wall, "median_cpu_ms": cpu, "ess": ess})
