@@ -208,7 +208,7 @@ class MetricResult:
 
     Attributes:
         log_likelihood: ``log P(O, S | T)``: the importance-sampling estimate, or the Laplace estimate
-            when ``n_samples = 0``.
+            when ``n_samples = 0`` or beyond ``max_sampled_visits`` visits.
         log_laplace: the Laplace estimate (App. B) with the landmark prior evaluated at ``X*``.
         ess: effective sample size of the importance weights (0 for the Laplace path).
         poses: ``(N, 3)`` optimised visit poses ``X*`` including ``x_0 = u_0`` (headings wrapped).
