@@ -287,6 +287,10 @@ def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[L
     return out
 
 
+#: ``ptm.inference`` key of MCMC's comparison with the particle filter it started from.
+VERSUS_KEY = "versus_rbpf"
+
+
 def _infer_mcmc(
     model: PosteriorModel, config: PtmConfig, ensemble: Mapping[Labels, float] | None = None
 ) -> Inference:
@@ -300,9 +304,7 @@ def _infer_mcmc(
     res = run_mcmc(model, inf.mcmc, inf.seed, initial=starts)
     ranked = dict(top_k(res.probabilities, inf.top))
     d = res.diagnostics
-    versus = (
-        {} if ensemble is None else {"versus_rbpf": compare_to_filter(model, res.probabilities, ensemble)}
-    )
+    versus = {} if ensemble is None else {VERSUS_KEY: compare_to_filter(model, res.probabilities, ensemble)}
     return Inference(
         probabilities=ranked,
         positions=_metric_positions(model, ranked),
@@ -760,7 +762,7 @@ def run_offline(
             score=score,
             surprise_trace=surprise_trace(extractor.detector),
             occupancy_map=files.get("map_png"),
-            notes=ate_notes(extra.get(TRAJECTORY_ERROR_KEY)),
+            notes=ate_notes(extra.get(TRAJECTORY_ERROR_KEY)) + versus_notes(ptm.inference.get(VERSUS_KEY)),
             title=f"PTM of {bag.name}",
         )
     return RunResult(
@@ -855,6 +857,25 @@ def trajectory_errors(
         "ate_odometry_m": absolute_trajectory_error(np.asarray(odom.poses)[inside, :2], true_xy),
         "poses": int(np.count_nonzero(inside)),
     }
+
+
+def versus_notes(versus: Mapping[str, Any] | None) -> list[str]:
+    """Report lines for MCMC's comparison with the particle filter it started from (``initial: rbpf``,
+    :func:`compare_to_filter`); none without it."""
+    if not versus:
+        return []
+    gain = versus["map_gain_nats"]
+    same = (
+        "the filter's MAP topology"
+        if versus["map_equal"]
+        else f"a MAP topology {gain:+.2f} nats from the filter's"
+    )
+    return [
+        f"MCMC from the particle filter's {versus['rbpf_topologies']} topologies: {same} (batch posterior); "
+        f"TV to the filter's PTM {versus['tv']:.3f} ({versus['tv_reweighted']:.3f} with the filter's "
+        f"topologies re-weighted); same-place probabilities of {versus['pairs_in_play']} visit pairs "
+        f"differ by {versus['pair_mean_diff']:.3f} on average, {versus['pairs_differing']} by more than 0.1"
+    ]
 
 
 def ate_notes(ate: Mapping[str, Any] | None) -> list[str]:
