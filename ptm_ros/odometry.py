@@ -491,57 +491,49 @@ def between_derivatives(
     return de
 
 
-def _pair_jacobians(
-    x: FloatArray, prob: _Problem
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def _pair_jacobians(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Residuals ``r`` ``(m,)`` at poses ``x`` ``(N, 3)``, Jacobian blocks ``[J_a J_b] = W ∂e/∂(x_a, x_b)``
-    ``(Q, 3, 6)`` of the relative constraints ``W((x_a ⊖ x_b) ⊟ z)``, their residuals ``(Q, 3)`` and the
-    translations ``t = x_a ⊖ x_b`` (``t_x``, ``t_y``, each ``(Q,)``)."""
+    ``(Q, 3, 6)`` of the relative constraints ``W((x_a ⊖ x_b) ⊟ z)`` and their residuals ``(Q, 3)``."""
     e, tx, ty = _relative_errors(x[None], prob)
     jab = prob.pair_w @ between_derivatives(x, prob.pair_a, prob.pair_b, tx[0], ty[0])
     r_rel = (prob.pair_w @ e[0, :, :, None])[:, :, 0]
     r_top = prob.centering @ x[:, :2]
-    return np.concatenate([r_rel.ravel(), r_top.ravel()]), jab, r_rel, tx[0], ty[0]
+    return np.concatenate([r_rel.ravel(), r_top.ravel()]), jab, r_rel
 
 
-def _curvature_blocks(
-    x: FloatArray, prob: _Problem, r_rel: FloatArray, tx: FloatArray, ty: FloatArray
-) -> FloatArray:
-    """``Σ_k r_k ∇²r_k`` of the relative constraints as ``(Q, 6, 6)`` blocks over ``(x_a, x_b)``: the part of
-    the Hessian of ``½|r|²`` that ``JᵀJ`` leaves out (the topology residuals are linear).
+def _scatter(blocks: FloatArray, prob: _Problem) -> FloatArray:
+    """The ``(Q, 6, 6)`` blocks over ``(x_a, x_b)`` summed into a dense ``(d, d)`` matrix (gauge dropped)."""
+    d = 3 * (prob.n - 1)
+    return np.bincount(prob.h_index, weights=blocks.ravel()[prob.h_keep], minlength=d * d).reshape(d, d)
+
+
+def _newton_hessian(x: FloatArray, prob: _Problem, info: FloatArray) -> FloatArray:
+    """The full Hessian of ``½|r|²`` at ``x``: ``info = JᵀJ`` plus ``Σ_k r_k ∇²r_k`` of the relative
+    constraints (the topology residuals are linear).
 
     With ``λ = Wᵀ r`` and ``t = R(θ_a)ᵀ(t_b − t_a)``, only ``θ_a`` enters nonlinearly:
     ``∂²t/∂θ_a² = −t``, ``∂²t/∂θ_a∂t_a = −dR(θ_a)ᵀ/dθ`` and ``∂²t/∂θ_a∂t_b = dR(θ_a)ᵀ/dθ``.
     """
-    lam = np.einsum("qki,qk->qi", prob.pair_w, r_rel)
+    e, tx, ty = _relative_errors(x[None], prob)
+    lam = np.einsum("qki,qkj,qj->qi", prob.pair_w, prob.pair_w, e[0])  # Wᵀ r
     theta = x[prob.pair_a, 2]
     c, s = np.cos(theta), np.sin(theta)
     lx, ly = lam[:, 0], lam[:, 1]
     u = lx * s + ly * c  # ∂²(λ·t)/∂θ_a ∂x_a
     v = ly * s - lx * c  # ∂²(λ·t)/∂θ_a ∂y_a
-    out = np.zeros((len(theta), 6, 6))
-    out[:, 2, 2] = -(lx * tx + ly * ty)
+    blocks = np.zeros((len(theta), 6, 6))
+    blocks[:, 2, 2] = -(lx * tx[0] + ly * ty[0])
     for col, value in ((0, u), (1, v), (3, -u), (4, -v)):
-        out[:, 2, col] = value
-        out[:, col, 2] = value
-    return out
+        blocks[:, 2, col] = value
+        blocks[:, col, 2] = value
+    return info + _scatter(blocks, prob)
 
 
-def _normal_equations(
-    x: FloatArray, prob: _Problem, *, newton: bool = False
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
-    """``r`` ``(m,)``, ``H = J^T J`` ``(d, d)``, ``g = J^T r`` ``(d,)`` and, with ``newton``, the full Hessian
-    of ``½|r|²`` (``JᵀJ`` plus :func:`_curvature_blocks`), all assembled block by block."""
-    r, jab, r_rel, tx, ty = _pair_jacobians(x, prob)
+def _normal_equations(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``r`` ``(m,)``, ``H = J^T J`` ``(d, d)`` and ``g = J^T r`` ``(d,)``, assembled block by block."""
+    r, jab, r_rel = _pair_jacobians(x, prob)
     d = 3 * (prob.n - 1)
-    h_blocks = jab.transpose(0, 2, 1) @ jab
-
-    def assemble(blocks: FloatArray) -> FloatArray:
-        flat = np.bincount(prob.h_index, weights=blocks.ravel()[prob.h_keep], minlength=d * d)
-        return flat.reshape(d, d) + prob.h_topo  # (a new float array also when d = 0)
-
-    info = assemble(h_blocks)
-    hess = assemble(h_blocks + _curvature_blocks(x, prob, r_rel, tx, ty)) if newton else None
+    info = _scatter(jab.transpose(0, 2, 1) @ jab, prob) + prob.h_topo  # (a new array also when d = 0)
     grad = np.bincount(
         prob.g_index, weights=np.einsum("qki,qk->qi", jab, r_rel).ravel()[prob.g_keep], minlength=d
     )
@@ -549,7 +541,7 @@ def _normal_equations(
     g_top = prob.centering.T @ r_top  # (N, 2)
     grad = grad.reshape(-1, 3)
     grad[:, :2] += g_top[1:]
-    return r, info, grad.ravel(), hess
+    return r, info, grad.ravel()
 
 
 def _sparse_jacobian(jab: FloatArray, prob: _Problem) -> sp.csr_matrix:
@@ -591,7 +583,7 @@ def metric_residuals(
     """
     prob = _build_problem(labels, visits, config, loops)
     x = _check_poses(poses, prob.n, "poses")
-    r, jab, _, _, _ = _pair_jacobians(x, prob)
+    r, jab, _ = _pair_jacobians(x, prob)
     return r, _sparse_jacobian(jab, prob)
 
 
@@ -659,14 +651,17 @@ def _optimize(prob: _Problem, config: OdometryConfig, initial: ArrayLike | None)
     if prob.n == 1:  # nothing to integrate: f = 1/A
         empty = np.zeros((0, 0))
         return _Optimum(poses=x, information=empty, chol=empty, log_gauss=prob.log_const, iterations=0)
-    r, info, grad, hess = _normal_equations(x, prob, newton=True)
+    r, info, grad = _normal_equations(x, prob)
     cost = 0.5 * float(r @ r)
     lam, nu = 1e-6, 2.0
     iterations = 0
     near = False  # Gauss–Newton while far: the full Hessian's model overshoots where residuals are large
+    hess: FloatArray | None = None  # the full Hessian at x, computed once Newton steps are due
     while iterations < config.max_iterations and lam < 1e12:
         iterations += 1
         damp = lam * np.diag(info)
+        if near and hess is None:
+            hess = _newton_hessian(x, prob, info)
         step = _damped_step(hess if near else None, info, damp, grad)
         if step is None:
             lam, nu = lam * nu, 2.0 * nu
@@ -677,7 +672,7 @@ def _optimize(prob: _Problem, config: OdometryConfig, initial: ArrayLike | None)
             break  # (nearly) Newton predicts less than the tolerance: converged
         x_new = x.copy()
         x_new[1:] += step.reshape(-1, 3)
-        r_new, info_new, grad_new, hess_new = _normal_equations(x_new, prob, newton=True)
+        r_new, info_new, grad_new = _normal_equations(x_new, prob)
         cost_new = 0.5 * float(r_new @ r_new)
         decrease = cost - cost_new
         if decrease < -1e-12 * (1.0 + cost):
@@ -685,7 +680,7 @@ def _optimize(prob: _Problem, config: OdometryConfig, initial: ArrayLike | None)
             continue
         rho = decrease / predicted if predicted > 0.0 else 1.0
         lam, nu = lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), 2.0
-        x, r, info, grad, hess, cost = x_new, r_new, info_new, grad_new, hess_new, cost_new
+        x, r, info, grad, hess, cost = x_new, r_new, info_new, grad_new, None, cost_new
         if decrease < config.tolerance:
             break
         near = decrease < NEWTON_BELOW_NATS

@@ -111,7 +111,7 @@ def split_aliases(
     constraints and the ones explained as symmetric aliases (:func:`ptm_ros.odometry.alias_test`,
     the max-mixture of ``registration_outlier``). The batch posterior, the smoothing of ``ptm-run`` and the
     map publisher's online map all take a topology's loops from here."""
-    return _split(measured, alias_test(labels, visits, config, list(measured)))
+    return _split(measured, alias_test(labels, visits, config, measured))
 
 
 def _split(
@@ -192,7 +192,7 @@ class PosteriorModel:
         if self.config.use_odometry and self.n > 1:
             cfg = self.config.odometry
             measured = self.loops(lab)
-            test = alias_test(lab, self.visits, cfg, list(measured))
+            test = alias_test(lab, self.visits, cfg, measured)
             loops, outliers = _split(measured, test)
             rng = np.random.default_rng([self.seed, *lab])
             # optimised from the optimum without laser loops (the alias test's), not from the odometry:
