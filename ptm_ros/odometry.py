@@ -93,7 +93,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import LinAlgError, cho_factor, cho_solve, cholesky, solve_triangular
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.special import logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError
@@ -301,23 +301,16 @@ def _build_problem(
     b_list = [np.arange(1, n, dtype=np.intp)]
     z_list = [relative_odometry(visits)]
     w_list = [odo_w]
-    n_diff_laser = 0
-    for k, loop in enumerate(loops):
-        i, j, mean, cov = _check_loop(loop, k, n)
-        if lab[i] != lab[j]:
-            n_diff_laser += 1
-            continue
-        try:
-            chol = cholesky(cov, lower=True)
-        except LinAlgError as err:
-            msg = f"laser constraint {k} ({i}, {j}): covariance is not positive definite"
-            raise ModelError(msg) from err
-        w = solve_triangular(chol, np.eye(3), lower=True)
-        log_const += float(-np.sum(np.log(np.diag(chol))) - 1.5 * _LOG_2PI)
-        a_list.append(np.array([i], dtype=np.intp))
-        b_list.append(np.array([j], dtype=np.intp))
-        z_list.append(mean.reshape(1, 3))
-        w_list.append(w.reshape(1, 3, 3))
+    ij, means, covs = _loop_arrays(loops, n)
+    same = lab_arr[ij[:, 0]] == lab_arr[ij[:, 1]]
+    n_diff_laser = int(np.sum(~same))
+    if np.any(same):
+        chol = _cholesky_3(covs[same], "laser constraint", np.flatnonzero(same), ij[same])
+        log_const += float(-np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2))) - 1.5 * _LOG_2PI * len(chol))
+        a_list.append(ij[same, 0])
+        b_list.append(ij[same, 1])
+        z_list.append(means[same])
+        w_list.append(_lower_inverse_3(chol))
     log_const -= n_diff_laser * math.log(config.registration_volume)
     pair_a = np.concatenate(a_list)
     pair_b = np.concatenate(b_list)
@@ -366,24 +359,65 @@ def _build_problem(
     )
 
 
-def _check_loop(loop: RelativePose, k: int, n: int) -> tuple[int, int, FloatArray, FloatArray]:
-    i, j = int(loop.i), int(loop.j)
-    if not 0 <= i < j < n:
-        msg = f"laser constraint {k}: need 0 <= i < j < {n}, got ({i}, {j})"
+def _loop_arrays(loops: Sequence[RelativePose], n: int) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
+    """The laser loops as arrays, validated: visit pairs ``(K, 2)``, means ``(K, 3)``, covariances
+    ``(K, 3, 3)``."""
+    k = len(loops)
+    ij = np.zeros((k, 2), dtype=np.intp)
+    means = np.zeros((k, 3))
+    covs = np.zeros((k, 3, 3))
+    for q, loop in enumerate(loops):
+        i, j = int(loop.i), int(loop.j)
+        if not 0 <= i < j < n:
+            msg = f"laser constraint {q}: need 0 <= i < j < {n}, got ({i}, {j})"
+            raise ModelError(msg)
+        mean = np.asarray(loop.mean, dtype=float)
+        cov = np.asarray(loop.cov, dtype=float)
+        if mean.shape != (3,) or cov.shape != (3, 3):
+            msg = f"laser constraint {q} ({i}, {j}): mean must be 3 and cov 3x3 finite numbers"
+            raise ModelError(msg)
+        ij[q] = i, j
+        means[q] = mean
+        covs[q] = cov
+    finite = np.isfinite(means).all(axis=1) & np.isfinite(covs).all(axis=(1, 2))
+    scale = np.abs(covs).max(axis=(1, 2), initial=0.0)
+    asymmetric = np.abs(covs - covs.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0) > 1e-12 + 1e-9 * scale
+    bad = np.flatnonzero(~finite | asymmetric)
+    if len(bad):
+        q = bad[0]
+        what = "mean must be 3 and cov 3x3 finite numbers" if not finite[q] else "covariance is not symmetric"
+        msg = f"laser constraint {q} ({ij[q, 0]}, {ij[q, 1]}): {what}"
         raise ModelError(msg)
-    mean = np.asarray(loop.mean, dtype=float)
-    cov = np.asarray(loop.cov, dtype=float)
-    if (
-        mean.shape != (3,)
-        or cov.shape != (3, 3)
-        or not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov)))
-    ):
-        msg = f"laser constraint {k} ({i}, {j}): mean must be 3 and cov 3x3 finite numbers"
-        raise ModelError(msg)
-    if float(np.max(np.abs(cov - cov.T))) > 1e-12 + 1e-9 * float(np.max(np.abs(cov))):
-        msg = f"laser constraint {k} ({i}, {j}): covariance is not symmetric"
-        raise ModelError(msg)
-    return i, j, mean, cov
+    return ij, means, covs
+
+
+def _cholesky_3(s: FloatArray, what: str, index: NDArray[np.intp], ij: NDArray[np.intp]) -> FloatArray:
+    """Lower Cholesky factors of ``(K, 3, 3)`` symmetric matrices; names the first that is not positive
+    definite (``what`` ``index[k]`` ``(i, j)``)."""
+    try:
+        return np.linalg.cholesky(s)
+    except np.linalg.LinAlgError:
+        for k in range(len(s)):
+            try:
+                np.linalg.cholesky(s[k])
+            except np.linalg.LinAlgError as err:
+                msg = f"{what} {index[k]} ({ij[k, 0]}, {ij[k, 1]}): covariance is not positive definite"
+                raise ModelError(msg) from err
+        raise
+
+
+def _lower_inverse_3(chol: FloatArray) -> FloatArray:
+    """Inverses of lower-triangular ``(K, 3, 3)`` matrices, in closed form (exactly lower triangular)."""
+    a, c, f = chol[:, 0, 0], chol[:, 1, 1], chol[:, 2, 2]
+    b, d, e = chol[:, 1, 0], chol[:, 2, 0], chol[:, 2, 1]
+    out = np.zeros_like(chol)
+    out[:, 0, 0] = 1.0 / a
+    out[:, 1, 1] = 1.0 / c
+    out[:, 2, 2] = 1.0 / f
+    out[:, 1, 0] = -b / (a * c)
+    out[:, 2, 1] = -e / (c * f)
+    out[:, 2, 0] = (b * e - c * d) / (a * c * f)
+    return out
 
 
 def _normal_pattern(
@@ -759,34 +793,31 @@ def alias_test(
     prob = _build_problem(labels, visits, config, ())
     opt = _optimize(prob, config, None)
     x = opt.poses
-    checked = [_check_loop(z, k, prob.n) for k, z in enumerate(loops)]
-    # only the 3×3 covariance blocks of the visits the loops join: H⁻¹ restricted to their columns
-    involved = sorted({v for i, j, _, _ in checked for v in (i, j) if v > 0})
-    slot = {v: k for k, v in enumerate(involved)}
-    cols = np.array([3 * (v - 1) + c for v in involved for c in range(3)], dtype=np.intp)
-    cov_cols = np.zeros((0, 0))
+    ij, means, r_covs = _loop_arrays(loops, prob.n)
+    # only the 3×3 covariance blocks of the visits the loops join: H⁻¹ restricted to their columns, padded
+    # with a zero block for x_0 (the fixed gauge: no variance)
+    involved = np.unique(ij[ij > 0])
+    slot = np.full(prob.n, len(involved), dtype=np.intp)
+    slot[involved] = np.arange(len(involved))
+    cols = (3 * (involved - 1)[:, None] + np.arange(3)).ravel()
+    cov_pad = np.zeros((len(cols) + 3, len(cols) + 3))
     if len(cols):
         unit = np.zeros((3 * (prob.n - 1), len(cols)))
         unit[cols, np.arange(len(cols))] = 1.0
-        cov_cols = cho_solve((opt.chol, True), unit)[cols]  # (3V, 3V) block of H⁻¹
+        cov_pad[: len(cols), : len(cols)] = cho_solve((opt.chol, True), unit)[cols]  # (3V, 3V) of H⁻¹
     threshold = math.log(eps) - math.log1p(-eps) - math.log(config.registration_volume)
-    for k, (i, j, mean, r_cov) in enumerate(checked):
-        a, b = np.array([i]), np.array([j])
-        rel = between(x[i], x[j])
-        jac = between_derivatives(x, a, b, rel[:1], rel[1:2])[0]  # (3, 6): ∂/∂(x_i, x_j)
-        c_ij = np.zeros((6, 6))
-        for p, v in enumerate((i, j)):  # x_0 is the fixed gauge: no variance
-            for q, w in enumerate((i, j)):
-                if v > 0 and w > 0:
-                    sv, sw = 3 * slot[v], 3 * slot[w]
-                    c_ij[3 * p : 3 * p + 3, 3 * q : 3 * q + 3] = cov_cols[sv : sv + 3, sw : sw + 3]
-        s = jac @ c_ij @ jac.T + r_cov
-        e = mean - rel
-        e[2] = wrap_angle(e[2])
-        chol = cholesky(0.5 * (s + s.T), lower=True)
-        v = solve_triangular(chol, e, lower=True)
-        log_pred = -1.5 * _LOG_2PI - float(np.sum(np.log(np.diag(chol)))) - 0.5 * float(v @ v)
-        out[k] = log_pred < threshold
+    a, b = ij[:, 0], ij[:, 1]
+    rel = between(x[a], x[b])
+    jac = between_derivatives(x, a, b, rel[:, 0], rel[:, 1])  # (K, 3, 6): ∂/∂(x_i, x_j)
+    idx = (3 * slot[ij][:, :, None] + np.arange(3)).reshape(-1, 6)  # (K, 6) rows of cov_pad
+    c_ij = cov_pad[idx[:, :, None], idx[:, None, :]]
+    s = jac @ c_ij @ jac.transpose(0, 2, 1) + r_covs
+    e = means - rel
+    e[:, 2] = wrap_angle(e[:, 2])
+    chol = _cholesky_3(0.5 * (s + s.transpose(0, 2, 1)), "laser loop", np.arange(len(ij)), ij)
+    v = np.einsum("kij,kj->ki", _lower_inverse_3(chol), e)
+    log_det = np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)
+    out = -1.5 * _LOG_2PI - log_det - 0.5 * np.sum(v * v, axis=1) < threshold
     return AliasTest(aliases=out, poses=x)
 
 

@@ -545,6 +545,13 @@ def test_bad_input_raises_model_error() -> None:
         metric_log_likelihood((0, 1, 2, 3, 0), visits, cfg, [RelativePose(4, 0, np.zeros(3), np.eye(3))])
     with pytest.raises(ModelError, match="not positive definite"):
         metric_log_likelihood((0, 1, 2, 3, 0), visits, cfg, [RelativePose(0, 4, np.zeros(3), -np.eye(3))])
+    good = RelativePose(0, 4, np.zeros(3), np.eye(3))
+    with pytest.raises(ModelError, match=r"constraint 1 \(1, 4\): covariance is not positive definite"):
+        metric_log_likelihood((0, 1, 2, 3, 1), visits, cfg, [good, RelativePose(1, 4, good.mean, -good.cov)])
+    skew = np.eye(3)
+    skew[0, 1] = 0.5
+    with pytest.raises(ModelError, match=r"constraint 1 \(1, 4\): covariance is not symmetric"):
+        metric_log_likelihood((0, 1, 2, 3, 0), visits, cfg, [good, RelativePose(1, 4, np.zeros(3), skew)])
     with pytest.raises(ModelError, match="finite numbers"):
         metric_log_likelihood(
             (0, 1, 2, 3, 0), visits, cfg, [RelativePose(0, 4, np.full(3, np.nan), np.eye(3))]

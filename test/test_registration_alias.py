@@ -67,6 +67,10 @@ def test_registration_aliases_flag_only_the_alias():
     truth = canonical(ROUTE)
     flags = registration_aliases(truth, visits, replace(ODO, registration_outlier=0.05), loops)
     assert flags.tolist() == [False, True, False]
+    # the loops are tested together (one batch); each alone gives the same verdict
+    cfg = replace(ODO, registration_outlier=0.05)
+    assert [bool(registration_aliases(truth, visits, cfg, [z])[0]) for z in loops] == flags.tolist()
+    assert registration_aliases(truth, visits, cfg, loops[::-1]).tolist() == flags.tolist()[::-1]
     # ε = 0 trusts every loop; no loops, no flags
     assert not registration_aliases(truth, visits, replace(ODO, registration_outlier=0.0), loops).any()
     assert not registration_aliases(truth, visits, replace(ODO, registration_outlier=0.05), []).size
