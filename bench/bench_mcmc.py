@@ -14,8 +14,8 @@ Writes ``bench/mcmc.json`` (beside this script, or ``--out``) and prints a table
 * ``sim33``: when ``ptm_ros.io.simulator`` is present, the ``multi-loop`` world (33 visits, odometry only,
   like thesis Fig. 39–40): ``run_mcmc`` defaults (2 chains, MC³ with β = 1, ½) with the default odometry
   model (importance sampling); convergence by sample doubling, wall time, the true topology's mass and
-  rank; also one chain without a heated replica, the chains in 2 worker processes, and plain
-  split–merge (capped at 60 s).
+  rank; also the odometry proposal alone (the default mixes in single-visit reassignment), one chain
+  without a heated replica, the chains in 2 worker processes, and plain split–merge (capped at 60 s).
 
 Exact enumeration is the slow part (~10 ms per topology here); it runs in ``--processes`` worker
 processes and is cached in ``--cache`` (default: a directory under the system temp dir), keyed by the
@@ -699,6 +699,7 @@ def main() -> None:
             range(1 if args.quick else 3),
             {
                 "default": McmcConfig(),
+                "no-reassign": McmcConfig(proposal="odometry"),
                 "single-chain": McmcConfig(betas=(1.0,)),
                 "2-processes": McmcConfig(processes=2),
                 "split-merge": McmcConfig(proposal="split-merge", max_seconds=60.0),

@@ -51,6 +51,24 @@ probability of choosing a move type does not depend on the state.
   ``π_S`` depend on all of ``T``) and, as in Algorithm 3, the printed ``r = \exp((D'_2-D'_1)-(D_2-D_1))``
   misses both normalisers and the ``1/N_S`` of the block choice; here they are kept.
 
+Single-visit reassignment (not in the thesis)
+---------------------------------------------
+Split–merge moves whole blocks: moving one visit between two neighbouring places takes a split and a merge,
+through an intermediate state that is often far less probable. The reassign kernel moves it in one step
+(the Gibbs move of Dirichlet-process samplers, Neal 2000, with a data-driven conditional instead of the
+posterior one). From ``T``: pick a visit ``v`` uniformly; with ``T_{-v}`` the places of the other visits,
+move ``v`` to a place ``P`` of ``T_{-v}`` or to a new one with probability
+``π_R(P \mid T, v) ∝ \exp(-d_{vP}^2 / 2s^2)``, ``d_{vP}`` the distance between ``v``'s and ``P``'s optimised
+positions under ``T`` (a new place weighs as a place at :attr:`McmcConfig.new_place_distance`), mixed with
+uniform as below. ``T' ≠ T`` differs from ``T`` only in pairs that involve ``v``; another visit ``u`` gives
+the same ``T'`` only when ``\{u, v\}`` is split from, or joined into, a two-visit place. So
+
+.. math::
+    q(T → T') = \frac{1}{N} \sum_{v ∈ V(T, T')} π_R(P'_v \mid T, v),
+
+over the one or two movers ``V(T, T')``, and ``q(T' → T)`` the same from ``T'`` with ``T'``'s own optimum.
+"auto" adds it whenever the odometry proposal is used.
+
 Data-driven distributions are mixed with the uniform one, ``(1-ε)\,π + ε\,\mathrm{uniform}``
 (ε = :attr:`McmcConfig.proposal_mix`), so no move is ever starved by a poor optimum or scale. The
 default proposal ("auto") draws each move from one of the data-driven kernels the model supports, chosen
@@ -115,7 +133,7 @@ FloatArray = NDArray[np.float64]
 Block = tuple[int, ...]
 
 #: Proposal kinds :class:`McmcConfig` accepts ("auto": every data-driven proposal the model supports).
-PROPOSALS = ("auto", "split-merge", "odometry", "appearance")
+PROPOSALS = ("auto", "split-merge", "odometry", "appearance", "reassign")
 #: Estimates of the PTM :func:`run_mcmc` can return.
 ESTIMATES = ("visited", "histogram")
 #: Initial topologies of the chains.
@@ -140,11 +158,14 @@ class McmcConfig:
     """Settings of the MCMC sampler (see the module docstring for the maths).
 
     Attributes:
-        proposal: "split-merge" (Alg. 2), "odometry" (Alg. 3), "appearance" (Alg. 10) or "auto" = an
-            equal mixture of the data-driven proposals the model supports (plain when none).
+        proposal: "split-merge" (Alg. 2), "odometry" (Alg. 3), "appearance" (Alg. 10), "reassign" (one
+            visit moved, not in the thesis) or "auto" = an equal mixture of the data-driven proposals the
+            model supports (odometry with reassign, appearance; plain split–merge when none).
         odometry_scale: s (m) of the odometry merge weights ``exp(-d²/2s²)``; 1 m (about 2 σ_T) made
             fewer wrong merges than 2–4 m on the 33-visit benchmark, so chains were trapped less often.
         appearance_strength: λ of the appearance weights ``exp(∓λ sep)``.
+        new_place_distance: m; the reassign proposal opens a new place for a visit as readily as it joins
+            a place this far from the visit (weights ``exp(-d²/2s²)``, ``s`` = ``odometry_scale``).
         proposal_mix: ε, weight of the uniform distribution mixed into data-driven merges and splits.
         max_split_enumeration: largest block whose splits the appearance proposal scores (2^{k-1}-1 each).
         max_chaining: C_max of proposal chaining (Alg. 4); 1 = no chaining.
@@ -172,6 +193,7 @@ class McmcConfig:
     proposal: str = "auto"
     odometry_scale: float = 1.0
     appearance_strength: float = 10.0
+    new_place_distance: float = 2.0
     proposal_mix: float = 0.05
     max_split_enumeration: int = 12
     max_chaining: int = 1
@@ -199,6 +221,7 @@ class McmcConfig:
         in_range = {
             "odometry_scale": lambda v: v > 0.0,
             "appearance_strength": lambda v: v >= 0.0,
+            "new_place_distance": lambda v: v > 0.0,
             "proposal_mix": lambda v: 0.0 <= v < 1.0,
             "tolerance": lambda v: 0.0 < v < 1.0,
             "burn_in": lambda v: 0.0 <= v <= 0.5,
@@ -486,6 +509,14 @@ def _mixed_table(log_weights: FloatArray, mix: float) -> Table:
     return lp.tolist(), cdf.tolist()
 
 
+def _log_sum(values: Sequence[float]) -> float:
+    """``log Σ exp(values)`` of a few Python floats (no array overhead)."""
+    top = max(values)
+    if top == -math.inf:
+        return top
+    return top + math.log(math.fsum(math.exp(x - top) for x in values))
+
+
 def _draw(cdf: list[float], rng: RandomSource) -> int:
     idx = bisect.bisect_right(cdf, rng.random() * cdf[-1])
     return min(idx, len(cdf) - 1)
@@ -678,6 +709,21 @@ class SplitMergeProposal:
         return out
 
 
+def _geometry(
+    model: PosteriorModel, labels: Labels, odometry_xy: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``(M, 2)`` place and ``(N, 2)`` visit positions of a topology: at its optimum when the model has a
+    metric term, else the raw odometry (places at their visits' mean)."""
+    result = model.terms(labels).metric_result
+    if result is not None:
+        return np.asarray(result.place_positions, dtype=float), np.asarray(result.poses, dtype=float)[:, :2]
+    lab = np.asarray(labels)
+    m = int(lab.max()) + 1
+    counts = np.bincount(lab, minlength=m)[:, None]
+    sums = np.stack([np.bincount(lab, weights=odometry_xy[:, k], minlength=m) for k in (0, 1)], 1)
+    return sums / counts, odometry_xy
+
+
 class OdometryProposal(SplitMergeProposal):
     """Algorithm 3: merges weighted by ``exp(-d²/2s²)`` between optimised place positions; plain splits."""
 
@@ -694,14 +740,7 @@ class OdometryProposal(SplitMergeProposal):
 
     def place_positions(self, labels: Labels) -> FloatArray:
         """``(M, 2)`` place positions of a topology: optimised (metric term) or raw odometry means."""
-        result = self.model.terms(labels).metric_result
-        if result is not None:
-            return np.asarray(result.place_positions, dtype=float)
-        lab = np.asarray(labels)
-        m = int(lab.max()) + 1
-        counts = np.bincount(lab, minlength=m)[:, None]
-        sums = np.stack([np.bincount(lab, weights=self._odometry_xy[:, k], minlength=m) for k in (0, 1)], 1)
-        return sums / counts
+        return _geometry(self.model, labels, self._odometry_xy)[0]
 
     def merge_log_weights(self, labels: Labels, parts: Sequence[Block]) -> FloatArray:
         pos = self.place_positions(labels)
@@ -817,6 +856,104 @@ class AppearanceProposal(SplitMergeProposal):
         return np.concatenate([[-np.inf], self.strength * sep])
 
 
+class ReassignProposal:
+    """One visit moved to another place or to a new one, data-driven by odometry (module docstring).
+
+    Split–merge moves whole blocks; a visit joined to the wrong one of two neighbouring places needs a
+    split and a merge, the intermediate state often far less probable. This kernel moves it in one step.
+    """
+
+    name = "reassign"
+
+    def __init__(
+        self, model: PosteriorModel, scale: float = 1.0, mix: float = 0.05, new_place: float = 2.0
+    ) -> None:
+        if not (math.isfinite(scale) and scale > 0.0 and 0.0 <= mix < 1.0):
+            msg = f"reassign proposal needs scale > 0 and mix in [0, 1), got {scale}, {mix}"
+            raise ConfigError(msg)
+        if not (math.isfinite(new_place) and new_place > 0.0):
+            msg = f"reassign proposal needs new_place > 0 (m), got {new_place}"
+            raise ConfigError(msg)
+        self.model = model
+        self.n = model.n
+        self.scale = float(scale)
+        self.mix = float(mix)
+        self.new_place_log_weight = -0.5 * (new_place / self.scale) ** 2
+        self._odometry_xy = np.array([v.pose[:2] for v in model.visits], dtype=float).reshape(-1, 2)
+        self._tables: dict[tuple[Labels, int], tuple[list[int], list[float], list[float]]] = {}
+
+    def options(self, labels: Labels, v: int) -> tuple[list[int], list[float]]:
+        """The places visit ``v`` may join (labels of the other visits' places; a new place last) and
+        their log probabilities ``log π_R(P | T, v)``."""
+        rest, lp, _ = self._table(labels, v)
+        return rest, lp
+
+    def _table(self, labels: Labels, v: int) -> tuple[list[int], list[float], list[float]]:
+        key = (labels, v)
+        out = self._tables.get(key)
+        if out is None:
+            place_xy, visit_xy = _geometry(self.model, labels, self._odometry_xy)
+            rest = sorted(set(labels[:v]) | set(labels[v + 1 :]))
+            w = np.empty(len(rest) + 1)
+            diff = place_xy[rest] - visit_xy[v]
+            w[:-1] = np.sum(diff * diff, axis=1) * (-0.5 / self.scale**2)
+            w[-1] = self.new_place_log_weight
+            out = (rest, *_mixed_table(w, self.mix))
+            if len(self._tables) >= _CACHE_SIZE:
+                self._tables.clear()
+            self._tables[key] = out
+        return out
+
+    def _log_q(self, src: Labels, dst: Labels, v: int) -> float:
+        """``log q`` of moving ``v`` of ``src`` to its place in ``dst`` (the rest must agree)."""
+        rest, lp = self.options(src, v)
+        mate = next((u for u in range(self.n) if u != v and dst[u] == dst[v]), None)
+        k = len(rest) if mate is None else rest.index(src[mate])
+        return lp[k] - math.log(self.n)
+
+    def log_prob(self, src: Labels, dst: Labels) -> float:
+        """``log q(src → dst)``: summed over the visits whose move turns ``src`` into ``dst`` (two when a
+        pair of visits is split or joined, one otherwise)."""
+        if src == dst:
+            return _log_sum([self._log_q(src, src, v) for v in range(self.n)])
+        s, d = np.asarray(src), np.asarray(dst)
+        differ = (s[:, None] == s[None, :]) != (d[:, None] == d[None, :])
+        degree = differ.sum(axis=1)
+        movers = np.flatnonzero(degree == degree.sum() // 2)
+        if not len(movers):
+            return -math.inf
+        return _log_sum([self._log_q(src, dst, int(v)) for v in movers])
+
+    def propose(self, labels: Labels, rng: RandomSource) -> Move:
+        """Pick a visit uniformly and a place for it from :meth:`options`."""
+        v = int(rng.integers(0, self.n))
+        rest, _, cdf = self._table(labels, v)
+        k = _draw(cdf, rng)
+        out = list(labels)
+        out[v] = rest[k] if k < len(rest) else max(labels) + 1
+        new = canonical(out)
+        if new == labels:
+            return Move(labels, 0.0, 0.0, "stay")
+        # the other mover, if any: v's only companion left behind, or the singleton it joined
+        left = [u for u in range(self.n) if u != v and labels[u] == labels[v]]
+        joined = [u for u in range(self.n) if u != v and new[u] == new[v]]
+        pair = left if len(left) == 1 and not joined else joined if len(joined) == 1 and not left else []
+        movers = [v, *pair]
+        log_f = _log_sum([self._log_q(labels, new, u) for u in movers])
+        log_r = _log_sum([self._log_q(new, labels, u) for u in movers])
+        return Move(new, log_f, log_r, "reassign")
+
+    def distribution(self, labels: Labels) -> dict[Labels, float]:
+        """``q(labels → ·)`` by enumerating every visit and every place it may join."""
+        out: dict[Labels, float] = {}
+        for v in range(self.n):
+            rest, lp = self.options(labels, v)
+            for k, target in enumerate([*rest, max(labels) + 1]):
+                new = canonical([*labels[:v], target, *labels[v + 1 :]])
+                out[new] = out.get(new, 0.0) + math.exp(lp[k]) / self.n
+        return out
+
+
 class MixtureProposal:
     """An equal mixture of proposal kernels: each draw uses one kernel, chosen uniformly.
 
@@ -858,6 +995,7 @@ def make_proposal(model: PosteriorModel, config: McmcConfig) -> ProposalKernel:
     appearance = config.proposal == "appearance" or (
         config.proposal == "auto" and model.appearance is not None
     )
+    reassign = config.proposal == "reassign" or (odometry and config.proposal == "auto")
     kernels: list[ProposalKernel] = []
     if odometry:
         kernels.append(OdometryProposal(model, config.odometry_scale, config.proposal_mix))
@@ -866,6 +1004,10 @@ def make_proposal(model: PosteriorModel, config: McmcConfig) -> ProposalKernel:
             AppearanceProposal(
                 model, config.appearance_strength, config.proposal_mix, config.max_split_enumeration
             )
+        )
+    if reassign and model.n > 1:
+        kernels.append(
+            ReassignProposal(model, config.odometry_scale, config.proposal_mix, config.new_place_distance)
         )
     if not kernels:
         return SplitMergeProposal()

@@ -39,6 +39,7 @@ from ptm_ros.mcmc import (
     MixtureProposal,
     Move,
     OdometryProposal,
+    ReassignProposal,
     SplitMergeProposal,
     bhattacharyya_similarity,
     make_proposal,
@@ -148,11 +149,22 @@ def kernels(model):
         "odometry-mixed": OdometryProposal(model, scale=0.5, mix=0.2),
         "appearance": AppearanceProposal(model, strength=10.0, mix=0.0),
         "appearance-small-enumeration": AppearanceProposal(model, strength=10.0, mix=0.1, max_split_size=3),
+        "reassign": ReassignProposal(model, scale=0.5, mix=0.0, new_place=1.0),
+        "reassign-mixed": ReassignProposal(model, scale=0.5, mix=0.2, new_place=1.0),
     }
 
 
 @pytest.mark.parametrize(
-    "name", ["split-merge", "odometry", "odometry-mixed", "appearance", "appearance-small-enumeration"]
+    "name",
+    [
+        "split-merge",
+        "odometry",
+        "odometry-mixed",
+        "appearance",
+        "appearance-small-enumeration",
+        "reassign",
+        "reassign-mixed",
+    ],
 )
 def test_proposal_ratio_matches_enumeration(model6, name):
     """For random T and drawn T', the move's log q forward / reverse equal the enumerated q(T→T'), q(T'→T)."""
@@ -177,7 +189,7 @@ def test_proposal_ratio_matches_enumeration(model6, name):
     assert checked > 100
 
 
-@pytest.mark.parametrize("name", ["split-merge", "odometry", "appearance"])
+@pytest.mark.parametrize("name", ["split-merge", "odometry", "appearance", "reassign"])
 def test_proposal_draws_follow_the_enumerated_distribution(model6, name):
     kernel = kernels(model6)[name]
     src = (0, 1, 0, 2, 0, 1)
@@ -269,10 +281,14 @@ def sample_and_check(model, exact, config, sweeps, proposal=None, seed=0):
         ({"proposal": "split-merge"}, 100_000),
         ({"proposal": "odometry", "odometry_scale": 0.5, "proposal_mix": 0.0}, 150_000),
         ({"proposal": "appearance", "appearance_strength": 10.0, "proposal_mix": 0.0}, 150_000),
+        (
+            {"proposal": "reassign", "odometry_scale": 0.5, "new_place_distance": 1.0, "proposal_mix": 0.0},
+            150_000,
+        ),
         ({"proposal": "auto", "odometry_scale": 0.5, "max_chaining": 3}, 100_000),
         ({"proposal": "split-merge", "betas": thesis_ladder(3, 2.0)}, 50_000),
     ],
-    ids=["split-merge", "odometry", "appearance", "chained-mixture", "mc3-cold-chain"],
+    ids=["split-merge", "odometry", "appearance", "reassign", "chained-mixture", "mc3-cold-chain"],
 )
 def test_chain_samples_the_exact_posterior(model5, exact5, config, sweeps):
     tv, expected = sample_and_check(model5, exact5, config, sweeps)
@@ -390,11 +406,13 @@ def test_single_visit_and_initial_states(model6):
 
 def test_make_proposal_picks_the_supported_kernels(model6):
     assert isinstance(make_proposal(model6, McmcConfig()), MixtureProposal)
-    assert make_proposal(model6, McmcConfig()).name == "odometry+appearance"
+    assert make_proposal(model6, McmcConfig()).name == "odometry+appearance+reassign"
     no_app = PosteriorModel(
         spread_visits(), ModelConfig(use_appearance=False, odometry=MODEL_CONFIG.odometry)
     )
-    assert isinstance(make_proposal(no_app, McmcConfig()), OdometryProposal)
+    assert make_proposal(no_app, McmcConfig()).name == "odometry+reassign"
+    assert isinstance(make_proposal(no_app, McmcConfig(proposal="odometry")), OdometryProposal)
+    assert isinstance(make_proposal(no_app, McmcConfig(proposal="reassign")), ReassignProposal)
     bare = PosteriorModel(spread_visits(), ModelConfig(use_appearance=False, use_odometry=False))
     assert type(make_proposal(bare, McmcConfig())) is SplitMergeProposal
     with pytest.raises(ModelError, match="appearance term"):
@@ -422,6 +440,7 @@ def test_thesis_ladder():
         ({"max_chaining": 0}, "max_chaining must be an integer >= 1"),
         ({"min_iterations": 10, "max_iterations": 5}, "max_iterations"),
         ({"max_split_enumeration": 30}, "max_split_enumeration must be <= 20"),
+        ({"new_place_distance": 0.0}, "new_place_distance is out of range"),
     ],
 )
 def test_config_errors(kwargs, match):
