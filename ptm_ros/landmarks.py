@@ -44,11 +44,11 @@ from numpy.typing import NDArray
 
 from ptm_ros.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.detectors import EquidistantDetector
-from ptm_ros.errors import DataError, PtmError
+from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
 from ptm_ros.laser import LaserConfig, passage_patch, scan_to_points
 from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
-from ptm_ros.visits import Visit
+from ptm_ros.visits import MAX_COORDINATE, Visit
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
 TOPIC_NAMES = {ODOM: "odometry", SCAN: "scan", IMAGE: "image"}
@@ -158,6 +158,9 @@ class VisitExtractor:
         p = np.asarray(pose, dtype=float).reshape(-1)
         if p.shape != (3,) or not np.all(np.isfinite(p)) or not math.isfinite(stamp):
             self.diagnostics.skip("odometry-non-finite")
+            return []
+        if max(abs(p[0]), abs(p[1])) > MAX_COORDINATE:
+            self.diagnostics.skip("odometry-out-of-range")
             return []
         return self._push(ODOM, float(stamp), p)
 
@@ -385,7 +388,10 @@ class VisitExtractor:
             ):
                 break
             self._pending.popleft()
-            out.append(self._finish(v, processed))
+            try:
+                out.append(self._finish(v, processed))
+            except ModelError:  # e.g. a travel beyond visits.MAX_TRAVEL: no odometry
+                self.diagnostics.skip("visit-invalid")
         self._prune()
         return out
 

@@ -21,6 +21,13 @@ from numpy.typing import NDArray
 
 from ptm_ros.errors import ModelError
 
+#: Largest |x|, |y| of a pose (m; UTM northings stay below 1e7) …
+MAX_COORDINATE = 1e7
+#: … and largest travel (m) or rotation (rad) between two visits: finite values far beyond these are no
+#: odometry, and they overflow the models' covariances (a travel of 1e308 m made the filter's 2×2 Cholesky
+#: factor NaN).
+MAX_TRAVEL = 1e6
+
 
 @dataclass(frozen=True)
 class Visit:
@@ -58,16 +65,19 @@ class Visit:
         if not np.all(np.isfinite(self.pose)) or len(self.pose) != 3:
             msg = f"visit {self.index}: pose must be 3 finite numbers, got {self.pose}"
             raise ModelError(msg)
+        if max(abs(self.pose[0]), abs(self.pose[1])) > MAX_COORDINATE:
+            msg = f"visit {self.index}: pose {self.pose} lies beyond ±{MAX_COORDINATE:g} m"
+            raise ModelError(msg)
         if self.odom_pose is not None and (
             len(self.odom_pose) != 3 or not np.all(np.isfinite(self.odom_pose))
         ):
             msg = f"visit {self.index}: odom_pose must be 3 finite numbers, got {self.odom_pose}"
             raise ModelError(msg)
-        if not (np.isfinite(self.travel) and self.travel >= 0.0):
-            msg = f"visit {self.index}: travel must be finite and >= 0, got {self.travel}"
+        if not (np.isfinite(self.travel) and 0.0 <= self.travel <= MAX_TRAVEL):
+            msg = f"visit {self.index}: travel must be in [0, {MAX_TRAVEL:g}] m, got {self.travel}"
             raise ModelError(msg)
-        if not (np.isfinite(self.rotation) and self.rotation >= 0.0):
-            msg = f"visit {self.index}: rotation must be finite and >= 0, got {self.rotation}"
+        if not (np.isfinite(self.rotation) and 0.0 <= self.rotation <= MAX_TRAVEL):
+            msg = f"visit {self.index}: rotation must be in [0, {MAX_TRAVEL:g}] rad, got {self.rotation}"
             raise ModelError(msg)
 
 

@@ -204,6 +204,20 @@ def test_bad_input_is_counted_not_raised():
     assert skipped.get("scan-malformed", 0) + skipped.get("image-undecodable", 0) >= 1
 
 
+def test_odometry_beyond_any_run_is_counted_not_raised():
+    """Finite but absurd odometry (a corrupt bag): coordinates beyond visits.MAX_COORDINATE are skipped,
+    and a visit after a travel beyond visits.MAX_TRAVEL is dropped; the visits after it are numbered on."""
+    ext = VisitExtractor(EquidistantDetector(EquidistantConfig(spacing=4.0)))
+    out = ext.on_odometry(0.0, (0.0, 0.0, 0.0))
+    out += ext.on_odometry(1.0, (2e7, 0.0, 0.0))
+    for k, y in enumerate((0.0, 1.0, 10.0)):
+        out += ext.on_odometry(2.0 + k, (9e6, y, 0.0))
+    out += ext.flush()
+    expected = [(0, (0.0, 0.0, 0.0), 0.0), (1, (9e6, 10.0, 0.0), 10.0)]
+    assert [(v.index, v.pose, v.travel) for v in out] == expected
+    assert ext.diagnostics.skipped == {"odometry-out-of-range": 1, "visit-invalid": 1}
+
+
 def test_buffers_stay_bounded_on_a_long_run(sim):
     odom, scans, _, cfg = messages(sim)
     ext = VisitExtractor(  # buffers of the extractor itself: laser odometry (a bounded window) off for speed

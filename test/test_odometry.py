@@ -527,6 +527,13 @@ def test_bad_input_raises_model_error() -> None:
     cfg = OdometryConfig()
     with pytest.raises(ModelError, match="pose must be 3 finite"):
         Visit(0, 0.0, (0.0, float("nan"), 0.0))
+    # finite but no odometry: would overflow the covariances (a fuzzed travel of 1e308 m did, in the filter)
+    with pytest.raises(ModelError, match="beyond"):
+        Visit(0, 0.0, (0.0, -2e7, 0.0))
+    with pytest.raises(ModelError, match="travel must be in"):
+        Visit(1, 1.0, (0.0, 0.0, 0.0), travel=1e308)
+    with pytest.raises(ModelError, match="rotation must be in"):
+        Visit(1, 1.0, (0.0, 0.0, 0.0), travel=1.0, rotation=-1.0)
     with pytest.raises(ModelError, match="5 visits"):
         metric_log_likelihood((0, 1, 2, 3), visits, cfg)
     with pytest.raises(ModelError, match="1 <= N"):
