@@ -934,14 +934,7 @@ class ReassignProposal:
         new = canonical(out)
         if new == labels:
             return Move(labels, 0.0, 0.0, "stay")
-        # the other mover, if any: v's only companion left behind, or the singleton it joined
-        left = [u for u in range(self.n) if u != v and labels[u] == labels[v]]
-        joined = [u for u in range(self.n) if u != v and new[u] == new[v]]
-        pair = left if len(left) == 1 and not joined else joined if len(joined) == 1 and not left else []
-        movers = [v, *pair]
-        log_f = _log_sum([self._log_q(labels, new, u) for u in movers])
-        log_r = _log_sum([self._log_q(new, labels, u) for u in movers])
-        return Move(new, log_f, log_r, "reassign")
+        return Move(new, self.log_prob(labels, new), self.log_prob(new, labels), "reassign")
 
     def distribution(self, labels: Labels) -> dict[Labels, float]:
         """``q(labels → ·)`` by enumerating every visit and every place it may join."""
