@@ -96,7 +96,8 @@ def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
     from std_msgs.msg import String
 
     from ptm_ros.nodes.common import STREAM_QOS
-    from ptm_ros.nodes.topology_filter import FilterSession, parse_visit_message
+    from ptm_ros.nodes.messages import parse_visit_message
+    from ptm_ros.nodes.topology_filter import FilterSession
     from ptm_ros.tools.bringup import load_parameters
 
     out = tmp_path / "faulted"

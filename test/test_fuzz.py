@@ -159,7 +159,7 @@ def feed(node: Any, b: Base, msg: Any | None = None) -> None:
 
 
 def published_visits(node: Any, session: str | None = None) -> list[Visit]:
-    from ptm_ros.nodes.topology_filter import parse_visit_envelope
+    from ptm_ros.nodes.messages import parse_visit_envelope
 
     out = []
     for m in node._visit_pub.items:

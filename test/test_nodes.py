@@ -24,6 +24,7 @@ from ptm_ros.io.worlds import get_world
 from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
+from ptm_ros.nodes.messages import parse_visit_message, scan_payload
 from ptm_ros.nodes.topology_filter import (
     BENIGN,
     COUNTERS,
@@ -31,7 +32,6 @@ from ptm_ros.nodes.topology_filter import (
     edge_probabilities,
     ensemble_markers,
     graph_document,
-    parse_visit_message,
     topology_alpha,
 )
 from ptm_ros.occupancy import load_map, to_ros_data, trinary
@@ -628,6 +628,29 @@ def test_visit_messages_are_parsed_or_rejected(sim_visits):
     ]:
         with pytest.raises(DataError, match=match):
             parse_visit_message(bad)
+
+
+def test_scan_payloads_are_accepted_or_rejected_with_a_reason():
+    from types import SimpleNamespace
+
+    def scan(ranges, amin=-1.0, amax=1.0, ainc=1.0, rmin=0.1, rmax=30.0):
+        angles = {"angle_min": amin, "angle_max": amax, "angle_increment": ainc}
+        return SimpleNamespace(ranges=ranges, range_min=rmin, range_max=rmax, **angles)
+
+    payload, rejected = scan_payload(scan([1.0, math.inf, 2.0]))
+    assert rejected is None
+    ranges, amin, ainc, rmin, rmax = payload
+    assert ranges.dtype == np.float32 and ranges.tolist() == [1.0, math.inf, 2.0]
+    assert (amin, ainc, rmin, rmax) == (-1.0, 1.0, 0.1, 30.0)
+    for msg, reason in [
+        (scan([]), "scan-empty"),
+        (scan([1.0, 2.0, 3.0], amax=math.nan), "scan-malformed"),
+        (scan([1.0, 2.0, 3.0], ainc=0.0), "scan-malformed"),
+        (scan([1.0, 2.0, 3.0], rmin=5.0, rmax=5.0), "scan-malformed"),
+        (scan([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]), "scan-length-mismatch"),
+    ]:
+        payload, rejected = scan_payload(msg)
+        assert payload is None and rejected[0] == reason, (msg, rejected)
 
 
 # --------------------------------------------------------------------------------------- nodes over DDS

@@ -50,7 +50,7 @@ def test_ten_times_real_time_loses_no_visit(demo_bag, tmp_path, monkeypatch):
     from std_msgs.msg import String
 
     from ptm_ros.nodes.common import STREAM_QOS
-    from ptm_ros.nodes.topology_filter import parse_visit_message
+    from ptm_ros.nodes.messages import parse_visit_message
 
     params = REPO / "config" / "demo.yaml"
     out = tmp_path / "bringup"

@@ -144,6 +144,7 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
+from ptm_ros.nodes.messages import Rejection, ScanPayload, scan_payload
 from ptm_ros.tools.pipeline import detector_kind, make_extractor
 from ptm_ros.visits import Visit
 
@@ -192,8 +193,6 @@ EVENTS = (
     "internal_errors",
 )
 
-Rejection = tuple[str, str]  # (reason, detail)
-
 
 # ------------------------------------------------------------------------------------------ validation
 
@@ -220,31 +219,6 @@ def odometry_pose(msg: Any) -> tuple[NDArray[np.float64] | None, Rejection | Non
     if normalised:
         quat = (quat[0] / norm, quat[1] / norm, quat[2] / norm, quat[3] / norm)
     return np.array([x, y, quaternion_to_yaw(*quat)]), None, normalised
-
-
-ScanPayload = tuple[NDArray[np.float32], float, float, float, float]
-
-
-def scan_payload(msg: Any) -> tuple[ScanPayload | None, Rejection | None]:
-    """``((ranges, angle_min, angle_increment, range_min, range_max), None)`` of a usable LaserScan, else
-    ``(None, (reason, detail))`` (see the module docstring for the checks)."""
-    ranges = np.asarray(msg.ranges, dtype=np.float32).reshape(-1)
-    n = ranges.size
-    if n == 0:
-        return None, ("scan-empty", "a scan without ranges")
-    amin, amax, ainc = float(msg.angle_min), float(msg.angle_max), float(msg.angle_increment)
-    rmin, rmax = float(msg.range_min), float(msg.range_max)
-    if not (math.isfinite(amin) and math.isfinite(amax) and math.isfinite(ainc)):
-        return None, ("scan-malformed", f"angles min {amin}, max {amax}, increment {ainc}")
-    if ainc == 0.0 and n > 1:
-        return None, ("scan-malformed", f"angle_increment 0 with {n} beams")
-    if not (math.isfinite(rmin) and rmin >= 0.0 and rmax > rmin):
-        return None, ("scan-malformed", f"need 0 <= range_min < range_max, got {rmin}, {rmax}")
-    if n > 1:
-        beams = (amax - amin) / ainc + 1.0
-        if not abs(beams - n) <= 1.0 + 1e-6:
-            return None, ("scan-length-mismatch", f"angles imply {beams:.6g} beams, ranges has {n}")
-    return (ranges, amin, ainc, rmin, rmax), None
 
 
 def image_payload(msg: Any, appearance: AppearanceConfig) -> tuple[NDArray[Any] | None, Rejection | None]:

@@ -94,8 +94,7 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
-from ptm_ros.nodes.landmark_detector import scan_payload
-from ptm_ros.nodes.topology_filter import parse_visit_envelope
+from ptm_ros.nodes.messages import parse_visit_envelope, scan_payload
 from ptm_ros.occupancy import OccupancyGrid, save_map, save_png, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
 from ptm_ros.tools.pipeline import cached

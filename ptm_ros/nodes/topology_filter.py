@@ -97,9 +97,7 @@ from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
 from ptm_ros.errors import ConfigError, DataError, PtmError
 from ptm_ros.geometry import NoMatch, RelativePose
-from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json
 from ptm_ros.nodes.common import (
-    END_SCHEMA,
     LATCHED_QOS,
     STREAM_QOS,
     OnceLogger,
@@ -111,6 +109,7 @@ from ptm_ros.nodes.common import (
     run_node,
     time_msg,
 )
+from ptm_ros.nodes.messages import parse_visit_envelope
 from ptm_ros.persistence import (
     differences,
     load_filter_state,
@@ -133,9 +132,6 @@ SESSION_STATE_SCHEMA = "ptm_ros.filter_session/1"
 NODE_STATE_SCHEMA = "ptm_ros.topology_filter_state/1"
 MARKER_Z_STEP = 1.0  # m between stacked hypotheses
 MAX_VISIT_GAP = 1000  # visits: a larger jump of the detector's index is a corrupt message
-#: What a JSON parser may raise on hostile text besides JSONDecodeError (a ValueError): numbers with
-#: more than 4300 digits (ValueError), nesting deeper than the recursion limit, values beyond float range.
-JSON_ERRORS = (ValueError, TypeError, KeyError, OverflowError, RecursionError)
 COUNTERS = (
     "messages",
     "accepted",
@@ -394,88 +390,6 @@ def graph_document(ptm: Ptm, *, complete: bool) -> dict[str, Any]:
     doc["edges"] = edge_probabilities(ptm.topologies)
     doc["stream"] = {"visits": len(ptm.landmarks), "complete": bool(complete)}
     return doc
-
-
-_ARRAYS = {"signature": ("f", 1), "words": ("iu", 1), "patch": ("f", 2)}  # dtype kinds, dimensions
-
-
-def check_visit(visit: Visit) -> None:
-    """What :class:`Visit` itself does not check: index >= 0, a finite stamp >= 0, and numeric, finite,
-    non-empty measurements of the right shape: signature ``(K,)`` >= 0 (Fourier magnitudes), words
-    ``(V,)`` integers >= 0, patch ``(P, 2)``.
-
-    Raises:
-        DataError: naming the offending field.
-    """
-    if visit.index < 0:
-        msg = f"visit index {visit.index} < 0"
-        raise DataError(msg)
-    if not (math.isfinite(visit.stamp) and visit.stamp >= 0.0):
-        msg = f"visit {visit.index}: stamp {visit.stamp} is not a finite time >= 0"
-        raise DataError(msg)
-    for name, (kinds, ndim) in _ARRAYS.items():
-        arr = getattr(visit, name)
-        if arr is None:
-            continue
-        if (
-            arr.dtype.kind not in kinds
-            or arr.ndim != ndim
-            or arr.size == 0
-            or (ndim == 2 and arr.shape[1] != 2)
-        ):
-            msg = f"visit {visit.index}: {name} of dtype {arr.dtype} and shape {arr.shape}"
-            raise DataError(msg)
-        with np.errstate(invalid="ignore"):
-            bad = arr.dtype.kind == "f" and not np.all(np.isfinite(arr))
-            bad = bad or (name != "patch" and bool(np.any(arr < 0)))  # magnitudes and counts are >= 0
-        if bad:
-            msg = f"visit {visit.index}: {name} has non-finite or negative values"
-            raise DataError(msg)
-
-
-def parse_visit_envelope(text: str) -> tuple[Visit | int, str | None]:
-    """A ``landmark_visits`` message: ``(visit or end-marker count, session id or None)``.
-
-    Raises:
-        DataError: malformed JSON, an unknown schema, a malformed visit (:func:`check_visit`) or marker.
-    """
-    try:
-        doc = json.loads(text)
-    except JSON_ERRORS as err:
-        msg = f"visit message is not JSON: {type(err).__name__}: {err}"
-        raise DataError(msg) from err
-    if not isinstance(doc, dict):
-        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {type(doc).__name__!r}"
-        raise DataError(msg)
-    session = doc.get("session")
-    if session is not None and not isinstance(session, str):
-        msg = f"visit message with a session id {session!r} that is not a string"
-        raise DataError(msg)
-    if doc.get("schema") == END_SCHEMA:
-        count = doc.get("visits")
-        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
-            msg = f"end-of-visits marker with a bad count {count!r}"
-            raise DataError(msg)
-        return count, session
-    if doc.get("schema") != VISIT_SCHEMA:
-        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {doc.get('schema')!r}"
-        raise DataError(msg)
-    try:
-        visit = visit_from_json(text)
-    except (PtmError, *JSON_ERRORS) as err:
-        msg = f"malformed visit message: {type(err).__name__}: {err}"
-        raise DataError(msg) from err
-    check_visit(visit)
-    return visit, session
-
-
-def parse_visit_message(text: str) -> Visit | int:
-    """A ``landmark_visits`` message: the :class:`Visit`, or the visit count of an end marker.
-
-    Raises:
-        DataError: malformed JSON, an unknown schema or a malformed visit.
-    """
-    return parse_visit_envelope(text)[0]
 
 
 # -------------------------------------------------------------------------------------------- markers

@@ -1,0 +1,138 @@
+"""The wire format the ptm_ros nodes read, checked: LaserScan payloads and ``landmark_visits`` messages.
+
+The landmark detector and the map publisher both read ``/scan`` (:func:`scan_payload`); the topology
+filter and the map publisher both read the detector's visit messages (:func:`parse_visit_envelope`).
+One check each, so a message one node accepts the other accepts too. Bad input never raises past these
+functions except as :class:`~ptm_ros.errors.DataError` (visits) or a ``(reason, detail)`` rejection
+(scans), which the nodes count as skips (issue #9).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ptm_ros.errors import DataError, PtmError
+from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json
+from ptm_ros.nodes.common import END_SCHEMA
+from ptm_ros.visits import Visit
+
+#: What a JSON parser may raise on hostile text besides JSONDecodeError (a ValueError): numbers with
+#: more than 4300 digits (ValueError), nesting deeper than the recursion limit, values beyond float range.
+JSON_ERRORS = (ValueError, TypeError, KeyError, OverflowError, RecursionError)
+
+Rejection = tuple[str, str]  # (reason, detail)
+
+
+ScanPayload = tuple[NDArray[np.float32], float, float, float, float]
+
+
+def scan_payload(msg: Any) -> tuple[ScanPayload | None, Rejection | None]:
+    """``((ranges, angle_min, angle_increment, range_min, range_max), None)`` of a usable LaserScan, else
+    ``(None, (reason, detail))``: ``scan-empty`` (no ranges), ``scan-malformed`` (non-finite angles, a zero
+    increment with several beams, not ``0 <= range_min < range_max``) or ``scan-length-mismatch`` (the
+    angles imply a beam count more than one off the ranges'; the landmark detector's module docstring
+    lists every skip)."""
+    ranges = np.asarray(msg.ranges, dtype=np.float32).reshape(-1)
+    n = ranges.size
+    if n == 0:
+        return None, ("scan-empty", "a scan without ranges")
+    amin, amax, ainc = float(msg.angle_min), float(msg.angle_max), float(msg.angle_increment)
+    rmin, rmax = float(msg.range_min), float(msg.range_max)
+    if not (math.isfinite(amin) and math.isfinite(amax) and math.isfinite(ainc)):
+        return None, ("scan-malformed", f"angles min {amin}, max {amax}, increment {ainc}")
+    if ainc == 0.0 and n > 1:
+        return None, ("scan-malformed", f"angle_increment 0 with {n} beams")
+    if not (math.isfinite(rmin) and rmin >= 0.0 and rmax > rmin):
+        return None, ("scan-malformed", f"need 0 <= range_min < range_max, got {rmin}, {rmax}")
+    if n > 1:
+        beams = (amax - amin) / ainc + 1.0
+        if not abs(beams - n) <= 1.0 + 1e-6:
+            return None, ("scan-length-mismatch", f"angles imply {beams:.6g} beams, ranges has {n}")
+    return (ranges, amin, ainc, rmin, rmax), None
+
+
+_ARRAYS = {"signature": ("f", 1), "words": ("iu", 1), "patch": ("f", 2)}  # dtype kinds, dimensions
+
+
+def check_visit(visit: Visit) -> None:
+    """What :class:`Visit` itself does not check: index >= 0, a finite stamp >= 0, and numeric, finite,
+    non-empty measurements of the right shape: signature ``(K,)`` >= 0 (Fourier magnitudes), words
+    ``(V,)`` integers >= 0, patch ``(P, 2)``.
+
+    Raises:
+        DataError: naming the offending field.
+    """
+    if visit.index < 0:
+        msg = f"visit index {visit.index} < 0"
+        raise DataError(msg)
+    if not (math.isfinite(visit.stamp) and visit.stamp >= 0.0):
+        msg = f"visit {visit.index}: stamp {visit.stamp} is not a finite time >= 0"
+        raise DataError(msg)
+    for name, (kinds, ndim) in _ARRAYS.items():
+        arr = getattr(visit, name)
+        if arr is None:
+            continue
+        if (
+            arr.dtype.kind not in kinds
+            or arr.ndim != ndim
+            or arr.size == 0
+            or (ndim == 2 and arr.shape[1] != 2)
+        ):
+            msg = f"visit {visit.index}: {name} of dtype {arr.dtype} and shape {arr.shape}"
+            raise DataError(msg)
+        with np.errstate(invalid="ignore"):
+            bad = arr.dtype.kind == "f" and not np.all(np.isfinite(arr))
+            bad = bad or (name != "patch" and bool(np.any(arr < 0)))  # magnitudes and counts are >= 0
+        if bad:
+            msg = f"visit {visit.index}: {name} has non-finite or negative values"
+            raise DataError(msg)
+
+
+def parse_visit_envelope(text: str) -> tuple[Visit | int, str | None]:
+    """A ``landmark_visits`` message: ``(visit or end-marker count, session id or None)``.
+
+    Raises:
+        DataError: malformed JSON, an unknown schema, a malformed visit (:func:`check_visit`) or marker.
+    """
+    try:
+        doc = json.loads(text)
+    except JSON_ERRORS as err:
+        msg = f"visit message is not JSON: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    if not isinstance(doc, dict):
+        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {type(doc).__name__!r}"
+        raise DataError(msg)
+    session = doc.get("session")
+    if session is not None and not isinstance(session, str):
+        msg = f"visit message with a session id {session!r} that is not a string"
+        raise DataError(msg)
+    if doc.get("schema") == END_SCHEMA:
+        count = doc.get("visits")
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            msg = f"end-of-visits marker with a bad count {count!r}"
+            raise DataError(msg)
+        return count, session
+    if doc.get("schema") != VISIT_SCHEMA:
+        msg = f"visit message schema must be {VISIT_SCHEMA!r} or {END_SCHEMA!r}, got {doc.get('schema')!r}"
+        raise DataError(msg)
+    try:
+        visit = visit_from_json(text)
+    except (PtmError, *JSON_ERRORS) as err:
+        msg = f"malformed visit message: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    check_visit(visit)
+    return visit, session
+
+
+def parse_visit_message(text: str) -> Visit | int:
+    """A ``landmark_visits`` message: the :class:`Visit`, or the visit count of an end marker.
+
+    Raises:
+        DataError: malformed JSON, an unknown schema or a malformed visit.
+    """
+    return parse_visit_envelope(text)[0]
