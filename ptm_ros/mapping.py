@@ -2,11 +2,13 @@
 
 The thesis turns the MAP topology into a globally consistent metric map (Ch. 5, Fig. 50/52): the
 odometry plus the topology's same-place constraints and laser registrations, solved as a pose graph
-(:mod:`ptm_ros.smoothing`), with the scans drawn along the result (:mod:`ptm_ros.occupancy`). Offline,
+(:mod:`ptm_ros.smoothing`) and refined by keyframe scan matches along revisited passages
+(:mod:`ptm_ros.refinement`), with the scans drawn along the result (:mod:`ptm_ros.occupancy`). Offline,
 ``ptm-run`` does it once for the whole run (:mod:`ptm_ros.tools.pipeline`); online, the map publisher
 keeps an :class:`OnlineMap` of the odometry the visits were measured in and of keyframe scans, and
 redraws the map whenever the MAP topology changes. Both call :func:`topology_trajectory` and
-:func:`grid_along`, so a map built online from the same samples equals the offline one.
+:func:`grid_along`, so a map built online from the same samples equals the offline one (online, the
+refinement sees the keyframe scans only).
 
 :class:`OnlineMap` keeps every odometry sample it is given (the detector sends them decimated, below;
 the visits' own samples are merged in exactly when the map is built), a scan only as a keyframe after
@@ -35,10 +37,12 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.errors import ConfigError, DataError, PtmError
 from ptm_ros.geometry import Registrar, interpolate_poses, wrap_angle
+from ptm_ros.laser import LaserConfig, scan_to_points
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.posterior import ModelConfig, chained_registrations, split_aliases
+from ptm_ros.refinement import RefinementConfig, refine_trajectory
 from ptm_ros.smoothing import smooth_topology
 from ptm_ros.visits import Visit
 
@@ -106,18 +110,60 @@ def topology_trajectory(
     model: ModelConfig,
     *,
     registration: Registrar | None = None,
+    scans: ScanLog | None = None,
+    refinement: RefinementConfig | None = None,
+    laser: LaserConfig | None = None,
 ) -> FloatArray:
     """The odometry ``poses (T, 3)`` at ``stamps`` smoothed for a topology (thesis Fig. 50/52): the visit
     poses optimised under odometry, the topology's laser registrations (each visit against the previous
     visit of its place, aliases left out: :func:`ptm_ros.posterior.split_aliases`) and a robust place
     coincidence, the path between deformed to fit (:func:`ptm_ros.smoothing.smooth_topology`). Without a
-    ``registration`` (or with ``model.use_laser`` off) only odometry and places constrain the poses. The
-    visits must sit on odometry samples (their stamps among ``stamps``)."""
+    ``registration`` (or with ``model.use_laser`` off) only odometry and places constrain the poses. With
+    ``scans`` and an enabled ``refinement``, keyframe scan matches along revisited passages refine the
+    result (:func:`ptm_ros.refinement.refine_trajectory`; ``laser`` configures the scans and the matching).
+    The visits must sit on odometry samples (their stamps among ``stamps``)."""
     loops: tuple = ()
     if registration is not None and model.use_laser and len(visits) > 1:
         measured = chained_registrations(labels, registration)
         loops, _ = split_aliases(labels, visits, model.odometry, measured)
-    return smooth_topology(stamps, poses, labels, visits, model.odometry, loops=loops)
+    if scans is None or refinement is None or not refinement.enabled:
+        return smooth_topology(stamps, poses, labels, visits, model.odometry, loops=loops)
+    lcfg = LaserConfig() if laser is None else laser
+    scan_stamps, points = scan_points(scans, lcfg)
+    res = refine_trajectory(
+        stamps,
+        poses,
+        scan_stamps,
+        points,
+        labels,
+        visits,
+        model.odometry,
+        loops=loops,
+        laser=lcfg,
+        config=refinement,
+    )
+    return res.trajectory
+
+
+def scan_points(scans: ScanLog, laser: LaserConfig) -> tuple[FloatArray, list[FloatArray]]:
+    """The scans' stamps (increasing) and points in the robot frame (:func:`ptm_ros.laser.scan_to_points`,
+    beams beyond ``laser.max_range`` dropped); a malformed scan has no points."""
+    st = np.asarray(scans.stamps, dtype=float).reshape(-1)
+    order = np.argsort(st, kind="stable")
+    points = []
+    for k in order:
+        try:
+            res = scan_to_points(
+                scans.ranges[k],
+                float(scans.angle_min[k]),
+                float(scans.angle_increment[k]),
+                float(scans.range_min[k]),
+                min(float(scans.range_max[k]), laser.max_range),
+            )
+            points.append(res.points)
+        except PtmError:
+            points.append(np.zeros((0, 2)))
+    return st[order], points
 
 
 class ScanLog(Protocol):
@@ -262,14 +308,28 @@ def draw_map(
     model: ModelConfig,
     occupancy: OccupancyConfig | None = None,
     registration: Registrar | None = None,
+    *,
+    refinement: RefinementConfig | None = None,
+    laser: LaserConfig | None = None,
 ) -> MapResult:
-    """The map of a topology: :func:`topology_trajectory`, then :func:`grid_along` of the keyframes.
+    """The map of a topology: :func:`topology_trajectory` (refined by the keyframes' scans when
+    ``refinement`` is enabled), then :func:`grid_along` of the keyframes.
 
     Raises:
         ModelError: from the smoothing (labels that do not fit the visits).
     """
     t, kf = inputs.stamps, inputs.keyframes
-    traj = topology_trajectory(t, inputs.poses, labels, inputs.visits, model, registration=registration)
+    traj = topology_trajectory(
+        t,
+        inputs.poses,
+        labels,
+        inputs.visits,
+        model,
+        registration=registration,
+        scans=kf,
+        refinement=refinement,
+        laser=laser,
+    )
     grid = grid_along(t, traj, kf, occupancy)
     inside = (kf.stamps >= t[0]) & (kf.stamps <= t[-1])
     kposes = interpolate_poses(t, traj, kf.stamps[inside]) if np.any(inside) else np.zeros((0, 3))
@@ -443,9 +503,14 @@ class OnlineMap:
         model: ModelConfig,
         occupancy: OccupancyConfig | None = None,
         registration: Registrar | None = None,
+        *,
+        refinement: RefinementConfig | None = None,
+        laser: LaserConfig | None = None,
     ) -> MapResult:
         """The map of a topology of ``visits`` now: :meth:`snapshot` then :func:`draw_map`."""
-        return draw_map(self.snapshot(visits), labels, model, occupancy, registration)
+        return draw_map(
+            self.snapshot(visits), labels, model, occupancy, registration, refinement=refinement, laser=laser
+        )
 
     def keyframe_scans(self) -> Keyframes:
         """The keyframe scans kept so far."""

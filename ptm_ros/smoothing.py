@@ -31,6 +31,9 @@ topology's laser registrations (validated measurements, :mod:`ptm_ros.laser`) st
 :mod:`ptm_ros.odometry`. The optimum is found by iteratively reweighted least squares (each round a
 Levenberg–Marquardt solve with pair weights :math:`w = 1 / (1 + r^2)`), started at the Gaussian optimum
 of :func:`ptm_ros.odometry.optimize_poses`; each round lowers the Cauchy cost (majorise–minimise).
+The solver, :func:`robust_optimum`, takes any :class:`RobustGraph`: relative factors, each Gaussian or
+Cauchy in its whitened residual (``1 + |r|²``), and place pairs; :mod:`ptm_ros.refinement` adds its
+keyframe scan matches to it as Cauchy factors.
 """
 
 from __future__ import annotations
@@ -159,50 +162,81 @@ def place_pairs(labels: Sequence[int], sigma_topology: float) -> tuple[NDArray[n
 
 
 @dataclass(frozen=True)
-class _Graph:
-    """Gaussian relative factors (odometry, then same-place registrations) and the place pairs."""
+class RobustGraph:
+    """A pose graph of relative factors and place pairs (:func:`robust_optimum`).
+
+    Attributes:
+        factors: relative-pose factors (:mod:`ptm_ros.posegraph`), whitened.
+        robust: ``(Q,)`` which factors are Cauchy (a measurement that may be wrong, e.g. a scan match
+            between keyframes); the others stay Gaussian (odometry, validated visit registrations).
+        pairs: ``(P, 2)`` node pairs of one place, Cauchy in the distance of their positions …
+        scales: ``(P,)`` … at scale ``s_ij`` (module docstring).
+    """
 
     factors: RelativeFactors
-    pairs: NDArray[np.intp]  # (P, 2)
-    scales: FloatArray  # (P,)
+    robust: NDArray[np.bool_]
+    pairs: NDArray[np.intp]
+    scales: FloatArray
 
 
 def _graph(
     labels: Labels, visits: Sequence[Visit], odometry: OdometryConfig, loops: Sequence[RelativePose]
-) -> _Graph:
+) -> RobustGraph:
     n = len(visits)
     var = np.diagonal(odometry_covariances(visits, odometry), axis1=1, axis2=2)
     odo_w = np.zeros((n - 1, 3, 3))
     odo_w[:, np.arange(3), np.arange(3)] = 1.0 / np.sqrt(var)
     same = [lp for lp in loops if labels[lp.i] == labels[lp.j]]
-    loop_w = [np.linalg.inv(np.linalg.cholesky(np.asarray(lp.cov, dtype=float))) for lp in same]
     pairs, scales = place_pairs(labels, odometry.sigma_topology)
     factors = RelativeFactors(
         a=np.concatenate([np.arange(n - 1), [lp.i for lp in same]]).astype(np.intp),
         b=np.concatenate([np.arange(1, n), [lp.j for lp in same]]).astype(np.intp),
         z=np.concatenate([relative_odometry(visits), np.reshape([lp.mean for lp in same], (-1, 3))]),
-        w=np.concatenate([odo_w, np.reshape(loop_w, (-1, 3, 3))]),
+        w=np.concatenate([odo_w, whitening(same)]),
     )
-    return _Graph(factors=factors, pairs=pairs, scales=scales)
+    return RobustGraph(
+        factors=factors, robust=np.zeros(len(factors.a), dtype=bool), pairs=pairs, scales=scales
+    )
 
 
-def _pair_residuals(x: FloatArray, g: _Graph) -> FloatArray:
+def whitening(measurements: Sequence[RelativePose]) -> FloatArray:
+    """``(M, 3, 3)`` whitening ``W = L⁻¹`` (``Σ = L Lᵀ``) of relative-pose measurements."""
+    return np.reshape(
+        [np.linalg.inv(np.linalg.cholesky(np.asarray(z.cov, dtype=float))) for z in measurements], (-1, 3, 3)
+    )
+
+
+def _pair_residuals(x: FloatArray, g: RobustGraph) -> FloatArray:
     """``(x_i^{xy} - x_j^{xy}) / s_ij`` of the place pairs, ``(P, 2)``."""
     return (x[g.pairs[:, 0], :2] - x[g.pairs[:, 1], :2]) / g.scales[:, None]
 
 
-def _weighted_cost(x: FloatArray, g: _Graph, weights: FloatArray) -> float:
-    r, _, _ = relative_residuals(x, g.factors)
+@dataclass(frozen=True)
+class _Weights:
+    """IRLS weights of the robust terms: ``factors`` ``(Q,)`` (1 for the Gaussian ones) and ``pairs``."""
+
+    factors: FloatArray
+    pairs: FloatArray
+
+
+def _weighted_factors(g: RobustGraph, weights: _Weights) -> RelativeFactors:
+    f = g.factors
+    return RelativeFactors(a=f.a, b=f.b, z=f.z, w=f.w * np.sqrt(weights.factors)[:, None, None])
+
+
+def _weighted_cost(x: FloatArray, g: RobustGraph, weights: _Weights) -> float:
+    r, _, _ = relative_residuals(x, _weighted_factors(g, weights))
     rp = _pair_residuals(x, g)
-    return 0.5 * (float(np.sum(r * r)) + float(weights @ np.sum(rp * rp, axis=1)))
+    return 0.5 * (float(np.sum(r * r)) + float(weights.pairs @ np.sum(rp * rp, axis=1)))
 
 
-def _normal_equations(x: FloatArray, g: _Graph, weights: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
+def _normal_equations(x: FloatArray, g: RobustGraph, weights: _Weights) -> tuple[sp.csc_matrix, FloatArray]:
     """``H = Jᵀ J`` (sparse) and ``Jᵀ r`` of the weighted residuals w.r.t. ``x_1..x_{N-1}`` (x_0 fixed):
     the relative factors (:mod:`ptm_ros.posegraph`), then the place pairs scaled by ``√w``."""
-    r, tx, ty = relative_residuals(x, g.factors)
+    factors = _weighted_factors(g, weights)
+    r, tx, ty = relative_residuals(x, factors)
     p, n = len(g.pairs), len(x)
-    root_w = np.sqrt(weights)
+    root_w = np.sqrt(weights.pairs)
     pair_rows = 2 * np.arange(p)[:, None] + np.arange(2)  # (P, 2)
     r_rows, r_cols, r_vals = [], [], []
     for side, sign in ((0, 1.0), (1, -1.0)):
@@ -215,25 +249,48 @@ def _normal_equations(x: FloatArray, g: _Graph, weights: FloatArray) -> tuple[sp
     pair_jac = sp.csr_matrix(
         (np.concatenate(r_vals), (np.concatenate(r_rows), np.concatenate(r_cols))), shape=(2 * p, 3 * (n - 1))
     )
-    jac = sp.vstack([relative_jacobian(x, g.factors, tx, ty), pair_jac], format="csr")
+    jac = sp.vstack([relative_jacobian(x, factors, tx, ty), pair_jac], format="csr")
     res = np.concatenate([r.ravel(), (root_w[:, None] * _pair_residuals(x, g)).ravel()])
     return (jac.T @ jac).tocsc(), jac.T @ res
 
 
-def _solve_weighted(x0: FloatArray, g: _Graph, weights: FloatArray, config: SmoothingConfig) -> FloatArray:
-    """Levenberg–Marquardt on ``½ Σ |r_rel|² + ½ Σ_p w_p |r_p|²`` from ``x0`` (``x_0`` fixed)."""
-    return levenberg_marquardt(
-        x0,
-        lambda x: _weighted_cost(x, g, weights),
-        lambda x: _normal_equations(x, g, weights),
-        max_iterations=config.max_iterations,
-        tolerance=1e-10,
-    )
-
-
-def _cauchy_weights(x: FloatArray, g: _Graph) -> FloatArray:
+def _cauchy_weights(x: FloatArray, g: RobustGraph) -> _Weights:
+    """``1 / (1 + |r|²)`` of every robust term at ``x`` (whitened residuals; 1 for Gaussian factors)."""
+    r, _, _ = relative_residuals(x, g.factors)
+    fw = np.where(g.robust, 1.0 / (1.0 + np.sum(r * r, axis=1)), 1.0)
     rp = _pair_residuals(x, g)
-    return 1.0 / (1.0 + np.sum(rp * rp, axis=1))
+    return _Weights(factors=fw, pairs=1.0 / (1.0 + np.sum(rp * rp, axis=1)))
+
+
+def robust_optimum(
+    x0: FloatArray, g: RobustGraph, config: SmoothingConfig
+) -> tuple[FloatArray, _Weights, int]:
+    """Poses minimising the Gaussian factors plus the Cauchy terms of ``g`` (``x_0`` fixed), by iteratively
+    reweighted least squares from ``x0``: each round a Levenberg–Marquardt solve with the weights
+    ``w = 1 / (1 + r²)`` of the previous optimum (majorise–minimise: every round lowers the Cauchy cost),
+    until no weight changes by more than ``config.tolerance`` or ``config.max_rounds`` rounds ran.
+    Returns the poses, the final weights and the rounds run."""
+    x = x0.copy()
+    weights = _cauchy_weights(x, g)
+    rounds = 0
+    while (len(g.pairs) or np.any(g.robust)) and rounds < config.max_rounds:
+        rounds += 1
+        x = levenberg_marquardt(
+            x,
+            lambda y, w=weights: _weighted_cost(y, g, w),
+            lambda y, w=weights: _normal_equations(y, g, w),
+            max_iterations=config.max_iterations,
+            tolerance=1e-10,
+        )
+        new = _cauchy_weights(x, g)
+        change = max(
+            float(np.max(np.abs(new.factors - weights.factors), initial=0.0)),
+            float(np.max(np.abs(new.pairs - weights.pairs), initial=0.0)),
+        )
+        weights = new
+        if change <= config.tolerance:
+            break
+    return x, weights, rounds
 
 
 def robust_visit_poses(
@@ -253,19 +310,14 @@ def robust_visit_poses(
     cfg = SmoothingConfig() if config is None else config
     x, _, _ = optimize_poses(labels, visits, odometry, loops)  # validates; raises ModelError
     g = _graph(canonical(labels), visits, odometry, loops)
-    weights = _cauchy_weights(x, g)
     rounds = 0
-    while cfg.robust_places and len(g.pairs) and rounds < cfg.max_rounds:
-        rounds += 1
-        x = _solve_weighted(x, g, weights, cfg)
-        new = _cauchy_weights(x, g)
-        change = float(np.max(np.abs(new - weights)))
-        weights = new
-        if change <= cfg.tolerance:
-            break
+    if cfg.robust_places:
+        x, weights, rounds = robust_optimum(x, g, cfg)
+    else:
+        weights = _cauchy_weights(x, g)
     out = x.copy()
     out[:, 2] = wrap_angle(out[:, 2])
-    return VisitPoses(poses=out, pairs=g.pairs, weights=weights, rounds=rounds)
+    return VisitPoses(poses=out, pairs=g.pairs, weights=weights.pairs, rounds=rounds)
 
 
 def smooth_topology(

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from ptm_ros.config import load_config
+from ptm_ros.io.bag import read_run
+from ptm_ros.io.simulator import SimConfig, simulate, write_run
+from ptm_ros.io.worlds import get_world
+from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = REPO.parent / "shared" / "datasets"
@@ -16,3 +23,26 @@ def datasets_dir() -> Path:
     if not (DATASETS / "README.md").is_file():
         pytest.skip(f"real datasets not available at {DATASETS} (clone with ../shared beside the checkout)")
     return DATASETS
+
+
+@pytest.fixture(scope="session")
+def multi_loop_run(tmp_path_factory):
+    """A simulated multi-loop run (20 visits) through the bag round trip: the run, the default config, its
+    visits, the corrected odometry, the true topology (visits of one simulated place share a label) and
+    the simulator's true poses at the odometry stamps."""
+    out = tmp_path_factory.mktemp("sim") / "two"
+    sim = simulate(get_world("multi-loop"), SimConfig(), np.random.default_rng(0), visits=20)
+    write_run(sim, out)
+    run = read_run(out)
+    config = load_config()
+    extractor = run_extractor(run, config)
+    visits = detect_visits(run, config, extractor=extractor)
+    odom = corrected_odometry(run, extractor)
+    assert len(sim.true_poses) == len(run.odometry.stamps)  # the bag's odometry is the simulator's
+    true_xy = sim.true_poses[np.searchsorted(run.odometry.stamps, [v.stamp for v in visits]), :2]
+    labels: list[int] = []
+    for k, xy in enumerate(true_xy):
+        near = [labels[j] for j in range(k) if np.linalg.norm(true_xy[j] - xy) < 1.5]
+        labels.append(near[0] if near else max(labels, default=-1) + 1)
+    assert len(set(labels)) < len(labels), "the run must revisit a place"
+    return run, config, visits, odom, labels, sim.true_poses

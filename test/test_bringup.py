@@ -135,7 +135,9 @@ def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path):
         run.kill()
         assert_no_orphans(str(out))
     assert code == 1, run.log  # nothing was mapped: nothing to write
-    assert "nothing written" in run.log and "holds no landmark visit" in run.log
+    assert "nothing written" in run.log
+    # the filter's empty ensemble may or may not have reached the map publisher before the interrupt
+    assert "holds no landmark visit" in run.log or "no ensemble received yet" in run.log
     assert "stopped: exit codes {'map_publisher': 0, 'topology_filter': 0, 'landmark_detector': 0}" in run.log
     assert not (out / "ptm.json").exists()
 

@@ -10,14 +10,10 @@ import pytest
 
 from ptm_ros.config import load_config
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.io.bag import read_run
-from ptm_ros.io.simulator import SimConfig, simulate, write_run
-from ptm_ros.io.worlds import get_world
 from ptm_ros.mapping import KeyframeStream, MappingConfig, OnlineMap
 from ptm_ros.occupancy import aligned_windows as aligned
 from ptm_ros.tools.pipeline import (
     cached,
-    corrected_odometry,
     detect_visits,
     make_registrar,
     map_trajectory,
@@ -29,25 +25,10 @@ from ptm_ros.visits import Visit
 
 
 @pytest.fixture(scope="module")
-def loop_run(tmp_path_factory):
-    """A simulated two-loop run through the bag round trip, its visits, the corrected odometry, and the
-    true topology (visits of one simulated place share a label)."""
-    out = tmp_path_factory.mktemp("sim") / "two"
-    sim = simulate(get_world("multi-loop"), SimConfig(), np.random.default_rng(0), visits=20)
-    write_run(sim, out)
-    run = read_run(out)
-    config = load_config()
-    extractor = run_extractor(run, config)
-    visits = detect_visits(run, config, extractor=extractor)
-    odom = corrected_odometry(run, extractor)
-    assert len(sim.true_poses) == len(run.odometry.stamps)  # the bag's odometry is the simulator's
-    true_xy = sim.true_poses[np.searchsorted(run.odometry.stamps, [v.stamp for v in visits]), :2]
-    labels: list[int] = []
-    for k, xy in enumerate(true_xy):
-        near = [labels[j] for j in range(k) if np.linalg.norm(true_xy[j] - xy) < 1.5]
-        labels.append(near[0] if near else max(labels, default=-1) + 1)
-    assert len(set(labels)) < len(labels), "the run must revisit a place"
-    return run, config, visits, odom, labels
+def loop_run(multi_loop_run):
+    """The simulated multi-loop run of ``conftest.multi_loop_run``: run, config, visits, corrected odometry
+    and the true topology."""
+    return multi_loop_run[:5]
 
 
 def feed(online: OnlineMap, run, odom) -> None:
@@ -73,7 +54,8 @@ def test_online_map_equals_ptm_run_map_from_the_same_samples(loop_run):
     online = OnlineMap(every)
     feed(online, run, odom)
     assert online.counters.resets == 0 and online.counters.poses == len(run.odometry.stamps)
-    res = online.build(visits, labels, config.model, config.occupancy, registration=registrar)
+    refine = {"refinement": config.refinement, "laser": config.laser}  # as the map publisher passes them
+    res = online.build(visits, labels, config.model, config.occupancy, registration=registrar, **refine)
     np.testing.assert_array_equal(res.stamps, run.odometry.stamps)
     np.testing.assert_allclose(res.trajectory, offline_traj, atol=1e-9)
     assert res.grid is not None and offline_grid is not None
@@ -99,15 +81,21 @@ def test_default_online_map_keeps_keyframes_and_matches_the_full_map(loop_run):
     assert c.poses == len(run.odometry.stamps) and c.scans == len(run.scans.stamps)
     assert 0 < c.keyframes < c.scans / 2
     assert c.scans_unposed == 0
-    res = online.build(visits, labels, config.model, config.occupancy, registration=registrar)
+    refine = {"refinement": config.refinement, "laser": config.laser}  # as the map publisher passes them
+    res = online.build(visits, labels, config.model, config.occupancy, registration=registrar, **refine)
     # Keyframe poses are spaced by the configured motion (in the odometry the visits are measured in).
     kf = online.keyframe_scans()
     assert len(kf.stamps) == c.keyframes and np.all(np.diff(kf.stamps) > 0)
-    # The smoothed trajectory at the visits passes through the same poses as the full-rate one.
-    full_traj = map_trajectory(run, visits, tuple(labels), config, registrar, odometry=odom)
+    # The smoothed trajectory at the visits passes through the same poses as the full-rate one …
     at = np.searchsorted(run.odometry.stamps, [v.stamp for v in visits])
     on = np.searchsorted(res.stamps, [v.stamp for v in visits])
-    np.testing.assert_allclose(res.trajectory[on], full_traj[at], atol=1e-6)
+    plain = replace(config, refinement=replace(config.refinement, enabled=False))
+    full_plain = map_trajectory(run, visits, tuple(labels), plain, registrar, odometry=odom)
+    res_plain = online.build(visits, labels, config.model, config.occupancy, registration=registrar)
+    np.testing.assert_allclose(res_plain.trajectory[on], full_plain[at], atol=1e-6)
+    # … and, refined by the keyframes' scan matches (fewer scans online than offline), nearly so.
+    full_traj = map_trajectory(run, visits, tuple(labels), config, registrar, odometry=odom)
+    np.testing.assert_allclose(res.trajectory[on, :2], full_traj[at, :2], atol=0.05)
     # Same classes on nearly every cell both maps know (keyframes: fewer passes over each cell).
     assert res.grid is not None and full is not None
     a, b = aligned(res.grid.log_odds, res.grid.origin, full.log_odds, full.origin, full.resolution)

@@ -380,7 +380,10 @@ class MapPublisherNode(Node):
         """Draw a map (any thread) and publish it; None (counted) when the smoothing cannot."""
         start = time.monotonic()
         try:
-            result = draw_map(snap, labels, self.config.model, self.config.occupancy, registrar)
+            cfg = self.config
+            result = draw_map(
+                snap, labels, cfg.model, cfg.occupancy, registrar, refinement=cfg.refinement, laser=cfg.laser
+            )
         except PtmError as err:
             with self._lock:
                 self.counters["map_errors"] += 1

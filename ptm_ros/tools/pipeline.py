@@ -945,14 +945,25 @@ def map_trajectory(
     *,
     odometry: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The odometry trajectory smoothed for a topology (:func:`ptm_ros.mapping.topology_trajectory`, the
-    function the map publisher's online map calls). ``odometry`` ``(T, 3)`` at the run's odometry stamps is
+    """The odometry trajectory smoothed for a topology and refined by the run's scans
+    (:func:`ptm_ros.mapping.topology_trajectory`, the function the map publisher's online map calls; the
+    ``refinement`` section of ``config``). ``odometry`` ``(T, 3)`` at the run's odometry stamps is
     the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
     from ptm_ros.mapping import topology_trajectory
 
     odom = run.odometry
     base = odom.poses if odometry is None else odometry
-    return topology_trajectory(odom.stamps, base, labels, visits, config.model, registration=registrar)
+    return topology_trajectory(
+        odom.stamps,
+        base,
+        labels,
+        visits,
+        config.model,
+        registration=registrar,
+        scans=run.scans,
+        refinement=config.refinement,
+        laser=config.laser,
+    )
 
 
 def score_against(ptm: Ptm, ground_truth: str | Path | GroundTruthTrajectory) -> Any:
