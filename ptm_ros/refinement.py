@@ -276,7 +276,7 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
     travel, turned = _cumulative(u)
     odo = _odometry_factors(nodes, u, travel, turned, odometry)
     canon = canonical(labels)
-    # the smoothing's visit poses, the odometry carried rigidly between them: the starting point
+    # start: the Gaussian optimum's visit poses, the odometry between them deformed to fit
     x = smoothed_trajectory(t, u, t[vidx], x_visits)[nodes]
     found: list[tuple[int, int, FloatArray, FloatArray]] = []
     seen: set[tuple[int, int]] = set()
