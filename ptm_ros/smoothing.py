@@ -212,25 +212,27 @@ def _pair_residuals(x: FloatArray, g: RobustGraph) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class _Weights:
+class RobustWeights:
     """IRLS weights of the robust terms: ``factors`` ``(Q,)`` (1 for the Gaussian ones) and ``pairs``."""
 
     factors: FloatArray
     pairs: FloatArray
 
 
-def _weighted_factors(g: RobustGraph, weights: _Weights) -> RelativeFactors:
+def _weighted_factors(g: RobustGraph, weights: RobustWeights) -> RelativeFactors:
     f = g.factors
     return RelativeFactors(a=f.a, b=f.b, z=f.z, w=f.w * np.sqrt(weights.factors)[:, None, None])
 
 
-def _weighted_cost(x: FloatArray, g: RobustGraph, weights: _Weights) -> float:
+def _weighted_cost(x: FloatArray, g: RobustGraph, weights: RobustWeights) -> float:
     r, _, _ = relative_residuals(x, _weighted_factors(g, weights))
     rp = _pair_residuals(x, g)
     return 0.5 * (float(np.sum(r * r)) + float(weights.pairs @ np.sum(rp * rp, axis=1)))
 
 
-def _normal_equations(x: FloatArray, g: RobustGraph, weights: _Weights) -> tuple[sp.csc_matrix, FloatArray]:
+def _normal_equations(
+    x: FloatArray, g: RobustGraph, weights: RobustWeights
+) -> tuple[sp.csc_matrix, FloatArray]:
     """``H = Jᵀ J`` (sparse) and ``Jᵀ r`` of the weighted residuals w.r.t. ``x_1..x_{N-1}`` (x_0 fixed):
     the relative factors (:mod:`ptm_ros.posegraph`), then the place pairs scaled by ``√w``."""
     factors = _weighted_factors(g, weights)
@@ -254,17 +256,17 @@ def _normal_equations(x: FloatArray, g: RobustGraph, weights: _Weights) -> tuple
     return (jac.T @ jac).tocsc(), jac.T @ res
 
 
-def _cauchy_weights(x: FloatArray, g: RobustGraph) -> _Weights:
+def _cauchy_weights(x: FloatArray, g: RobustGraph) -> RobustWeights:
     """``1 / (1 + |r|²)`` of every robust term at ``x`` (whitened residuals; 1 for Gaussian factors)."""
     r, _, _ = relative_residuals(x, g.factors)
     fw = np.where(g.robust, 1.0 / (1.0 + np.sum(r * r, axis=1)), 1.0)
     rp = _pair_residuals(x, g)
-    return _Weights(factors=fw, pairs=1.0 / (1.0 + np.sum(rp * rp, axis=1)))
+    return RobustWeights(factors=fw, pairs=1.0 / (1.0 + np.sum(rp * rp, axis=1)))
 
 
 def robust_optimum(
     x0: FloatArray, g: RobustGraph, config: SmoothingConfig
-) -> tuple[FloatArray, _Weights, int]:
+) -> tuple[FloatArray, RobustWeights, int]:
     """Poses minimising the Gaussian factors plus the Cauchy terms of ``g`` (``x_0`` fixed), by iteratively
     reweighted least squares from ``x0``: each round a Levenberg–Marquardt solve with the weights
     ``w = 1 / (1 + r²)`` of the previous optimum (majorise–minimise: every round lowers the Cauchy cost),
