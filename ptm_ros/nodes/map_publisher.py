@@ -14,8 +14,9 @@ scans, every ``mapping.keyframe_xy`` / ``keyframe_yaw``) and keeps an :class:`pt
 of them. Whenever the MAP topology or the keyframes changed — at most every ``mapping.period``
 seconds, and never for more than a fifth of the time — it smooths, in a background thread while the
 callbacks keep taking samples, the odometry for the MAP topology
-(its same-place constraints and the laser registrations of its places, the function ``ptm-run`` uses)
-and publishes
+(its same-place constraints and the laser registrations of its places, refined by scan matches between
+the keyframes of revisited passages when ``refinement.enabled``: the function ``ptm-run`` uses) and
+publishes
 
 * ``map`` (nav_msgs/OccupancyGrid, reliable + transient local; ``occupancy.*`` parameters): the scans
   drawn along the smoothed trajectory, in the frame of the ensemble (the odometry's);
