@@ -251,18 +251,17 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
     if np.any(np.diff(st) < 0):
         msg = "scan stamps must be increasing"
         raise ModelError(msg)
-    x_visits, _, _ = optimize_poses(labels, visits, odometry, loops)  # validates the topology
     vidx = np.searchsorted(t, [v.stamp for v in visits])
     if np.any(vidx >= len(t)) or np.any(t[np.minimum(vidx, len(t) - 1)] != [v.stamp for v in visits]):
         msg = "visit stamps must be odometry stamps"
         raise ModelError(msg)
-
     inside = np.flatnonzero((st >= t[0]) & (st <= t[-1]))
     if not any(len(scan_points[k]) for k in inside):  # nothing to match: the smoothing as it is
         res = robust_visit_poses(labels, visits, odometry, loops, scfg)
         traj = smoothed_trajectory(t, u, t[vidx], res.poses)
         nodes = vidx.astype(np.intp)
         return Refinement(trajectory=traj, nodes=nodes, keyframes=0, closures=(), tried=0, rounds=0)
+    x_visits, _, _ = optimize_poses(labels, visits, odometry, loops)  # validates the topology
     scan_pose = interpolate_poses(t, u, st[inside])
     s_travel, s_turned = _cumulative(scan_pose)
     keys = inside[keyframe_scans(s_travel, s_turned, cfg.keyframe_xy, cfg.keyframe_yaw)]
