@@ -66,6 +66,7 @@ class ExtractorConfig:
     stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
     record_corrections: bool = False  # keep (stamp, correction) of every scan (offline smoothing; grows)
     stream_poses: bool = False  # keep each odometry sample and scan used, with its pose, until taken
+    time_offset: float = 0.0  # s, <= 0: odometry taken this far from its stamp (laser_odometry.time_offset)
 
 
 @dataclass
@@ -126,7 +127,8 @@ class VisitExtractor:
         self.laser_odometry = (
             LaserOdometry(lo_cfg, self.laser) if self.config.use_scans and lo_cfg.enabled else None
         )
-        self._wheel: NDArray[np.float64] | None = None  # latest wheel odometry pose
+        self._wheel: NDArray[np.float64] | None = None  # latest wheel odometry pose (scan time frame)
+        self._raw: deque[tuple[float, NDArray[np.float64]]] = deque()  # recent input, for time_offset
         self.corrections: list[tuple[float, NDArray[np.float64]]] = []  # if config.record_corrections
         self._poses_out: list[tuple[float, NDArray[np.float64]]] = []  # if config.stream_poses
         self._scans_out: list[tuple[float, tuple, NDArray[np.float64]]] = []  # if config.stream_poses
@@ -261,12 +263,13 @@ class VisitExtractor:
         when = getattr(self.detector, "last_landmark_stamp", None)
         self._requests.append(float(when) if when is not None else stamp)
 
-    def _process_odometry(self, stamp: float, wheel: NDArray[np.float64]) -> None:
+    def _process_odometry(self, stamp: float, raw: NDArray[np.float64]) -> None:
+        wheel = self._at_scan_time(stamp, raw)
         self._wheel = wheel
         pose = self.laser_odometry.correct(wheel) if self.laser_odometry is not None else wheel
         self._odom_t.append(stamp)
         self._odom_p.append(pose)
-        self._odom_w.append(wheel)
+        self._odom_w.append(raw)
         if self.config.stream_poses:
             self._poses_out.append((stamp, pose))
         try:
@@ -276,6 +279,18 @@ class VisitExtractor:
             self.diagnostics.skip("odometry-rejected-by-detector")
         self._resolve_requests()
         self._track_passages(stamp, pose)
+
+    def _at_scan_time(self, stamp: float, raw: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The input odometry ``time_offset`` s from ``stamp`` (interpolated over the recent input; the
+        first pose before the input began): the robot's pose in the scans' time frame."""
+        offset = self.config.time_offset
+        if not offset:
+            return raw
+        self._raw.append((stamp, raw))
+        while len(self._raw) > 2 and self._raw[1][0] <= stamp + offset:
+            self._raw.popleft()
+        t = [q for q, _ in self._raw]
+        return interpolate_poses(t, [w for _, w in self._raw], stamp + offset)[0]
 
     def _process_scan(self, stamp: float, scan: tuple) -> None:
         ranges, amin, ainc, rmin, rmax = scan
@@ -357,7 +372,7 @@ class VisitExtractor:
             travel=travel,
             rotation=rotation,
             first_in=t[max(first - 1, 0)],
-            wheel=None if self.laser_odometry is None else self._odom_w[k],
+            wheel=None if self.laser_odometry is None and not self.config.time_offset else self._odom_w[k],
         )
         # the passage may already be over if odometry after k is known
         for j in range(k + 1, len(t)):

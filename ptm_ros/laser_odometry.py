@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import between, compose, inverse, transform_points
+from ptm_ros.geometry import between, compose, interpolate_poses, inverse, transform_points
 from ptm_ros.laser import LaserConfig, ScanMap, voxel_downsample
 
 FloatArray = NDArray[np.float64]
@@ -73,6 +73,12 @@ class LaserOdometryConfig:
             scan is matched, as without the gate)
         match_yaw: … or turned this much (at most ``keyframe_yaw``) …
         match_interval: … or this many seconds passed (s; 0: the motion gate alone).
+        time_offset: s from a scan's stamp to when it was taken, in [-1, 0] (a laser driver that stamps
+            its scans late). The visit extractor then uses, at every odometry stamp, the input odometry
+            of ``stamp + time_offset`` (interpolated): the laser odometry, the visits' poses and patches,
+            the detector and the map all work in the scans' time frame; the visits' input ``odom_pose``
+            stays the odometry at their stamp (ptm.json's landmark pose). With ``-0.1`` on MIT-CSAIL,
+            MAP F1 0.915 → 0.966 and smoothed-MAP ATE 1.160 → 0.572 m (issue #8's closing notes).
     """
 
     enabled: bool = True
@@ -89,6 +95,7 @@ class LaserOdometryConfig:
     match_xy: float = 0.04
     match_yaw: float = 0.02
     match_interval: float = 0.09
+    time_offset: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("enabled", "refine"):
@@ -118,6 +125,10 @@ class LaserOdometryConfig:
             raise ConfigError(msg)
         if not (isinstance(self.voxel, int | float) and math.isfinite(self.voxel) and self.voxel >= 0.25):
             msg = f"LaserOdometryConfig.voxel must be >= 0.25 m (kiss-icp), got {self.voxel!r}"
+            raise ConfigError(msg)
+        to = self.time_offset
+        if isinstance(to, bool) or not (isinstance(to, int | float) and -1.0 <= to <= 0.0):
+            msg = f"LaserOdometryConfig.time_offset must be a number of seconds in [-1, 0], got {to!r}"
             raise ConfigError(msg)
         mi = self.match_interval
         if isinstance(mi, bool) or not (isinstance(mi, int | float) and math.isfinite(mi) and mi >= 0.0):
@@ -263,3 +274,14 @@ def apply_corrections(
     moved[carried] = np.any(c[k[carried]] != 0.0, axis=1)
     out[moved] = compose(c[k[moved]], wheel[moved])
     return out
+
+
+def scan_time_poses(stamps: ArrayLike, poses: ArrayLike, offset: float) -> FloatArray:
+    """Odometry ``poses (T, 3)`` at ``stamps`` moved into the scans' time frame: each sample replaced by
+    the odometry ``offset`` s from its stamp (interpolated; the first pose before the input began),
+    as :class:`ptm_ros.landmarks.VisitExtractor` does with ``time_offset`` (the poses themselves when 0)."""
+    p = np.asarray(poses, dtype=float).reshape(-1, 3)
+    if not offset:
+        return p.copy()
+    t = np.asarray(stamps, dtype=float).reshape(-1)
+    return interpolate_poses(t, p, t + offset)

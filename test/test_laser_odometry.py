@@ -20,7 +20,7 @@ from ptm_ros.geometry import (
 from ptm_ros.io.simulator import OdometryNoiseConfig, SimConfig, simulate
 from ptm_ros.io.worlds import get_world
 from ptm_ros.laser import scan_to_points
-from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
+from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig, scan_time_poses
 
 
 @pytest.fixture(scope="module")
@@ -222,3 +222,50 @@ def test_apply_corrections_reproduces_the_extractor_poses():
     assert np.array_equal(corrected[before], run.odom_poses[before])
     with pytest.raises(ModelError, match="matching"):
         apply_corrections(run.odom_stamps, run.odom_poses[:-1], stamps, [c for _, c in ext.corrections])
+
+
+@pytest.mark.parametrize("value", [0.05, -1.5, True, float("nan")])
+def test_time_offset_must_be_a_past_offset_of_at_most_a_second(value):
+    with pytest.raises(ConfigError, match="time_offset must be a number of seconds in"):
+        LaserOdometryConfig(time_offset=value)
+
+
+def test_scan_time_poses_interpolate_the_odometry_at_the_offset():
+    stamps = np.array([0.0, 1.0, 2.0, 3.0])
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [2.0, 1.0, 1.0], [2.0, 2.0, 3.0]])
+    np.testing.assert_array_equal(scan_time_poses(stamps, poses, 0.0), poses)
+    moved = scan_time_poses(stamps, poses, -0.25)
+    np.testing.assert_array_equal(moved[0], poses[0])  # before the input began: its first pose
+    np.testing.assert_allclose(moved[1], [0.75, 0.0, 0.375])
+    np.testing.assert_allclose(moved[3], [2.0, 1.75, 1.0 + 0.75 * wrap_angle(2.0)])
+
+
+@pytest.mark.parametrize("laser_odometry", [True, False])
+def test_extractor_works_in_the_scans_time_frame(tmp_path, laser_odometry):
+    from ptm_ros.config import load_config
+    from ptm_ros.io.bag import read_run
+    from ptm_ros.io.simulator import write_run
+    from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
+
+    write_run(
+        simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(4), visits=5), tmp_path / "b"
+    )
+    run = read_run(tmp_path / "b")
+    over = {"laser_odometry": {"time_offset": -0.15, "enabled": laser_odometry}}
+    config = load_config(None, {**over, "detector": {"kind": "equidistant"}})
+    extractor = run_extractor(run, config)
+    visits = detect_visits(run, config, extractor=extractor)
+    base = corrected_odometry(run, extractor)  # what the offline smoothing starts from
+    stamps, raw = run.odometry.stamps, run.odometry.poses
+    shifted = scan_time_poses(stamps, raw, -0.15)
+    assert len(visits) >= 3
+    for v in visits:
+        k = int(np.flatnonzero(stamps == v.stamp)[0])
+        assert v.odom_pose == tuple(raw[k])  # ptm.json keeps the input odometry at the visit's stamp
+        assert v.pose == tuple(base[k])  # the extractor and the offline trajectory agree bit for bit
+        if not laser_odometry:
+            assert v.pose == tuple(shifted[k])
+    plain = load_config(
+        None, {"laser_odometry": {"enabled": laser_odometry}, "detector": {"kind": "equidistant"}}
+    )
+    assert [v.pose for v in detect_visits(run, plain)] != [v.pose for v in visits]

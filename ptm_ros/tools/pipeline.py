@@ -126,6 +126,7 @@ def make_extractor(
         use_images=use_images,
         image_max_dt=config.detector.image_max_dt,
         record_corrections=record_corrections,
+        time_offset=config.laser_odometry.time_offset,
     )
     return VisitExtractor(
         make_detector(kind, config),
@@ -162,13 +163,14 @@ def run_extractor(run: RunData, config: PtmConfig) -> VisitExtractor:
 def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
     """The run's odometry as the visits saw it: wheel odometry carried by the extractor's laser-odometry
     corrections (:func:`ptm_ros.laser_odometry.apply_corrections`); the wheel odometry without them."""
-    from ptm_ros.laser_odometry import apply_corrections
+    from ptm_ros.laser_odometry import apply_corrections, scan_time_poses
 
     odom = run.odometry
+    wheel = scan_time_poses(odom.stamps, odom.poses, extractor.config.time_offset)
     if not extractor.corrections:
-        return np.asarray(odom.poses, dtype=float)
+        return wheel
     stamps = [t for t, _ in extractor.corrections]
-    return apply_corrections(odom.stamps, odom.poses, stamps, [c for _, c in extractor.corrections])
+    return apply_corrections(odom.stamps, wheel, stamps, [c for _, c in extractor.corrections])
 
 
 def detect_visits(
