@@ -66,7 +66,6 @@ class ExtractorConfig:
     stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
     record_corrections: bool = False  # keep (stamp, correction) of every scan (offline smoothing; grows)
     stream_poses: bool = False  # keep each odometry sample and scan used, with its pose, until taken
-    time_offset: float = 0.0  # s, <= 0: odometry taken this far from its stamp (laser_odometry.time_offset)
 
 
 @dataclass
@@ -124,6 +123,9 @@ class VisitExtractor:
         self.config = config or ExtractorConfig()
         self.diagnostics = ExtractorDiagnostics()
         lo_cfg = laser_odometry or LaserOdometryConfig()
+        #: s, <= 0: the scans' time frame relative to the stamps (``LaserOdometryConfig.time_offset``; applies
+        #: to the odometry whether or not the laser odometry runs)
+        self.time_offset = lo_cfg.time_offset
         self.laser_odometry = (
             LaserOdometry(lo_cfg, self.laser) if self.config.use_scans and lo_cfg.enabled else None
         )
@@ -283,7 +285,7 @@ class VisitExtractor:
     def _at_scan_time(self, stamp: float, raw: NDArray[np.float64]) -> NDArray[np.float64]:
         """The input odometry ``time_offset`` s from ``stamp`` (interpolated over the recent input; the
         first pose before the input began): the robot's pose in the scans' time frame."""
-        offset = self.config.time_offset
+        offset = self.time_offset
         if not offset:
             return raw
         self._raw.append((stamp, raw))
@@ -372,7 +374,7 @@ class VisitExtractor:
             travel=travel,
             rotation=rotation,
             first_in=t[max(first - 1, 0)],
-            wheel=None if self.laser_odometry is None and not self.config.time_offset else self._odom_w[k],
+            wheel=None if self.laser_odometry is None and not self.time_offset else self._odom_w[k],
         )
         # the passage may already be over if odometry after k is known
         for j in range(k + 1, len(t)):

@@ -126,7 +126,6 @@ def make_extractor(
         use_images=use_images,
         image_max_dt=config.detector.image_max_dt,
         record_corrections=record_corrections,
-        time_offset=config.laser_odometry.time_offset,
     )
     return VisitExtractor(
         make_detector(kind, config),
@@ -166,7 +165,7 @@ def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
     from ptm_ros.laser_odometry import apply_corrections, scan_time_poses
 
     odom = run.odometry
-    wheel = scan_time_poses(odom.stamps, odom.poses, extractor.config.time_offset)
+    wheel = scan_time_poses(odom.stamps, odom.poses, extractor.time_offset)
     if not extractor.corrections:
         return wheel
     stamps = [t for t, _ in extractor.corrections]
