@@ -65,6 +65,7 @@ from ptm_ros.geometry import (
 from ptm_ros.visits import Visit
 
 __all__ = [
+    "FLAT_OPTIMUM",
     "LaserConfig",
     "PatchBuilder",
     "Registration",
@@ -85,6 +86,7 @@ __all__ = [
 ]
 
 _IDENTITY = np.zeros(3)
+FLAT_OPTIMUM = "flat optimum"  # how Registration.reason starts when the match slides (a corridor)
 _MIN_SCAN_POINTS = 10  # fewer points than this: a scan keeps its odometry pose in refine_scan_poses
 _MAX_STEP_CORRECTION = (0.5, 0.2)  # (m, rad): larger ICP corrections of one odometry step are rejected
 _NORMAL_NEIGHBOURS = 16  # target points in the PCA of a normal
@@ -763,6 +765,11 @@ class Registration:
     reason: str = ""
     candidates: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
     """``(x, y, yaw, inlier_fraction)`` of the ICP solution from every initial heading, best first."""
+    slide_axis: FloatArray | None = None
+    """Asked for (``register_patches(..., slide_axis=True)``) and the registration invalid only because
+    its optimum is flat: the unit ``(2,)`` axis (target frame) it slides along when that is a
+    *corridor*, sharp across the axis and in heading, with no ambiguous solution off the axis
+    (:func:`_slide_axis`); None otherwise (valid ones included)."""
 
 
 def register_patches(
@@ -770,6 +777,8 @@ def register_patches(
     target: ArrayLike,
     initial: ArrayLike = (0.0, 0.0, 0.0),
     config: LaserConfig | None = None,
+    *,
+    slide_axis: bool = False,
 ) -> Registration:
     """Register patch ``source`` onto patch ``target`` (both in their own visit's frame).
 
@@ -786,7 +795,9 @@ def register_patches(
     ``inlier_distance`` of the target and of the target points near the source, with at least
     ``min_points`` inliers; (2) the optimum is sharp: shifting it by ``distinct_xy`` or turning it by
     ``distinct_yaw`` loses at least ``min_peak_drop`` of that fraction; (3) no distinct solution from
-    another heading comes within ``ambiguity_margin`` of it.
+    another heading comes within ``ambiguity_margin`` of it. With ``slide_axis``, a registration that
+    fails only the sharpness test reports the corridor it slides along, if it is one
+    (:attr:`Registration.slide_axis`).
 
     Raises:
         ModelError: malformed inputs.
@@ -797,11 +808,16 @@ def register_patches(
     src = _as_points(source, "source")
     tgt = _as_points(target, "target")
     guess = _as_pose(initial, "initial")
-    return _register(_PreparedPatch(src, cfg), _PreparedPatch(tgt, cfg), guess, cfg)
+    return _register(_PreparedPatch(src, cfg), _PreparedPatch(tgt, cfg), guess, cfg, slide_axis=slide_axis)
 
 
 def _register(
-    source: _PreparedPatch, target: _PreparedPatch, guess: FloatArray, cfg: LaserConfig
+    source: _PreparedPatch,
+    target: _PreparedPatch,
+    guess: FloatArray,
+    cfg: LaserConfig,
+    *,
+    slide_axis: bool = False,
 ) -> Registration:
     """:func:`register_patches` of two patches prepared with ``cfg`` (:class:`_PreparedPatch`)."""
     n_src, n_tgt = len(source.surface.eval), len(target.surface.eval)
@@ -836,6 +852,7 @@ def _register(
     refined, cov = _point_to_plane(fits[0].pose, overlap, cfg, prior_std)
     fits[0] = best = overlap(refined)
     reason = _invalid_reason(fits, overlap, cfg)
+    axis = _slide_axis(fits, overlap, cfg) if slide_axis and reason.startswith(FLAT_OPTIMUM) else None
     floor = np.array([cfg.min_std_xy, cfg.min_std_xy, cfg.min_std_yaw])
     return Registration(
         mean=best.pose,
@@ -849,6 +866,7 @@ def _register(
         valid=not reason,
         reason=reason,
         candidates=tuple((float(f.pose[0]), float(f.pose[1]), float(f.pose[2]), f.fraction) for f in fits),
+        slide_axis=axis,
     )
 
 
@@ -1020,7 +1038,7 @@ def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -
     nearby = overlap.best_fraction(shifts + turns)
     if best.fraction - nearby < cfg.min_peak_drop:
         return (
-            f"flat optimum: moving {cfg.distinct_xy} m or turning {cfg.distinct_yaw} rad keeps inlier "
+            f"{FLAT_OPTIMUM}: moving {cfg.distinct_xy} m or turning {cfg.distinct_yaw} rad keeps inlier "
             f"fraction {nearby:.3f} of {best.fraction:.3f}"
         )
     for other in fits[1:]:
@@ -1032,6 +1050,42 @@ def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -
                 f"{other.fraction:.3f} vs {best.fraction:.3f}"
             )
     return ""
+
+
+def _slide_axis(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -> FloatArray | None:
+    """The corridor axis of a flat best (first) fit, or None when the optimum is not a corridor.
+
+    The axis is the direction the matched surfaces do not constrain: the eigenvector of the smallest
+    eigenvalue of ``Σ n_k n_kᵀ`` over the line-like target normals ``n_k`` at the source inliers. The fit
+    is a corridor when moving it ``distinct_xy`` across that axis (both ways) or turning it
+    ``distinct_yaw`` (both ways) loses at least ``min_peak_drop`` of its inlier fraction, and no solution
+    from another initial heading within ``ambiguity_margin`` of it lies ``distinct_xy`` across the axis or
+    ``distinct_yaw`` turned.
+    """
+    best = fits[0]
+    moved = transform_points(best.pose, overlap.src_eval)
+    dist, idx = overlap.near_target(moved)
+    n, line = overlap.normals_at(idx[dist <= cfg.inlier_distance])
+    n = n[line]
+    if len(n) < cfg.min_points:
+        return None
+    _, vecs = np.linalg.eigh(n.T @ n)
+    axis = vecs[:, 0]
+    across = np.array([-axis[1], axis[0], 0.0]) * cfg.distinct_xy
+    probes = [best.pose + across, best.pose - across]
+    probes += [compose(best.pose, np.array([0.0, 0.0, s * cfg.distinct_yaw])) for s in (-1.0, 1.0)]
+    if best.fraction - overlap.best_fraction(probes) < cfg.min_peak_drop:
+        return None
+    for other in fits[1:]:
+        if other.fraction < best.fraction - cfg.ambiguity_margin:
+            break
+        off = other.pose - best.pose
+        if (
+            abs(off[0] * axis[1] - off[1] * axis[0]) >= cfg.distinct_xy
+            or abs(wrap_angle(off[2])) >= cfg.distinct_yaw
+        ):
+            return None
+    return axis
 
 
 def fitness_log_bayes(fraction: float, config: LaserConfig | None = None) -> float:

@@ -23,7 +23,10 @@ brings close together.
    pose (one initial heading) and its validity test (inlier fraction, a sharp optimum, no ambiguity); a
    valid match no farther than ``max_shift`` from the estimate becomes a relative-pose factor with the
    registration's covariance, robust (Cauchy, as the place coincidences: a scan match may be wrong where
-   the topology is). The graph is re-solved (:func:`ptm_ros.smoothing.robust_optimum`) after each round.
+   the topology is). A match that fails only because it slides along a corridor (sharp across the
+   corridor and in heading) still fixes the passages' lateral offset and relative heading: it enters
+   with ``corridor_std`` added to its covariance along the corridor's axis. The graph is re-solved
+   (:func:`ptm_ros.smoothing.robust_optimum`) after each round.
 4. The full trajectory is the odometry deformed through the optimised nodes
    (:func:`ptm_ros.smoothing.smoothed_trajectory`).
 
@@ -44,7 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, ModelError, RegistrationError
 from ptm_ros.geometry import RelativePose, between, interpolate_poses, transform_points, wrap_angle
-from ptm_ros.laser import LaserConfig, register_patches, voxel_downsample
+from ptm_ros.laser import LaserConfig, Registration, register_patches, voxel_downsample
 from ptm_ros.odometry import OdometryConfig, optimize_poses
 from ptm_ros.partitions import canonical
 from ptm_ros.posegraph import RelativeFactors
@@ -79,6 +82,9 @@ class RefinementConfig:
         max_candidates: nearest candidates registered per keyframe and round.
         max_shift: a match farther than this from the estimated relative pose is rejected.
         rounds: search-and-solve rounds (a round without a new valid match ends early).
+        corridors: also use matches that slide along a corridor (sharp across it and in heading,
+            :attr:`ptm_ros.laser.Registration.slide_axis`), with ``corridor_std`` added along the axis.
+        corridor_std: standard deviation added along a corridor match's axis.
     """
 
     enabled: bool = True
@@ -90,11 +96,14 @@ class RefinementConfig:
     max_candidates: int = 3
     max_shift: float = 2.0
     rounds: int = 2
+    corridors: bool = True
+    corridor_std: float = 2.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.enabled, bool):
-            msg = f"RefinementConfig.enabled must be a bool, got {self.enabled!r}"
-            raise ConfigError(msg)
+        for name in ("enabled", "corridors"):
+            if not isinstance(getattr(self, name), bool):
+                msg = f"RefinementConfig.{name} must be a bool, got {getattr(self, name)!r}"
+                raise ConfigError(msg)
         for name in (
             "keyframe_xy",
             "keyframe_yaw",
@@ -102,6 +111,7 @@ class RefinementConfig:
             "min_travel",
             "search_radius",
             "max_shift",
+            "corridor_std",
         ):
             value = getattr(self, name)
             ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
@@ -117,14 +127,17 @@ class RefinementConfig:
 
 @dataclass(frozen=True)
 class Closure:
-    """A valid scan match between keyframe nodes ``a < b``: ``mean`` measures ``between(x_a, x_b)``;
-    ``weight`` is its final Cauchy weight (1: satisfied; near 0: let go)."""
+    """A scan match (valid, or a corridor match) between keyframe nodes ``a < b``: ``mean`` measures
+    ``between(x_a, x_b)``; ``weight`` is its final Cauchy weight (1: satisfied; near 0: let go);
+    ``slide_axis``: for a match that slides along a corridor, the corridor's unit axis in node ``a``'s
+    frame (``cov`` widened along it); None for a sharp match."""
 
     a: int
     b: int
     mean: FloatArray
     cov: FloatArray
     weight: float
+    slide_axis: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -278,6 +291,7 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
     # start: the Gaussian optimum's visit poses, the odometry between them deformed to fit
     x = smoothed_trajectory(t, u, t[vidx], x_visits)[nodes]
     found: list[tuple[int, int, FloatArray, FloatArray]] = []
+    axes: list[FloatArray | None] = []  # each found match's corridor axis (None: a sharp match)
     seen: set[tuple[int, int]] = set()
     g = _graph(odo, visit_node, canon, loops, closures=found, config=odometry)
     x, weights, _ = robust_optimum(x, g, scfg)
@@ -297,11 +311,13 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
                 tried += 1
                 guess = between(kx[i], kx[j])
                 try:
-                    reg = register_patches(submaps[j], submaps[i], guess, lcfg)
+                    reg = register_patches(submaps[j], submaps[i], guess, lcfg, slide_axis=cfg.corridors)
                 except RegistrationError:
                     continue
-                if reg.valid and math.hypot(*(reg.mean[:2] - guess[:2])) <= cfg.max_shift:
-                    found.append((int(key_node[i]), int(key_node[j]), reg.mean, reg.cov))
+                cov = _closure_cov(reg, cfg)
+                if cov is not None and math.hypot(*(reg.mean[:2] - guess[:2])) <= cfg.max_shift:
+                    found.append((int(key_node[i]), int(key_node[j]), reg.mean, cov))
+                    axes.append(None if reg.valid else reg.slide_axis)
                     new += 1
         if new == 0:
             break
@@ -310,14 +326,27 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
     n_cl = len(found)
     final_w = weights.factors[len(weights.factors) - n_cl :] if n_cl else np.zeros(0)
     closures = tuple(
-        Closure(a=a, b=b, mean=m, cov=c, weight=float(w))
-        for (a, b, m, c), w in zip(found, final_w, strict=True)
+        Closure(a=a, b=b, mean=m, cov=c, weight=float(w), slide_axis=k)
+        for (a, b, m, c), w, k in zip(found, final_w, axes, strict=True)
     )
     x[:, 2] = wrap_angle(x[:, 2])
     traj = smoothed_trajectory(t, u, t[nodes], x)
     return Refinement(
         trajectory=traj, nodes=nodes, keyframes=len(keys), closures=closures, tried=tried, rounds=rounds
     )
+
+
+def _closure_cov(reg: Registration, config: RefinementConfig) -> FloatArray | None:
+    """The covariance a registration enters the graph with: its own when valid; for a corridor match
+    (:attr:`ptm_ros.laser.Registration.slide_axis`, with ``config.corridors``) its own plus
+    ``corridor_std²`` along the axis; None when it does not enter."""
+    if reg.valid:
+        return reg.cov
+    if not config.corridors or reg.slide_axis is None:
+        return None
+    cov = reg.cov.copy()
+    cov[:2, :2] += config.corridor_std**2 * np.outer(reg.slide_axis, reg.slide_axis)
+    return cov
 
 
 def _submaps(  # noqa: PLR0917 - internal helper

@@ -18,6 +18,7 @@ import pytest
 from ptm_ros.errors import ConfigError, ModelError, RegistrationError
 from ptm_ros.geometry import RelativePose, between, compose, inverse, transform_points, wrap_angle
 from ptm_ros.laser import (
+    FLAT_OPTIMUM,
     LaserConfig,
     PatchBuilder,
     build_patch,
@@ -421,9 +422,38 @@ def test_symmetric_room_is_ambiguous():
 def test_corridor_is_a_flat_optimum():
     rng = np.random.default_rng(10)
     source, target = patch_pair(CORRIDOR, np.array([0.0, 0.0, 0.0]), rng)
-    reg = register_patches(source, target)
+    reg = register_patches(source, target, slide_axis=True)
     assert not reg.valid
-    assert reg.reason.startswith("flat optimum")
+    assert reg.reason.startswith(FLAT_OPTIMUM)
+    # from 8 headings the half-turned corridor fits as well: no slide axis (the heading is ambiguous)
+    assert reg.slide_axis is None
+
+
+def test_corridor_match_from_a_guess_reports_its_axis_and_fixes_the_lateral_offset():
+    """From one initial heading a corridor match slides only along the corridor: its axis is the
+    corridor's direction (in the target frame), and the offset across it and the heading are right."""
+    rng = np.random.default_rng(11)
+    turn = np.array([0.0, 0.0, 0.7])  # the corridor runs at 0.7 rad in the target frame
+    walls = np.array([[transform_points(turn, seg) for seg in CORRIDOR]]).reshape(-1, 2, 2)
+    truth = np.array([1.5 * np.cos(0.7) - 0.3 * np.sin(0.7), 1.5 * np.sin(0.7) + 0.3 * np.cos(0.7), 0.05])
+    source, target = patch_pair(walls, truth, rng)
+    cfg = LaserConfig(n_rotations=1)
+    reg = register_patches(source, target, truth + np.array([0.2, -0.25, -0.04]), cfg, slide_axis=True)
+    assert not reg.valid and reg.reason.startswith(FLAT_OPTIMUM)
+    plain = register_patches(source, target, truth + np.array([0.2, -0.25, -0.04]), cfg)
+    assert plain.slide_axis is None and plain.reason == reg.reason  # not asked for: not computed
+    axis = np.array([np.cos(0.7), np.sin(0.7)])
+    assert reg.slide_axis is not None and abs(reg.slide_axis @ axis) > 0.999
+    across = np.array([-axis[1], axis[0]])
+    assert abs((reg.mean[:2] - truth[:2]) @ across) < 0.03
+    assert abs(wrap_angle(reg.mean[2] - truth[2])) < 0.01
+    # sharp matches have no axis; nor has a flat optimum that turns (a circle about the origin)
+    room = register_patches(*patch_pair(ROOM, TRUE, rng), slide_axis=True)
+    assert room.valid and room.slide_axis is None
+    angles = np.linspace(-np.pi, np.pi, 2000, endpoint=False)
+    circle = np.column_stack([3.0 * np.cos(angles), 3.0 * np.sin(angles)])
+    spin = register_patches(circle, circle, (0.0, 0.0, 0.1), cfg, slide_axis=True)
+    assert spin.reason.startswith(FLAT_OPTIMUM) and spin.slide_axis is None
 
 
 def brute_fit(source, target, pose, cfg):
