@@ -34,6 +34,7 @@ setup(
             "ptm-sim = ptm_ros.tools.sim:main",
             "ptm-run = ptm_ros.tools.run:main",
             "ptm-eval = ptm_ros.tools.evaluate:main",
+            "ptm-calibrate = ptm_ros.tools.calibrate:main",
             "ptm-bringup = ptm_ros.tools.bringup:main",
             "ptm-bag-player = ptm_ros.nodes.bag_player:main",
             "landmark_detector = ptm_ros.nodes.landmark_detector:main",

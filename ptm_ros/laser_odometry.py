@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,8 +78,9 @@ class LaserOdometryConfig:
             its scans late). The visit extractor then uses, at every odometry stamp, the input odometry
             of ``stamp + time_offset`` (interpolated): the laser odometry, the visits' poses and patches,
             the detector and the map all work in the scans' time frame; the visits' input ``odom_pose``
-            stays the odometry at their stamp (ptm.json's landmark pose). With ``-0.1`` on MIT-CSAIL,
-            MAP F1 0.915 → 0.966 and smoothed-MAP ATE 1.160 → 0.572 m (issue #8's closing notes).
+            stays the odometry at their stamp (ptm.json's landmark pose). ``ptm-calibrate`` estimates it
+            from a bag (:func:`time_offset_scores`, :func:`best_time_offset`): ``-0.15`` on MIT-CSAIL, 0 on
+            Intel, ACES and the simulator (issue #8's closing notes).
     """
 
     enabled: bool = True
@@ -285,3 +287,103 @@ def scan_time_poses(stamps: ArrayLike, poses: ArrayLike, offset: float) -> Float
         return p.copy()
     t = np.asarray(stamps, dtype=float).reshape(-1)
     return interpolate_poses(t, p, t + offset)
+
+
+@dataclass(frozen=True)
+class OffsetScore:
+    """How well the wheel odometry agrees with the scans when the scans are taken ``offset`` s from
+    their stamps (:func:`time_offset_scores`).
+
+    Attributes:
+        offset: the candidate ``time_offset`` (s).
+        median_yaw_correction: median absolute heading correction of the matched scan steps (rad).
+        rms_yaw_correction: root-mean-square of the same (rad).
+        matched: scans matched (the corrections' count).
+        rejected: matches rejected by the correction limits or the inlier test.
+    """
+
+    offset: float
+    median_yaw_correction: float
+    rms_yaw_correction: float
+    matched: int
+    rejected: int
+
+
+def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candidates and the configs
+    odom_stamps: ArrayLike,
+    odom_poses: ArrayLike,
+    scan_stamps: ArrayLike,
+    scan_points: Sequence[ArrayLike],
+    offsets: Sequence[float],
+    config: LaserOdometryConfig | None = None,
+    laser: LaserConfig | None = None,
+) -> list[OffsetScore]:
+    """Score candidate ``time_offset`` values of a run without ground truth.
+
+    For each offset the laser odometry (:class:`LaserOdometry`) runs over the scans, each taken at the
+    wheel odometry of ``stamp + offset`` (interpolated, as the visit extractor does). When the offset is
+    wrong the odometry turns before or after the scans do, and every matched scan during a turn needs a
+    heading correction of about the turn rate times the error; the right offset minimises the
+    corrections (``median_yaw_correction``; the RMS is reported too). Scans outside the odometry's time
+    span are left out.
+
+    Raises:
+        ModelError: mismatched inputs, or an offset outside [-1, 0].
+    """
+    cfg = LaserOdometryConfig() if config is None else config
+    t = np.asarray(odom_stamps, dtype=float).reshape(-1)
+    u = np.asarray(odom_poses, dtype=float).reshape(-1, 3)
+    st = np.asarray(scan_stamps, dtype=float).reshape(-1)
+    if len(t) != len(u) or len(st) != len(scan_points) or len(t) < 2:
+        msg = (
+            f"need matching stamps/poses: {len(t)}/{len(u)} odometry (at least 2), "
+            f"{len(st)}/{len(scan_points)} scans"
+        )
+        raise ModelError(msg)
+    out = []
+    for offset in offsets:
+        if not -1.0 <= offset <= 0.0:
+            msg = f"time offsets must be in [-1, 0] s, got {offset!r}"
+            raise ModelError(msg)
+        keep = np.flatnonzero((st + offset >= t[0]) & (st + offset <= t[-1]))
+        wheel = interpolate_poses(t, u, st[keep] + offset)
+        lo = LaserOdometry(config=cfg, laser=LaserConfig() if laser is None else laser)
+        yaw = []
+        for k, pose in zip(keep, wheel, strict=True):
+            matched = lo.counters.matched
+            guess = lo.correct(pose)
+            aligned = lo.on_scan(pose, scan_points[k], float(st[k]))
+            if lo.counters.matched > matched:
+                yaw.append(abs(float(between(guess, aligned)[2])))
+        y = np.asarray(yaw)
+        out.append(
+            OffsetScore(
+                offset=float(offset),
+                median_yaw_correction=float(np.median(y)) if len(y) else math.nan,
+                rms_yaw_correction=float(np.sqrt(np.mean(y**2))) if len(y) else math.nan,
+                matched=lo.counters.matched,
+                rejected=lo.counters.rejected,
+            )
+        )
+    return out
+
+
+def best_time_offset(scores: Sequence[OffsetScore], min_gain: float = 0.05) -> float:
+    """The offset of ``scores`` (:func:`time_offset_scores`) with the smallest ``rms_yaw_correction``,
+    if it is at least ``min_gain`` (a fraction) below the RMS at offset 0; else 0 (the stamps as they
+    are). The RMS weighs the turns, where a wrong offset shows; the median of the corrections does not
+    separate offsets on a run whose odometry has a heading bias (Intel: every step needs a correction).
+
+    Raises:
+        ModelError: no score at offset 0, or ``min_gain`` outside [0, 1).
+    """
+    if not 0.0 <= min_gain < 1.0:
+        msg = f"min_gain must be in [0, 1), got {min_gain!r}"
+        raise ModelError(msg)
+    finite = [s for s in scores if math.isfinite(s.rms_yaw_correction)]
+    zero = [s for s in finite if s.offset == 0.0]
+    if not zero:
+        msg = "the candidate offsets must include 0 with at least one matched scan"
+        raise ModelError(msg)
+    best = min(finite, key=lambda s: (s.rms_yaw_correction, -s.offset))
+    return best.offset if best.rms_yaw_correction <= (1.0 - min_gain) * zero[0].rms_yaw_correction else 0.0

@@ -103,6 +103,8 @@ class LaserConfig:
     With ``fov`` < 2π the beams span ``[-fov/2, fov/2]`` inclusive (181 beams over π = 1 degree apart);
     with ``fov`` = 2π they start at -π and the last beam stops one increment short of the first.
     Returns beyond ``range_max`` are +inf (REP 117); ``noise`` is the range standard deviation (m).
+    ``stamp_delay`` (s, >= 0): each scan is stamped this long after it was taken, as by a driver that
+    stamps scans on read-out (what ``laser_odometry.time_offset`` and ``ptm-calibrate`` undo).
     """
 
     rate: float = 10.0
@@ -111,10 +113,11 @@ class LaserConfig:
     range_min: float = 0.05
     range_max: float = 20.0
     noise: float = 0.01
+    stamp_delay: float = 0.0
 
     def __post_init__(self) -> None:
         _positive("LaserConfig", rate=self.rate, fov=self.fov, range_max=self.range_max)
-        _non_negative("LaserConfig", range_min=self.range_min, noise=self.noise)
+        _non_negative("LaserConfig", range_min=self.range_min, noise=self.noise, stamp_delay=self.stamp_delay)
         if self.beams < 2:
             msg = f"LaserConfig.beams must be >= 2, got {self.beams}"
             raise ConfigError(msg)
@@ -715,7 +718,7 @@ def simulate(
         true_poses=true,
         odom_poses=odom,
         odom_twist=twist,
-        scan_stamps=stamps(t_scan),
+        scan_stamps=stamps(t_scan + laser.stamp_delay),
         scan_ranges=ranges,
         image_stamps=stamps(t_img),
         image_poses=image_poses,

@@ -1,0 +1,154 @@
+"""``ptm-calibrate BAG``: estimate the laser's time offset from the bag itself (no ground truth).
+
+Some laser drivers stamp a scan when it has been read out, not when it was taken: the scans then lag
+the odometry, and during every turn the scan-to-map matching of the laser odometry must undo the
+heading the odometry already turned. ``ptm-calibrate`` runs the laser odometry over the bag once per
+candidate offset (:func:`ptm_ros.laser_odometry.time_offset_scores`) and picks the one whose heading
+corrections are smallest (:func:`ptm_ros.laser_odometry.best_time_offset`: it must beat offset 0 by
+``--min-gain``). Prints JSON (schema ``ptm_ros.calibration/1``: ``offsets`` with each candidate's
+``median_yaw_correction`` / ``rms_yaw_correction`` in rad and the matched / rejected scan counts,
+``time_offset`` the choice); ``--out FILE`` writes the parameters (``--params`` or the defaults) with
+``laser_odometry.time_offset`` set, ready for ``ptm-run --params`` and ``ptm-bringup --params``.
+
+Exit status: 0 on success, 2 on bad input (unreadable bag, no scans, bad parameters or offsets).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ptm_ros.errors import ConfigError, DataError, PtmError
+
+if TYPE_CHECKING:
+    from ptm_ros.config import PtmConfig
+    from ptm_ros.io.bag import RunData
+    from ptm_ros.laser_odometry import OffsetScore
+
+PROG = "ptm-calibrate"
+DEFAULT_OFFSETS = (0.0, -0.05, -0.1, -0.15, -0.2, -0.25, -0.3)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0].split(": ", 1)[1])
+    p.add_argument("bag", type=Path, help="rosbag2 directory with /odom and /scan")
+    p.add_argument("--params", type=Path, default=None, help="YAML parameter file (see config/ptm.yaml)")
+    p.add_argument(
+        "--offsets",
+        type=float,
+        nargs="+",
+        default=list(DEFAULT_OFFSETS),
+        metavar="S",
+        help="candidate offsets in [-1, 0] s (0 is always tried; default: 0 to -0.3 in 0.05 s steps)",
+    )
+    p.add_argument("--min-gain", type=float, default=0.05, help="relative RMS gain over 0 needed (0.05)")
+    p.add_argument("--max-scans", type=int, default=None, help="use only the first N scans")
+    p.add_argument("--out", type=Path, default=None, help="write the parameters with the offset here")
+    return p
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What :func:`calibrate_run` found: the scans used, every candidate's score, the chosen offset."""
+
+    scans: int
+    scores: list[OffsetScore]
+    time_offset: float
+
+    def as_dict(self) -> dict:
+        """JSON-able (a non-finite score, at an offset where no scan matched, is None)."""
+        return {
+            "scans": self.scans,
+            "offsets": [{k: _finite(v) for k, v in asdict(s).items()} for s in self.scores],
+            "time_offset": self.time_offset,
+        }
+
+
+def calibrate_run(
+    run: RunData,
+    config: PtmConfig,
+    offsets: Sequence[float] = DEFAULT_OFFSETS,
+    *,
+    min_gain: float = 0.05,
+    max_scans: int | None = None,
+) -> Calibration:
+    """The scores of ``offsets`` (0 added, largest first) on a run read with its scans, and the chosen
+    offset (module docstring); ``max_scans``: only the first scans.
+
+    Raises:
+        DataError: the run has no usable scan points.
+        ModelError: an offset outside [-1, 0], or a bad ``min_gain``.
+    """
+    from ptm_ros.laser_odometry import best_time_offset, time_offset_scores
+    from ptm_ros.mapping import scan_points
+
+    if run.scans is None:
+        msg = f"no scans in {run.path}"
+        raise DataError(msg)
+    stamps, points = scan_points(run.scans, config.laser)
+    stamps, points = stamps[:max_scans], points[:max_scans]
+    if not any(len(p) for p in points):
+        msg = f"no usable scan points in {run.path}"
+        raise DataError(msg)
+    scores = time_offset_scores(
+        run.odometry.stamps,
+        run.odometry.poses,
+        stamps,
+        points,
+        sorted({0.0, *offsets}, reverse=True),
+        config.laser_odometry,
+        config.laser,
+    )
+    return Calibration(scans=len(stamps), scores=scores, time_offset=best_time_offset(scores, min_gain))
+
+
+def calibrate(args: argparse.Namespace) -> dict:
+    """The calibration report of the parsed arguments (module docstring); writes ``--out``."""
+    from ptm_ros.config import load_config, save_config
+    from ptm_ros.io.bag import read_run
+
+    config = load_config(args.params)
+    if args.max_scans is not None and args.max_scans < 2:
+        msg = f"--max-scans needs at least 2 scans, got {args.max_scans}"
+        raise ConfigError(msg)
+    topics = config.topics
+    run = read_run(
+        args.bag,
+        odom_topic=topics.odom,
+        scan_topic=topics.scan,
+        image_topic=None,
+        require=(topics.odom, topics.scan),
+    )
+    cal = calibrate_run(run, config, args.offsets, min_gain=args.min_gain, max_scans=args.max_scans)
+    report = {"schema": "ptm_ros.calibration/1", "bag": str(args.bag), "min_gain": args.min_gain}
+    report.update(cal.as_dict())
+    if args.out is not None:
+        tuned = replace(config, laser_odometry=replace(config.laser_odometry, time_offset=cal.time_offset))
+        report["params"] = str(save_config(tuned, args.out))
+    return report
+
+
+def _finite(value: object) -> object:
+    """JSON-safe: a non-finite float (an offset with no matched scan) becomes None."""
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        report = calibrate(args)
+    except (PtmError, OSError) as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=2, allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
