@@ -9,7 +9,9 @@
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
    landmark patches (:mod:`ptm_ros.baselines`); for the pipeline also the absolute trajectory errors of
-   the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``). Writes
+   the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``). Every
+   run with scans is also calibrated for the laser's time offset (``ptm-calibrate``, no ground truth);
+   where it chooses a non-zero offset the pipeline runs again with it (``ptm-rbpf calibrated``). Writes
    ``bench/results.json``, ``bench/results.md`` and the occupancy maps of the real runs,
    ``bench/maps/<run>.png`` (downscaled to at most 300 kB).
 
@@ -31,6 +33,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -143,18 +146,15 @@ def copy_map(src: Path, dst: Path, max_bytes: int = MAX_MAP_BYTES) -> Path:
     return dst
 
 
-def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
-    from ptm_ros.baselines import GreedyConfig, LoopClosureConfig, greedy_association, robust_loop_closure
-    from ptm_ros.config import load_config
-    from ptm_ros.io.bag import read_run
-    from ptm_ros.tools.evaluate import score_against_ground_truth
-    from ptm_ros.tools.pipeline import detect_visits, make_registrar, run_offline
+def pipeline_row(name: str, kind: str, bag: Path, gt: Path, out: Path, config, method: str):  # noqa: PLR0917
+    """``ptm-run``'s pipeline on one run with ``config``: its result and its results row."""
+    from ptm_ros.tools.pipeline import run_offline
 
-    config = load_config()
     t0 = time.perf_counter()
-    result = run_offline(bag, work / "out" / name, config, ground_truth=gt)
+    result = run_offline(bag, out, config, ground_truth=gt)
     wall = time.perf_counter() - t0
-    row = {"run": name, "kind": kind, "method": "ptm-rbpf", "wall_s": wall, **score_row(result.score)}
+    row = {"run": name, "kind": kind, "method": method, "wall_s": wall, **score_row(result.score)}
+    row["time_offset_s"] = config.laser_odometry.time_offset
     row["map_places"] = len(set(result.ptm.topologies[0].labels))
     row["update_ms_median"] = result.ptm.inference.get("update_ms_median")
     row["update_ms_p95"] = result.ptm.inference.get("update_ms_p95")
@@ -162,11 +162,34 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
     row["ate_smoothed_m"] = ate.get("ate_smoothed_m")
     row["ate_odometry_m"] = ate.get("ate_odometry_m")
     row["map_s"] = result.ptm.timing.get("map_s")
+    return result, row
+
+
+def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
+    from ptm_ros.baselines import GreedyConfig, LoopClosureConfig, greedy_association, robust_loop_closure
+    from ptm_ros.config import load_config
+    from ptm_ros.io.bag import read_run
+    from ptm_ros.tools.calibrate import calibrate_run
+    from ptm_ros.tools.evaluate import score_against_ground_truth
+    from ptm_ros.tools.pipeline import detect_visits, make_registrar
+
+    config = load_config()
+    result, row = pipeline_row(name, kind, bag, gt, work / "out" / name, config, "ptm-rbpf")
     rows = [row]
     out = {"run": name, "rows": rows}
-    if kind == "real" and "map_png" in result.files:
-        out["map_png"] = copy_map(result.files["map_png"], MAPS / f"{name}.png").relative_to(BENCH).as_posix()
     run = read_run(bag)
+    if run.scans is not None:  # the laser's time offset, from the bag alone (ptm-calibrate)
+        t0 = time.perf_counter()
+        cal = calibrate_run(run, config)
+        out["calibration"] = {**cal.as_dict(), "wall_s": time.perf_counter() - t0}
+        if cal.time_offset != 0.0:
+            lo = replace(config.laser_odometry, time_offset=cal.time_offset)
+            tuned = replace(config, laser_odometry=lo)
+            dest = work / "out" / f"{name}-calibrated"
+            result, row = pipeline_row(name, kind, bag, gt, dest, tuned, "ptm-rbpf calibrated")
+            rows.append(row)
+    if kind == "real" and "map_png" in result.files:  # the calibrated run's map when there is one
+        out["map_png"] = copy_map(result.files["map_png"], MAPS / f"{name}.png").relative_to(BENCH).as_posix()
     visits = detect_visits(run, config)
     t0 = time.perf_counter()
     labels = greedy_association(visits, config.model.odometry, GreedyConfig())
@@ -221,6 +244,7 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
     cols = (
         "run",
         "method",
+        "time_offset_s",
         "n_visits",
         "n_true_places",
         "map_places",
@@ -248,7 +272,10 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "commit to one topology (probability 1). `ate_smoothed_m` / "
         "`ate_odometry_m`: absolute trajectory error (RMSE after the best rigid 2-D alignment, m) of the "
         "smoothed trajectory of the most probable topology and of the raw odometry, at the odometry stamps "
-        "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json).",
+        "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json). "
+        "`ptm-rbpf` runs with the default parameters; `ptm-rbpf calibrated` (only where the calibration "
+        "below chose a non-zero offset) with `laser_odometry.time_offset` = `time_offset_s` (s) from "
+        "`ptm-calibrate`, everything else default.",
         "",
         "| " + " | ".join(cols) + " |",
         "|" + "---|" * len(cols),
@@ -256,11 +283,31 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
     for run in runs:
         for r in run["rows"]:
             lines.append("| " + " | ".join(fmt(r.get(c)) for c in cols) + " |")
+    cals = [(run["run"], run["calibration"]) for run in runs if run.get("calibration")]
+    if cals:
+        lines += ["", "## Laser time offset (`ptm-calibrate`, no ground truth)", ""]
+        lines += [
+            "RMS of the laser odometry's per-scan heading corrections (mrad) with the scans taken `offset` s "
+            "from their stamps; the chosen offset has the smallest RMS, if it is at least 5 % below the "
+            "RMS at 0 (`ptm_ros.laser_odometry.best_time_offset`).",
+            "",
+        ]
+        offsets = [s["offset"] for s in cals[0][1]["offsets"]]
+        lines += ["| run | scans | " + " | ".join(f"{o:g}" for o in offsets) + " | chosen | wall_s |"]
+        lines += ["|" + "---|" * (len(offsets) + 4)]
+        for name, cal in cals:
+            rms = {s["offset"]: s["rms_yaw_correction"] for s in cal["offsets"]}
+            cells = [fmt(None if rms.get(o) is None else 1e3 * rms[o]) for o in offsets]
+            lines.append(
+                f"| {name} | {cal['scans']} | " + " | ".join(cells) + f" | {cal['time_offset']:g} | "
+                f"{cal['wall_s']:.1f} |"
+            )
     maps = [(run["run"], run["map_png"]) for run in runs if run.get("map_png")]
     if maps:
         lines += ["", "## Occupancy maps of the real runs", ""]
         lines += [
-            "Scans placed along the smoothed trajectory of the most probable topology (`ptm-run`'s map.png)."
+            "Scans placed along the smoothed trajectory of the most probable topology (`ptm-run`'s map.png; "
+            "the calibrated run's where there is one)."
         ]
         lines += [""] + [f"- [{name}]({path})" for name, path in maps] + [""]
         lines += [f"![{name}]({path})" for name, path in maps]
