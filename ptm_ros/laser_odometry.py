@@ -323,9 +323,9 @@ def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candi
     For each offset the laser odometry (:class:`LaserOdometry`) runs over the scans, each taken at the
     wheel odometry of ``stamp + offset`` (interpolated, as the visit extractor does). When the offset is
     wrong the odometry turns before or after the scans do, and every matched scan during a turn needs a
-    heading correction of about the turn rate times the error; the right offset minimises the
-    corrections (``median_yaw_correction``; the RMS is reported too). Scans outside the odometry's time
-    span are left out.
+    heading correction of about the turn rate times the error; the right offset minimises their RMS
+    (``rms_yaw_correction``, what :func:`best_time_offset` uses; the median is reported too). Scans
+    outside the odometry's time span are left out.
 
     Raises:
         ModelError: mismatched inputs, or an offset outside [-1, 0].
@@ -371,8 +371,9 @@ def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candi
 def best_time_offset(scores: Sequence[OffsetScore], min_gain: float = 0.05) -> float:
     """The offset of ``scores`` (:func:`time_offset_scores`) with the smallest ``rms_yaw_correction``,
     if it is at least ``min_gain`` (a fraction) below the RMS at offset 0; else 0 (the stamps as they
-    are). The RMS weighs the turns, where a wrong offset shows; the median of the corrections does not
-    separate offsets on a run whose odometry has a heading bias (Intel: every step needs a correction).
+    are). The RMS weighs the turns, where a wrong offset shows; the median hardly moves with the offset,
+    as most scan steps do not turn (simulated runs: 1.08–1.11 mrad at every offset). ``min_gain`` keeps
+    the stamps where the RMS is nearly flat (Intel: 59.3 mrad at 0, 58.0 at its minimum).
 
     Raises:
         ModelError: no score at offset 0, or ``min_gain`` outside [0, 1).
