@@ -33,7 +33,6 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -183,10 +182,8 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
         cal = calibrate_run(run, config)
         out["calibration"] = {**cal.as_dict(), "wall_s": time.perf_counter() - t0}
         if cal.time_offset != 0.0:
-            lo = replace(config.laser_odometry, time_offset=cal.time_offset)
-            tuned = replace(config, laser_odometry=lo)
             dest = work / "out" / f"{name}-calibrated"
-            result, row = pipeline_row(name, kind, bag, gt, dest, tuned, "ptm-rbpf calibrated")
+            result, row = pipeline_row(name, kind, bag, gt, dest, cal.applied(config), "ptm-rbpf calibrated")
             rows.append(row)
     if kind == "real" and "map_png" in result.files:  # the calibrated run's map when there is one
         out["map_png"] = copy_map(result.files["map_png"], MAPS / f"{name}.png").relative_to(BENCH).as_posix()

@@ -317,7 +317,7 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
                 cov = _closure_cov(reg, cfg)
                 if cov is not None and math.hypot(*(reg.mean[:2] - guess[:2])) <= cfg.max_shift:
                     found.append((int(key_node[i]), int(key_node[j]), reg.mean, cov))
-                    axes.append(None if reg.valid else reg.slide_axis)
+                    axes.append(reg.slide_axis)  # None for a valid (sharp) match
                     new += 1
         if new == 0:
             break

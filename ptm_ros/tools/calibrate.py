@@ -61,6 +61,10 @@ class Calibration:
     scores: list[OffsetScore]
     time_offset: float
 
+    def applied(self, config: PtmConfig) -> PtmConfig:
+        """``config`` with ``laser_odometry.time_offset`` set to the chosen offset."""
+        return replace(config, laser_odometry=replace(config.laser_odometry, time_offset=self.time_offset))
+
     def as_dict(self) -> dict:
         """JSON-able (a non-finite score, at an offset where no scan matched, is None)."""
         return {
@@ -129,8 +133,7 @@ def calibrate(args: argparse.Namespace) -> dict:
     report = {"schema": "ptm_ros.calibration/1", "bag": str(args.bag), "min_gain": args.min_gain}
     report.update(cal.as_dict())
     if args.out is not None:
-        tuned = replace(config, laser_odometry=replace(config.laser_odometry, time_offset=cal.time_offset))
-        report["params"] = str(save_config(tuned, args.out))
+        report["params"] = str(save_config(cal.applied(config), args.out))
     return report
 
 
