@@ -31,10 +31,11 @@ JSON (other parts already there are kept):
   estimator of a run (the RBPF runs first and pays for most registrations). The RBPF
   (``pipeline.infer``, method rbpf, its whole particle set) against MCMC (``run_mcmc`` on the model
   ``pipeline.infer`` builds, i.e. ``--method mcmc``, with a ``--cap`` on wall time) started (a) from
-  all-singletons, the default, and (b) from the RBPF's most probable topologies, one per chain
-  (``initial: rbpf``). All three runs have more than ``max_sampled_visits`` visits, so the batch posterior
-  is the deterministic Laplace estimate and MAP differences are exact (below that, differing MAPs are
-  re-compared over other importance-sampling seeds). Reported: TV between the PTMs, both MAPs'
+  all-singletons (``initial: singletons``, the thesis' start) and (b) from the RBPF's most probable
+  topologies, one per chain (``initial: rbpf``, what the default ``auto`` does on these runs). All
+  three runs have more than ``max_sampled_visits`` visits, so the batch posterior is the deterministic
+  Laplace estimate and MAP differences are exact (below that, differing MAPs are re-compared over other
+  importance-sampling seeds). Reported: TV between the PTMs, both MAPs'
   log posteriors under one :class:`~ptm_ros.posterior.PosteriorModel`, whether they are equal and why not,
   their F1 against ground truth, wall times, convergence, the SRQ deviation of each cold chain, and the
   TV between MCMC and the RBPF's topologies re-weighted by the batch posterior (which separates "the
@@ -574,7 +575,7 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
         },
     }
     for start, initial in (("singletons", None), ("rbpf", list(rbpf)[: inf.mcmc.chains])):
-        res = run_mcmc(model, inf.mcmc, inf.seed, initial=initial)
+        res = run_mcmc(model, dataclasses.replace(inf.mcmc, initial=start), inf.seed, initial=initial)
         out = compare(model, rbpf, rbpf_map, res)
         out["score"] = ptm_score(visits, res.probabilities, gt)
         row[f"mcmc_{start}"] = out

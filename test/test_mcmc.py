@@ -44,6 +44,7 @@ from ptm_ros.mcmc import (
     bhattacharyya_similarity,
     make_proposal,
     run_mcmc,
+    starts_from_filter,
     thesis_ladder,
 )
 from ptm_ros.odometry import OdometryConfig
@@ -441,6 +442,8 @@ def test_thesis_ladder():
         ({"min_iterations": 10, "max_iterations": 5}, "max_iterations"),
         ({"max_split_enumeration": 30}, "max_split_enumeration must be <= 20"),
         ({"new_place_distance": 0.0}, "new_place_distance is out of range"),
+        ({"initial": "filter"}, "initial must be one of"),
+        ({"auto_filter_visits": 0}, "auto_filter_visits must be an integer >= 1"),
     ],
 )
 def test_config_errors(kwargs, match):
@@ -455,6 +458,24 @@ def test_bad_initial_topology(model5):
         McmcSampler(model5, McmcConfig(), 0, initial=[(0, 0, 0, 0, 0), (0, 1)])
     with pytest.raises(ConfigError, match="rbpf"):
         McmcSampler(model5, McmcConfig(initial="rbpf"), 0)
+
+
+def test_auto_start_is_singletons_on_short_runs_and_the_filter_on_long_ones(model5):
+    """``initial: auto`` (the default): from singletons up to ``auto_filter_visits`` visits; beyond, the
+    chains need the filter's topologies, which only the caller (``pipeline.infer``) can supply."""
+    auto = McmcConfig()
+    assert auto.initial == "auto"
+    by_threshold = [starts_from_filter(replace(auto, auto_filter_visits=k), 5) for k in (4, 5, 6)]
+    assert by_threshold == [True, False, False]
+    assert starts_from_filter(McmcConfig(initial="rbpf"), 1) is True
+    assert starts_from_filter(McmcConfig(initial="singletons", auto_filter_visits=1), 5) is False
+    with McmcSampler(model5, auto, 0) as sampler:
+        assert [next(iter(rec.visited)) for rec in sampler.records] == [(0, 1, 2, 3, 4)] * auto.chains
+    with pytest.raises(ConfigError, match=r"'auto' over 5 visits needs the filter's topologies"):
+        McmcSampler(model5, replace(auto, auto_filter_visits=4), 0)
+    given = (0, 0, 1, 1, 0)
+    with McmcSampler(model5, replace(auto, auto_filter_visits=4), 0, initial=given) as sampler:
+        assert next(iter(sampler.records[0].visited)) == given
 
 
 def test_each_chain_starts_from_its_given_topology(model6):

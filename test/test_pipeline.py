@@ -239,14 +239,18 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert total_variation(dist["exact"], dist["mcmc"]) < 0.01
     assert total_variation(dist["exact"], dist["rbpf"]) < 0.05  # EKF linearisation vs batch Laplace
     assert ptms["mcmc"].inference["converged"] is True
+    assert ptms["mcmc"].inference["initial"] == "singletons"  # "auto" on a short run
+    assert "versus_rbpf" not in ptms["mcmc"].inference
 
 
-def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path):
-    """``initial: rbpf``: the chains start from the filter's topologies and ptm.json compares the PTMs."""
+@pytest.mark.parametrize("start", [{"initial": "rbpf"}, {"initial": "auto", "auto_filter_visits": 3}])
+def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path, start):
+    """``initial: rbpf`` (or ``auto`` on a run longer than ``auto_filter_visits``): the chains start from
+    the filter's topologies and ptm.json compares the PTMs."""
     from ptm_ros.posterior import total_variation
 
     model = {"use_laser": False, "odometry": {"n_samples": 0}}
-    inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {"initial": "rbpf", "chains": 2}}
+    inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {**start, "chains": 2}}
     ptm = run_offline(tjunction_bag, tmp_path / "m", small_config(model=model, inference=inference)).ptm
     exact_cfg = small_config(model=model, inference={"method": "exact", "top": 10_000})
     exact = run_offline(tjunction_bag, tmp_path / "e", exact_cfg, write_report=False).ptm

@@ -269,8 +269,10 @@ def infer(
     if inf.method == "rbpf":
         return _infer_rbpf(visits, model, config, registrar, progress, persistence=persistence)
     if inf.method == "mcmc":
+        from ptm_ros.mcmc import starts_from_filter
+
         ensemble = None
-        if inf.mcmc.initial == "rbpf":  # the filter's whole ensemble: the chains' starts and the yardstick
+        if starts_from_filter(inf.mcmc, len(visits)):  # the filter's ensemble: the starts and the yardstick
             every = replace(config, inference=replace(inf, top=inf.particles))
             ensemble = _infer_rbpf(visits, model, every, registrar, progress).probabilities
         return _infer_mcmc(model, config, ensemble)
@@ -296,8 +298,8 @@ def _infer_mcmc(
     model: PosteriorModel, config: PtmConfig, ensemble: Mapping[Labels, float] | None = None
 ) -> Inference:
     """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
-    particle filter's ``ensemble`` (``initial: rbpf``), chain c starts from its c-th topology and the
-    details compare the two PTMs (:func:`compare_to_filter`)."""
+    particle filter's ``ensemble`` (``initial: rbpf``, or ``auto`` on a long run), chain c starts from
+    its c-th topology and the details compare the two PTMs (:func:`compare_to_filter`)."""
     from ptm_ros.mcmc import run_mcmc
 
     inf = config.inference
@@ -322,7 +324,7 @@ def _infer_mcmc(
             "n_evaluated": d.n_evaluated,
             "samples": res.samples,
             "acceptance": dict(d.acceptance),
-            "initial": inf.mcmc.initial,
+            "initial": "rbpf" if ensemble is not None else inf.mcmc.initial.replace("auto", "singletons"),
             **versus,
             **cold_chain_details(res),
         },
