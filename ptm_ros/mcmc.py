@@ -1311,14 +1311,21 @@ def _sort(probs: dict[Labels, float]) -> dict[Labels, float]:
     return dict(sorted(probs.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
+def initial_kind(config: McmcConfig, n: int) -> str:
+    """The start ``config.initial`` means over ``n`` visits: "auto" resolved to "rbpf" beyond
+    ``auto_filter_visits`` visits, else to "singletons"; any other setting as it is."""
+    if config.initial != "auto":
+        return config.initial
+    return "rbpf" if n > config.auto_filter_visits else "singletons"
+
+
 def starts_from_filter(config: McmcConfig, n: int) -> bool:
-    """Whether the chains over ``n`` visits start from the particle filter's topologies: ``initial`` is
-    "rbpf", or "auto" with more than ``auto_filter_visits`` visits."""
-    return config.initial == "rbpf" or (config.initial == "auto" and n > config.auto_filter_visits)
+    """Whether the chains over ``n`` visits start from the particle filter's topologies."""
+    return initial_kind(config, n) == "rbpf"
 
 
 def _initial_state(kind: str, n: int, rng: np.random.Generator) -> Labels:
-    if kind in ("singletons", "auto"):
+    if kind == "singletons":
         return tuple(range(n))
     if kind == "one-place":
         return (0,) * n
@@ -1377,7 +1384,7 @@ class McmcSampler:
         ladders = []
         for c, gen in enumerate(gens):
             state = (
-                _initial_state(self.config.initial, model.n, gen)
+                _initial_state(initial_kind(self.config, model.n), model.n, gen)
                 if starts is None
                 else starts[c % len(starts)]
             )

@@ -300,7 +300,7 @@ def _infer_mcmc(
     """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
     particle filter's ``ensemble`` (``initial: rbpf``, or ``auto`` on a long run), chain c starts from
     its c-th topology and the details compare the two PTMs (:func:`compare_to_filter`)."""
-    from ptm_ros.mcmc import run_mcmc
+    from ptm_ros.mcmc import initial_kind, run_mcmc
 
     inf = config.inference
     starts = None if ensemble is None else list(ensemble)[: inf.mcmc.chains]
@@ -324,7 +324,7 @@ def _infer_mcmc(
             "n_evaluated": d.n_evaluated,
             "samples": res.samples,
             "acceptance": dict(d.acceptance),
-            "initial": "rbpf" if ensemble is not None else inf.mcmc.initial.replace("auto", "singletons"),
+            "initial": initial_kind(inf.mcmc, model.n),
             **versus,
             **cold_chain_details(res),
         },
