@@ -144,7 +144,7 @@ _LOG_HALF = math.log(0.5)
 _MAX_SPLIT_ENUMERATION = 20
 #: Kernel tables cached per topology / block before the cache is reset.
 _CACHE_SIZE = 20_000
-#: Sweeps between wall-clock checks and between switching chains that share a process.
+#: Sweeps a chain runs before the next chain sharing its process takes a turn.
 _CHUNK = 64
 
 
@@ -191,7 +191,8 @@ class McmcConfig:
         burn_in: fraction of each chain's sweeps left out of the histogram estimate.
         min_iterations: sweeps of the first round (rounds then double).
         max_iterations: cap on sweeps per chain.
-        max_seconds: cap on wall time (s).
+        max_seconds: cap on the sampling's wall time (s), checked after every sweep; the particle filter
+            run for the starts (``initial`` "rbpf") and the report after sampling come on top.
         trace_samples: most cold-chain states kept per chain in :attr:`McmcResult.cold_states` (the trace
             is thinned by a common stride to fit; for SRQ plots, thesis Ch. 3.6).
     """
@@ -1141,11 +1142,10 @@ class _Ladder:
         self.iteration += 1
 
     def run(self, until: int, deadline: float | None) -> None:
-        """Sweep up to ``until`` sweeps in all, or until ``deadline`` (``time.monotonic``)."""
+        """Sweep up to ``until`` sweeps in all, or until ``deadline`` (``time.monotonic``), checked after
+        every sweep: one sweep on a long run can take a second while its registrations are computed."""
         while self.iteration < until:
-            stop = min(until, self.iteration + _CHUNK)
-            while self.iteration < stop:
-                self.sweep()
+            self.sweep()
             if deadline is not None and time.monotonic() >= deadline:
                 return
 
@@ -1200,7 +1200,7 @@ class _InlineRunner:
         deadline = time.monotonic() + seconds
         while any(lad.iteration < until for lad in self.ladders) and time.monotonic() < deadline:
             for lad in self.ladders:
-                lad.run(min(until, lad.iteration + _CHUNK), None)
+                lad.run(min(until, lad.iteration + _CHUNK), deadline)
         return [lad.report() for lad in self.ladders]
 
     def close(self) -> None:

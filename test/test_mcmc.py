@@ -372,6 +372,29 @@ def test_caps_stop_an_unconverged_run(model5):
     assert timed.diagnostics.iterations < 10**9
 
 
+@pytest.mark.parametrize("processes", [1, 2])
+def test_the_time_cap_is_checked_after_every_sweep(model5, monkeypatch, processes):
+    """A long run's sweep can take a second (its registrations computed on first use): the cap must not
+    wait for a whole chunk of sweeps. Counted in sweeps, so a slow machine cannot fail it."""
+    import time
+
+    import ptm_ros.mcmc as mcmc_module
+
+    sweep = mcmc_module._Ladder.sweep
+
+    def slow_sweep(self):
+        time.sleep(0.05)
+        sweep(self)
+
+    monkeypatch.setattr(mcmc_module._Ladder, "sweep", slow_sweep)  # inherited by forked workers
+    cfg = McmcConfig(chains=2, processes=processes, tolerance=1e-9, min_iterations=500, max_seconds=0.3)
+    with McmcSampler(model5, cfg, 0) as sampler:
+        reached = sampler.advance(cfg.min_iterations, cfg.max_seconds)
+        sweeps = [rec.iteration for rec in sampler.records]
+    assert 1 <= reached < 500
+    assert max(sweeps) <= 0.3 / 0.05 + 2  # the deadline, plus the sweep that crosses it
+
+
 def test_deterministic_under_a_seed(model6):
     cfg = McmcConfig(min_iterations=300, max_iterations=300, max_chaining=2, betas=(1.0, 0.6))
     a = run_mcmc(model6, cfg, 11)
