@@ -37,10 +37,13 @@ JSON (other parts already there are kept):
   Laplace estimate and MAP differences are exact (below that, differing MAPs are re-compared over other
   importance-sampling seeds). Reported: TV between the PTMs, both MAPs'
   log posteriors under one :class:`~ptm_ros.posterior.PosteriorModel`, whether they are equal and why not,
-  their F1 against ground truth, wall times, convergence, the SRQ deviation of each cold chain, and the
+  their F1 against ground truth, wall times, convergence (also on the pairs' same-place probabilities),
+  the SRQ deviation of each cold chain, and the
   TV between MCMC and the RBPF's topologies re-weighted by the batch posterior (which separates "the
   filter lost a topology" from "the filter weighs its topologies differently"), the visit pairs'
-  same-place marginals of the two PTMs, and whether a filter with 1000 particles holds MCMC's MAPs.
+  same-place marginals of the two PTMs, whether a filter with 1000 particles holds MCMC's MAPs, and,
+  for the visit pairs where the two MAPs (or the two marginals) differ, which one the ground truth sides
+  with (``versus_truth``).
 
 Usage: ``PYTHONPATH=. .venv/bin/python bench/bench_mcmc.py [--quick] [--out FILE] [--processes 2]``;
 ``... bench/bench_mcmc.py --real [--runs intel aces mit-csail] [--cap 300]``.
@@ -416,6 +419,63 @@ def ptm_score(visits, probs: dict, gt: Path) -> dict[str, Any]:
     return {k: s[k] for k in keys}
 
 
+def truth_of_pairs(visits, gt: Path) -> np.ndarray:
+    """``(n, n)`` ground truth of every visit pair: 1 one place (< 1.5 m), 0 different (> 4 m), NaN unscored
+    (the grey zone, or a visit outside the ground truth's span) — ``ptm-eval``'s classification."""
+    from ptm_ros.evaluation import EvalConfig
+    from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.ptm import Landmark, make_ptm
+    from ptm_ros.tools.evaluate import true_positions_for
+
+    n = len(visits)
+    ptm = make_ptm([Landmark(v.index, v.stamp, v.pose) for v in visits], {tuple(range(n)): 1.0})
+    xy = true_positions_for(ptm, load_ground_truth(gt), max_extrapolation=0.5)
+    d = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)  # NaN rows stay NaN
+    cfg = EvalConfig()
+    out = np.full((n, n), np.nan)
+    out[d < cfg.same_radius] = 1.0
+    out[d > cfg.different_radius] = 0.0
+    return out
+
+
+def differences_vs_truth(
+    truth: np.ndarray, mcmc: dict, rbpf: dict, mcmc_map: tuple[int, ...], rbpf_map: tuple[int, ...]
+) -> dict[str, Any]:
+    """Where the two estimates differ, which one the ground truth sides with.
+
+    ``map_pairs``: visit pairs the two MAPs disagree on (one puts them at one place, the other not),
+    split into those the ground truth scores right for MCMC's MAP, for the RBPF's, and unscored (grey
+    zone). ``marginal_pairs``: the same for the pairs whose same-place marginals differ by more than 0.1,
+    a PTM being "right" when its marginal is nearer the truth; ``abs_error_*`` sums ``|p - truth|`` over
+    those scored pairs."""
+    from ptm_ros.posterior import same_place_probabilities
+
+    n = truth.shape[0]
+    iu = np.triu_indices(n, 1)
+    t = truth[iu]
+    scored = ~np.isnan(t)
+
+    def split(mask: np.ndarray, right_m: np.ndarray, right_r: np.ndarray) -> dict[str, int]:
+        return {
+            "pairs": int(mask.sum()),
+            "mcmc_right": int((mask & scored & right_m).sum()),
+            "rbpf_right": int((mask & scored & right_r).sum()),
+            "unscored": int((mask & ~scored).sum()),
+        }
+
+    a, b = np.asarray(mcmc_map), np.asarray(rbpf_map)
+    same_m, same_r = (a[:, None] == a[None, :])[iu], (b[:, None] == b[None, :])[iu]
+    tt = np.nan_to_num(t, nan=-1.0)  # never equal to 0 or 1
+    map_pairs = split(same_m != same_r, same_m == tt, same_r == tt)
+    p_m, p_r = (same_place_probabilities(d, n)[iu] for d in (mcmc, rbpf))
+    err_m, err_r = np.abs(p_m - t), np.abs(p_r - t)
+    differ = np.abs(p_m - p_r) > 0.1
+    marg = split(differ, np.nan_to_num(err_m < err_r), np.nan_to_num(err_r < err_m))
+    marg["abs_error_mcmc"] = float(np.nansum(err_m[differ]))
+    marg["abs_error_rbpf"] = float(np.nansum(err_r[differ]))
+    return {"map_pairs": map_pairs, "marginal_pairs": marg}
+
+
 def srq_deviations(res) -> list[float | None]:
     """SRQ deviation (:func:`ptm_ros.convergence.srq_deviation`) of each cold chain at one shared atom."""
     from ptm_ros.convergence import most_visited, srq_deviation, srq_points
@@ -458,8 +518,11 @@ def map_difference_noise(model: PosteriorModel, a: tuple[int, ...], b: tuple[int
     }
 
 
-def compare(model: PosteriorModel, rbpf: dict, rbpf_map: tuple[int, ...], res) -> dict[str, Any]:
-    """MCMC result ``res`` against the RBPF's PTM: TVs, MAPs under one model, and why they differ."""
+def compare(
+    model: PosteriorModel, rbpf: dict, rbpf_map: tuple[int, ...], res, truth: np.ndarray
+) -> dict[str, Any]:
+    """MCMC result ``res`` against the RBPF's PTM: TVs, MAPs under one model, why they differ, and which
+    one the ground truth ``truth`` (:func:`truth_of_pairs`) sides with where they do."""
     probs = res.probabilities
     mcmc_map = next(iter(probs))
     lp_r = model.log_posterior(rbpf_map)
@@ -506,12 +569,15 @@ def compare(model: PosteriorModel, rbpf: dict, rbpf_map: tuple[int, ...], res) -
         "rbpf_map_rank_in_mcmc": ranked.index(rbpf_map) + 1 if rbpf_map in probs else None,
         "mcmc_map_mass_in_rbpf": rbpf.get(mcmc_map, 0.0),
         "explanation": why,
+        "versus_truth": differences_vs_truth(truth, probs, rbpf, mcmc_map, rbpf_map),
         "wall_s": res.wall_s,
         "converged": d.converged,
         "stop_reason": d.stop_reason,
         "sweeps": d.iterations,
         "doubling_tv": d.doubling_tv,
         "chain_tv": d.chain_tv,
+        "doubling_pair": d.doubling_pair,
+        "chain_pair": d.chain_pair,
         "evaluated": d.n_evaluated,
         "acceptance": d.acceptance,
         "history": [dataclasses.asdict(h) for h in d.history],
@@ -558,6 +624,7 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
     # the model ``pipeline.infer`` builds for ``--method mcmc``; its values depend only on (seed, labels)
     model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
     rbpf_batch = normalize_log({lab: model.log_posterior(lab) for lab in rbpf})
+    truth = truth_of_pairs(visits, gt)
     row: dict[str, Any] = {
         "run": name,
         "visits": len(visits),
@@ -576,7 +643,7 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
     }
     for start, initial in (("singletons", None), ("rbpf", list(rbpf)[: inf.mcmc.chains])):
         res = run_mcmc(model, dataclasses.replace(inf.mcmc, initial=start), inf.seed, initial=initial)
-        out = compare(model, rbpf, rbpf_map, res)
+        out = compare(model, rbpf, rbpf_map, res, truth)
         out["score"] = ptm_score(visits, res.probabilities, gt)
         row[f"mcmc_{start}"] = out
         print(
@@ -640,6 +707,16 @@ def print_real(rows: list[dict[str, Any]]) -> None:
                 f"MCMC's MAP in a {big}-particle filter: rank "
                 f"{m[f'map_rank_in_rbpf_{big}']}, mass {m[f'map_mass_in_rbpf_{big}']:.3g}"
             )
+            print(
+                f"    convergence: doubling TV {m['doubling_tv']:.3f}, chain TV {m['chain_tv']:.3f}; "
+                f"same-place probabilities: doubling {m['doubling_pair']:.3f}, chains {m['chain_pair']:.3f}"
+            )
+            for key, what in (("map_pairs", "the MAPs"), ("marginal_pairs", "the marginals (> 0.1)")):
+                v = m["versus_truth"][key]
+                print(
+                    f"    pairs where {what} differ: {v['pairs']}; ground truth sides with MCMC on "
+                    f"{v['mcmc_right']}, with the RBPF on {v['rbpf_right']}, {v['unscored']} unscored"
+                )
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -126,7 +126,7 @@ from scipy.special import logsumexp
 from ptm_ros.appearance import AppearanceModel
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.partitions import Labels, blocks, canonical, is_canonical, random_partition, stirling2
-from ptm_ros.posterior import PosteriorModel, normalize_log, total_variation
+from ptm_ros.posterior import PosteriorModel, normalize_log, same_place_probabilities, total_variation
 from ptm_ros.visits import Visit
 
 FloatArray = NDArray[np.float64]
@@ -288,13 +288,23 @@ def thesis_ladder(n: int, step: float) -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class McmcCheck:
-    """Convergence figures after one sample-doubling round (TVs of the configured estimate)."""
+    """Convergence figures after one sample-doubling round (TVs of the configured estimate).
+
+    ``doubling_pair`` / ``chain_pair``: the same comparisons on the visit pairs' same-place
+    probabilities (:func:`pair_marginal_change`; never above the TV, as a pair's marginal is the
+    probability of an event). Over many visits the posterior spreads over so many near-equal topologies
+    that the TV between two finite samples can stay large while the map's answer to "are visits i and j
+    one place?" has settled; these say whether it has. They are reported, not part of
+    :meth:`converged` (the thesis' test is on the PTM, Ch. 3.6).
+    """
 
     iterations: int
     wall_s: float
     doubling_tv: float
     chain_tv: float | None
     n_evaluated: int
+    doubling_pair: float = 0.0
+    chain_pair: float | None = None
 
     def converged(self, tolerance: float) -> bool:
         """Sample doubling and (with several chains) chain agreement both within ``tolerance``."""
@@ -310,6 +320,8 @@ class McmcDiagnostics:
         chains: independent chains; ``betas``: their MC³ ladder.
         doubling_tv: TV between the estimate from the first half of the sweeps and from all of them.
         chain_tv: largest TV between two independent chains' estimates (None with one chain).
+        doubling_pair, chain_pair: the same two comparisons on the visit pairs' same-place
+            probabilities, largest absolute difference (:class:`McmcCheck`; reported only).
         converged: both TVs at or below the tolerance after at least ``min_iterations`` sweeps;
             ``stop_reason``: "converged", "max_iterations" or "max_seconds".
         acceptance: accepted / proposed per move kind of the cold replicas ("merge", "split", "chain";
@@ -331,6 +343,8 @@ class McmcDiagnostics:
     proposals: dict[str, int]
     n_evaluated: int
     history: tuple[McmcCheck, ...]
+    doubling_pair: float = 0.0
+    chain_pair: float | None = None
 
 
 @dataclass(frozen=True)
@@ -1307,6 +1321,31 @@ def _visited(records: Sequence[_Record], stop: int) -> dict[Labels, float]:
     return normalize_log(logp)
 
 
+#: Probability mass left out of :func:`pair_marginal_change` (the least probable topologies).
+_PAIR_MASS_TAIL = 1e-6
+
+
+def pair_marginal_change(p: dict[Labels, float], q: dict[Labels, float], n: int) -> float:
+    """Largest absolute difference between two PTMs' same-place probabilities of a visit pair
+    (:func:`ptm_ros.posterior.same_place_probabilities`), each PTM cut to its most probable topologies
+    holding all but ``1e-6`` of its mass (the cut moves a marginal by at most that)."""
+    if n < 2:
+        return 0.0
+    a, b = (same_place_probabilities(_head(d, 1.0 - _PAIR_MASS_TAIL), n) for d in (p, q))
+    return float(np.max(np.abs(a - b)[np.triu_indices(n, 1)]))
+
+
+def _head(probs: dict[Labels, float], mass: float) -> dict[Labels, float]:
+    out: dict[Labels, float] = {}
+    total = 0.0
+    for lab, pr in sorted(probs.items(), key=lambda kv: -kv[1]):
+        if total >= mass:
+            break
+        out[lab] = pr
+        total += pr
+    return out
+
+
 def _sort(probs: dict[Labels, float]) -> dict[Labels, float]:
     return dict(sorted(probs.items(), key=lambda kv: (-kv[1], kv[0])))
 
@@ -1443,13 +1482,16 @@ class McmcSampler:
         """Sample doubling TV and chain agreement TV of the estimate now."""
         n = self.iterations
         full = self.estimate(kind, stop=n)
-        doubling = total_variation(self.estimate(kind, stop=n // 2), full)
-        chain_tv = None
+        half = self.estimate(kind, stop=n // 2)
+        doubling = total_variation(half, full)
+        pair = pair_marginal_change(half, full, self.model.n)
+        chain_tv = chain_pair = None
         if len(self.records) > 1:
             per = [self.estimate(kind, stop=n, chain=c) for c in range(len(self.records))]
             chain_tv = max(total_variation(p, q) for p, q in combinations(per, 2))
+            chain_pair = max(pair_marginal_change(p, q, self.model.n) for p, q in combinations(per, 2))
         n_eval = len(set().union(*(rec.visited for rec in self.records)))
-        return McmcCheck(n, self.wall_s, doubling, chain_tv, n_eval)
+        return McmcCheck(n, self.wall_s, doubling, chain_tv, n_eval, pair, chain_pair)
 
     def cold_chain(self, max_samples: int) -> tuple[tuple[tuple[int, ...], ...], tuple[Labels, ...], int]:
         """Every chain's cold-state trace thinned to at most ``max_samples`` states by one common stride.
@@ -1506,6 +1548,8 @@ class McmcSampler:
             proposals=counts,
             n_evaluated=last.n_evaluated,
             history=hist,
+            doubling_pair=last.doubling_pair,
+            chain_pair=last.chain_pair,
         )
         histogram = self.estimate("histogram")
         visited = self.estimate("visited")

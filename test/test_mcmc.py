@@ -43,6 +43,7 @@ from ptm_ros.mcmc import (
     SplitMergeProposal,
     bhattacharyya_similarity,
     make_proposal,
+    pair_marginal_change,
     run_mcmc,
     starts_from_filter,
     thesis_ladder,
@@ -354,6 +355,28 @@ def test_converges_and_stops_on_its_own(model6):
     assert [h.iterations for h in diag.history] == [100 * 2**k for k in range(len(diag.history))]
     assert total_variation(res.probabilities, exact) <= 0.01
     assert max(res.probabilities, key=res.probabilities.get) == max(exact, key=exact.get)
+    # a pair's same-place probability is the probability of an event: it moves by at most the TV
+    for h in diag.history:
+        assert 0.0 <= h.doubling_pair <= h.doubling_tv + 1e-5
+        assert h.chain_pair is not None and 0.0 <= h.chain_pair <= h.chain_tv + 1e-5
+    last = diag.history[-1]
+    assert (diag.doubling_pair, diag.chain_pair) == (last.doubling_pair, last.chain_pair)
+
+
+def test_pair_marginal_change_is_the_largest_same_place_probability_difference():
+    p = {(0, 0, 1): 0.5, (0, 1, 2): 0.5}  # P(0~1) = 0.5, P(1~2) = 0, P(0~2) = 0
+    q = {(0, 1, 1): 0.8, (0, 0, 0): 0.2}  # P(0~1) = 0.2, P(1~2) = 1, P(0~2) = 0.2
+    assert pair_marginal_change(p, q, 3) == pytest.approx(1.0)
+    assert pair_marginal_change(p, {(0, 0, 1): 0.2, (0, 1, 2): 0.8}, 3) == pytest.approx(0.3)
+    assert pair_marginal_change(p, p, 3) == 0.0
+    assert pair_marginal_change({(0,): 1.0}, {(0,): 1.0}, 1) == 0.0
+    # two PTMs with disjoint support (TV 1) can agree on every pair: P(0~1) = P(2~3) = 0.5 in both
+    a = {(0, 0, 1, 2): 0.5, (0, 1, 2, 2): 0.5}
+    b = {(0, 0, 1, 1): 0.5, (0, 1, 2, 3): 0.5}
+    assert total_variation(a, b) == pytest.approx(1.0)
+    assert pair_marginal_change(a, b, 4) == pytest.approx(0.0)
+    # the least probable topologies holding 1e-6 of the mass are left out
+    assert pair_marginal_change(a, {**a, (0, 1, 0, 1): 1e-7}, 4) == 0.0
 
 
 def test_caps_stop_an_unconverged_run(model5):

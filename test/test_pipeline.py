@@ -23,7 +23,7 @@ from ptm_ros.partitions import bell, num_places
 from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, to_json_dict
 from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import cold_chain_details, detect_visits, run_offline
+from ptm_ros.tools.pipeline import cold_chain_details, detect_visits, inference_notes, run_offline
 
 
 @pytest.fixture(scope="module")
@@ -241,6 +241,14 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert ptms["mcmc"].inference["converged"] is True
     assert ptms["mcmc"].inference["initial"] == "singletons"  # "auto" on a short run
     assert "versus_rbpf" not in ptms["mcmc"].inference
+    inf = ptms["mcmc"].inference
+    assert 0.0 <= inf["doubling_pair"] <= inf["doubling_tv"] + 1e-5  # a pair's marginal moves <= TV
+    assert 0.0 <= inf["chain_pair"] <= inf["chain_tv"] + 1e-5
+    (line,) = inference_notes(inf)
+    assert line.startswith(f"MCMC: {inf['iterations']} sweeps of 2 chains from singletons")
+    assert ", converged;" in line
+    assert f"between chains {inf['chain_pair']:.3f}" in line
+    assert inference_notes(ptms["rbpf"].inference) == [] == inference_notes(ptms["exact"].inference)
 
 
 @pytest.mark.parametrize("start", [{"initial": "rbpf"}, {"initial": "auto", "auto_filter_visits": 3}])
@@ -280,6 +288,7 @@ def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_pat
     assert result.ptm.extra["detector"] == "laser-surprise"
     md = (tmp_path / "report.md").read_text()
     assert (tmp_path / SURPRISE).is_file() and f"({SURPRISE})" in md
+    assert inference_notes(result.ptm.inference)[0] in md
     has_states = "cold_states" in {f.name for f in dataclasses.fields(McmcResult)}
     assert (SRQ_KEY in result.ptm.inference) == has_states
     assert (tmp_path / SRQ).is_file() == has_states

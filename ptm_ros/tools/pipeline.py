@@ -321,6 +321,8 @@ def _infer_mcmc(
             "stop_reason": d.stop_reason,
             "doubling_tv": d.doubling_tv,
             "chain_tv": d.chain_tv,
+            "doubling_pair": d.doubling_pair,
+            "chain_pair": d.chain_pair,
             "n_evaluated": d.n_evaluated,
             "samples": res.samples,
             "acceptance": dict(d.acceptance),
@@ -765,7 +767,7 @@ def run_offline(
             score=score,
             surprise_trace=surprise_trace(extractor.detector),
             occupancy_map=files.get("map_png"),
-            notes=ate_notes(extra.get(TRAJECTORY_ERROR_KEY)) + versus_notes(ptm.inference.get(VERSUS_KEY)),
+            notes=ate_notes(extra.get(TRAJECTORY_ERROR_KEY)) + inference_notes(ptm.inference),
             title=f"PTM of {bag.name}",
         )
     return RunResult(
@@ -860,6 +862,32 @@ def trajectory_errors(
         "ate_odometry_m": absolute_trajectory_error(np.asarray(odom.poses)[inside, :2], true_xy),
         "poses": int(np.count_nonzero(inside)),
     }
+
+
+def inference_notes(inference: Mapping[str, Any]) -> list[str]:
+    """Report and console lines on how an estimator ended (``ptm.json``'s ``inference``): MCMC's
+    convergence figures and its comparison with the particle filter; none for the other methods."""
+    return mcmc_notes(inference) + versus_notes(inference.get(VERSUS_KEY))
+
+
+def mcmc_notes(inference: Mapping[str, Any]) -> list[str]:
+    """One line on an MCMC run's end: sweeps, evaluations, why it stopped, and the sample-doubling and
+    chain-agreement figures, on the PTM (TV) and on the visit pairs' same-place probabilities."""
+    if "stop_reason" not in inference:
+        return []
+    state = "converged" if inference["converged"] else f"not converged (stopped: {inference['stop_reason']})"
+    chains = inference["chains"]
+
+    def fig(key: str) -> str:
+        v = inference.get(key)
+        return "–" if v is None else f"{v:.3f}"
+
+    return [
+        f"MCMC: {inference['iterations']} sweeps of {chains} chain{'s' if chains != 1 else ''} from "
+        f"{inference['initial']}, {inference['n_evaluated']} topologies evaluated, {state}; TV of sample "
+        f"doubling {fig('doubling_tv')}, between chains {fig('chain_tv')}; largest change of a visit "
+        f"pair's same-place probability: doubling {fig('doubling_pair')}, between chains {fig('chain_pair')}"
+    ]
 
 
 def versus_notes(versus: Mapping[str, Any] | None) -> list[str]:

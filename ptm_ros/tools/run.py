@@ -126,7 +126,7 @@ def _progress(quiet: bool):
 def format_summary(result, top: int) -> str:
     """Human-readable lines: visits, the most probable topologies, and the score if any."""
     from ptm_ros.report import label_string
-    from ptm_ros.tools.pipeline import VERSUS_KEY, versus_notes
+    from ptm_ros.tools.pipeline import inference_notes
 
     ptm = result.ptm
     lines = [
@@ -152,7 +152,7 @@ def format_summary(result, top: int) -> str:
             f"trajectory error (ATE, {ate['poses']} poses): smoothed MAP {ate['ate_smoothed_m']:.3f} m, "
             f"odometry {ate['ate_odometry_m']:.3f} m"
         )
-    lines.extend(versus_notes(ptm.inference.get(VERSUS_KEY)))
+    lines.extend(inference_notes(ptm.inference))
     written = [str(p) for p in result.files.values()] or [str(result.ptm_path)]
     if result.report_path:
         written.append(str(result.report_path))
