@@ -420,21 +420,18 @@ def ptm_score(visits, probs: dict, gt: Path) -> dict[str, Any]:
 
 
 def truth_of_pairs(visits, gt: Path) -> np.ndarray:
-    """``(n, n)`` ground truth of every visit pair: 1 one place (< 1.5 m), 0 different (> 4 m), NaN unscored
-    (the grey zone, or a visit outside the ground truth's span) — ``ptm-eval``'s classification."""
-    from ptm_ros.evaluation import EvalConfig
+    """``(n, n)`` ground truth of every visit pair: 1 one place, 0 different, NaN unscored (the grey zone,
+    or a visit outside the ground truth's span): ``ptm-eval``'s :func:`~ptm_ros.evaluation.pair_truth`."""
+    from ptm_ros.evaluation import pair_truth
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.ptm import Landmark, make_ptm
     from ptm_ros.tools.evaluate import true_positions_for
 
     n = len(visits)
     ptm = make_ptm([Landmark(v.index, v.stamp, v.pose) for v in visits], {tuple(range(n)): 1.0})
-    xy = true_positions_for(ptm, load_ground_truth(gt), max_extrapolation=0.5)
-    d = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)  # NaN rows stay NaN
-    cfg = EvalConfig()
+    i, j, same = pair_truth(true_positions_for(ptm, load_ground_truth(gt), max_extrapolation=0.5))
     out = np.full((n, n), np.nan)
-    out[d < cfg.same_radius] = 1.0
-    out[d > cfg.different_radius] = 0.0
+    out[i, j] = out[j, i] = same
     return out
 
 
@@ -470,7 +467,7 @@ def differences_vs_truth(
     p_m, p_r = (same_place_probabilities(d, n)[iu] for d in (mcmc, rbpf))
     err_m, err_r = np.abs(p_m - t), np.abs(p_r - t)
     differ = np.abs(p_m - p_r) > 0.1
-    marg = split(differ, np.nan_to_num(err_m < err_r), np.nan_to_num(err_r < err_m))
+    marg = split(differ, err_m < err_r, err_r < err_m)  # False on unscored pairs (NaN errors)
     marg["abs_error_mcmc"] = float(np.nansum(err_m[differ]))
     marg["abs_error_rbpf"] = float(np.nansum(err_r[differ]))
     return {"map_pairs": map_pairs, "marginal_pairs": marg}
