@@ -428,7 +428,7 @@ def truth_of_pairs(visits, gt: Path) -> np.ndarray:
     from ptm_ros.tools.evaluate import true_positions_for
 
     n = len(visits)
-    ptm = make_ptm([Landmark(v.index, v.stamp, v.pose) for v in visits], {tuple(range(n)): 1.0})
+    ptm = make_ptm([Landmark.from_visit(v) for v in visits], {tuple(range(n)): 1.0})
     i, j, same = pair_truth(true_positions_for(ptm, load_ground_truth(gt), max_extrapolation=0.5))
     out = np.full((n, n), np.nan)
     out[i, j] = out[j, i] = same

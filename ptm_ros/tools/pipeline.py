@@ -873,7 +873,7 @@ def inference_notes(inference: Mapping[str, Any]) -> list[str]:
 def mcmc_notes(inference: Mapping[str, Any]) -> list[str]:
     """One line on an MCMC run's end: sweeps, evaluations, why it stopped, and the sample-doubling and
     chain-agreement figures, on the PTM (TV) and on the visit pairs' same-place probabilities."""
-    if "stop_reason" not in inference:
+    if inference.get("method") != "mcmc":
         return []
     state = "converged" if inference["converged"] else f"not converged (stopped: {inference['stop_reason']})"
     chains = inference["chains"]
