@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ptm_ros.configio import from_dict, load_yaml, to_dict
-from ptm_ros.detectors import EquidistantConfig
+from ptm_ros.detectors import EquidistantConfig, PlacedLandmarksConfig
 from ptm_ros.errors import ConfigError
 from ptm_ros.laser import LaserConfig
 from ptm_ros.laser_odometry import LaserOdometryConfig
@@ -24,7 +24,7 @@ from ptm_ros.refinement import RefinementConfig
 from ptm_ros.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
 
 METHODS = ("exact", "rbpf", "mcmc")
-DETECTORS = ("equidistant", "laser-surprise", "appearance-surprise")
+DETECTORS = ("equidistant", "laser-surprise", "appearance-surprise", "ground-truth")
 
 
 @dataclass(frozen=True)
@@ -38,10 +38,13 @@ class TopicsConfig:
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Which landmark detector to use; None = the default for the bag's sensors."""
+    """Which landmark detector to use; None = the default for the bag's sensors. ``ground-truth`` is the
+    thesis' perfect detector (:class:`ptm_ros.detectors.PlacedLandmarksConfig`), offline only: it needs
+    the run's ground truth."""
 
     kind: str | None = None
     equidistant: EquidistantConfig = field(default_factory=EquidistantConfig)
+    ground_truth: PlacedLandmarksConfig = field(default_factory=PlacedLandmarksConfig)
     laser_surprise: LaserSurpriseConfig = field(default_factory=LaserSurpriseConfig)
     appearance_surprise: AppearanceSurpriseConfig = field(default_factory=AppearanceSurpriseConfig)
     vocabulary: str | None = None  # .npz of a SIFT vocabulary (ptm_ros.vocabulary) for words models

@@ -1082,6 +1082,13 @@ def odometry_detector(ros, **params):
     return node
 
 
+def test_detector_node_refuses_the_ground_truth_detector(monkeypatch):
+    """The thesis' perfect detector needs the run's ground truth, which a live node does not have: a
+    clear ConfigError (run_node makes it a fatal log and exit code 2), not a node that never fires."""
+    with ros_context(monkeypatch) as ros, pytest.raises(ConfigError, match="only ptm-run can use it"):
+        odometry_detector(ros, **{"detector.kind": "ground-truth"})
+
+
 def visits_by_session(node):
     out = {}
     for m in node._visit_pub.items:

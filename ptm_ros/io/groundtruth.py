@@ -17,6 +17,10 @@ Simulator ground truth (schema ``ptm_ros.ground_truth/1``)::
      "poses": {"stamp": [...], "x": [...], "y": [...], "yaw": [...]},
      "places": [{"id": 0, "x": 1.0, "y": 2.0, "kind": "junction"}],
      "passages": [{"stamp": 12.5, "place": 0}]}
+
+:func:`with_placed_landmarks` adds the places and passages of the thesis' perfect landmark detector to a
+trajectory that has none (:mod:`ptm_ros.detectors`); :func:`save_sim_gt` writes any ground truth in the
+simulator's schema (what ``ptm-run --detector ground-truth`` leaves beside its ``ptm.json``).
 """
 
 from __future__ import annotations
@@ -24,13 +28,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ptm_ros.detectors import PlacedLandmarksConfig, landmark_passages, place_landmarks, resample_path
 from ptm_ros.errors import DataError
 from ptm_ros.geometry import interpolate_poses
 
@@ -255,6 +260,48 @@ def load_ground_truth(path: str | Path) -> GroundTruthTrajectory:
         return load_sim_gt(p)
     msg = f"ground truth {p}: unknown file type {suffix!r} (expected .txt CARMEN or .json simulator)"
     raise DataError(msg)
+
+
+def with_placed_landmarks(
+    truth: GroundTruthTrajectory, config: PlacedLandmarksConfig | None = None
+) -> GroundTruthTrajectory:
+    """``truth`` with the places and passages of the perfect landmark detector (:mod:`ptm_ros.detectors`):
+    unchanged when it has passages already (a simulated run: its world's places), else landmarks placed
+    along the corrected trajectory every ``config.spacing`` m (places ``0 … K−1`` of kind ``"placed"``)
+    and their visits."""
+    if truth.passages:
+        return truth
+    cfg = config or PlacedLandmarksConfig()
+    stamps, xy = resample_path(truth.stamps, truth.poses_corrected[:, :2], cfg.step)
+    marks = place_landmarks(xy, cfg.spacing)
+    visits = landmark_passages(stamps, xy, marks, cfg.capture_radius, cfg.leave_radius)
+    return replace(
+        truth,
+        places=tuple(Place(k, float(x), float(y), "placed") for k, (x, y) in enumerate(marks)),
+        passages=tuple(Passage(stamp, j) for stamp, j in visits),
+    )
+
+
+def save_sim_gt(truth: GroundTruthTrajectory, path: str | Path) -> Path:
+    """Write ``truth`` as a ``ptm_ros.ground_truth/1`` document (corrected poses, places, passages) that
+    :func:`load_sim_gt` reads back; returns the path."""
+    p = Path(path)
+    t = truth.poses_corrected
+    doc = {
+        "schema": SIM_SCHEMA,
+        "frame_id": truth.frame_id,
+        "poses": {
+            "stamp": truth.stamps.tolist(),
+            "x": t[:, 0].tolist(),
+            "y": t[:, 1].tolist(),
+            "yaw": t[:, 2].tolist(),
+        },
+        "places": [{"id": pl.id, "x": pl.x, "y": pl.y, "kind": pl.kind} for pl in truth.places],
+        "passages": [{"stamp": ps.stamp, "place": ps.place} for ps in truth.passages],
+    }
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(doc), encoding="utf-8")
+    return p
 
 
 def interpolate_pose(

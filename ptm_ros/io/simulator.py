@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ptm_ros.detectors import landmark_passages
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.geometry import between, wrap_angle
 from ptm_ros.io.worlds import World
@@ -650,17 +651,10 @@ def detect_passages(
     """Every time the position comes within ``radius`` of a place: the stamp of the closest approach.
 
     One passage per contiguous stretch within ``radius`` (a turn on the spot is one passage), sorted in
-    time.
+    time (:func:`ptm_ros.detectors.landmark_passages`).
     """
-    out: list[Passage] = []
-    for place, xy in zip(world.places, world.place_xy, strict=True):
-        dist = np.hypot(poses[:, 0] - xy[0], poses[:, 1] - xy[1])
-        inside = np.concatenate([[False], dist <= radius, [False]])
-        edges = np.flatnonzero(np.diff(inside.astype(np.int8)))
-        for lo, hi in zip(edges[::2], edges[1::2], strict=True):
-            k = lo + int(np.argmin(dist[lo:hi]))
-            out.append(Passage(float(stamps[k]), place.id))
-    return tuple(sorted(out, key=lambda p: p.stamp))
+    found = landmark_passages(stamps, poses[:, :2], world.place_xy, radius)
+    return tuple(Passage(stamp, world.places[j].id) for stamp, j in found)
 
 
 def _rng_seed(rng: np.random.Generator) -> int | None:

@@ -15,7 +15,11 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
 * ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector);
 * ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
-  (:func:`run_offline`).
+  (:func:`run_offline`);
+* ``ground_truth.json`` — with the ``ground-truth`` detector (the thesis' perfect landmark detector,
+  :func:`ground_truth_schedule`): the ground truth with the landmarks it placed and their visits
+  (simulator schema), so that ``ptm-eval DIR/ptm.json --ground-truth DIR`` scores the mass on the true
+  topology as ``ptm-run`` did.
 
 With a ground truth, ``ptm.json`` carries ``extra["trajectory_error"]`` (:func:`trajectory_errors`):
 ``ate_smoothed_m`` and ``ate_odometry_m``, the absolute trajectory errors
@@ -38,11 +42,17 @@ import numpy as np
 
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
-from ptm_ros.detectors import EquidistantDetector
+from ptm_ros.detectors import EquidistantDetector, ScheduledDetector
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.geometry import Registrar
 from ptm_ros.io.bag import RunData, read_run
-from ptm_ros.io.groundtruth import GroundTruthTrajectory, interpolate_pose, load_ground_truth
+from ptm_ros.io.groundtruth import (
+    GroundTruthTrajectory,
+    interpolate_pose,
+    load_ground_truth,
+    save_sim_gt,
+    with_placed_landmarks,
+)
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
 from ptm_ros.laser import patch_registrar
 from ptm_ros.partitions import Labels
@@ -72,6 +82,7 @@ OUTPUT_FILES = {
     "map_yaml": "map.yaml",
     "map_png": "map.png",
     "state": "filter_state.npz",
+    "ground_truth": "ground_truth.json",
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
 TRAJECTORY_ERROR_KEY = "trajectory_error"
@@ -97,9 +108,18 @@ def run_sensors(run: RunData) -> dict[str, bool]:
     }
 
 
-def make_detector(kind: str, config: PtmConfig) -> Any:
-    """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`)."""
+def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Any:
+    """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`);
+    ``ground-truth`` fires at the ``schedule`` stamps (:func:`ground_truth_schedule`) and needs them."""
     det = config.detector
+    if kind == "ground-truth":
+        if schedule is None:
+            msg = (
+                "detector 'ground-truth' (the thesis' perfect landmark detector) needs the run's ground "
+                "truth: only ptm-run can use it, with --ground-truth FILE or a simulated bag"
+            )
+            raise ConfigError(msg)
+        return ScheduledDetector(list(schedule))
     if kind == "laser-surprise":
         from ptm_ros.surprise import LaserSurpriseDetector
 
@@ -117,10 +137,17 @@ def make_detector(kind: str, config: PtmConfig) -> Any:
 
 
 def make_extractor(
-    config: PtmConfig, kind: str, *, use_scans: bool, use_images: bool, record_corrections: bool = False
+    config: PtmConfig,
+    kind: str,
+    *,
+    use_scans: bool,
+    use_images: bool,
+    record_corrections: bool = False,
+    schedule: Sequence[float] | None = None,
 ) -> VisitExtractor:
     """The streaming visit extractor shared by ``ptm-run`` and the detector node (``record_corrections``:
-    keep the laser-odometry corrections for smoothing the whole trajectory offline)."""
+    keep the laser-odometry corrections for smoothing the whole trajectory offline; ``schedule``: the
+    ``ground-truth`` detector's stamps)."""
     ext = ExtractorConfig(
         use_scans=use_scans and config.model.use_laser,
         use_images=use_images,
@@ -128,7 +155,7 @@ def make_extractor(
         record_corrections=record_corrections,
     )
     return VisitExtractor(
-        make_detector(kind, config),
+        make_detector(kind, config, schedule),
         laser=config.laser,
         appearance=config.model.appearance,
         config=ext,
@@ -146,9 +173,10 @@ def merged_messages(run: RunData) -> Iterator[tuple[float, int, int]]:
     return heapq.merge(*streams)
 
 
-def run_extractor(run: RunData, config: PtmConfig) -> VisitExtractor:
+def run_extractor(run: RunData, config: PtmConfig, schedule: Sequence[float] | None = None) -> VisitExtractor:
     """A fresh visit extractor for a recorded run: the configured detector or the default for its
-    sensors (:func:`detector_kind`), scans and panoramas used when the run has them."""
+    sensors (:func:`detector_kind`), scans and panoramas used when the run has them (``schedule``: the
+    ``ground-truth`` detector's stamps)."""
     sensors = run_sensors(run)
     return make_extractor(
         config,
@@ -156,7 +184,29 @@ def run_extractor(run: RunData, config: PtmConfig) -> VisitExtractor:
         use_scans=sensors["has_scans"],
         use_images=sensors["has_images"],
         record_corrections=True,
+        schedule=schedule,
     )
+
+
+def ground_truth_schedule(truth: GroundTruthTrajectory | None, config: PtmConfig) -> GroundTruthTrajectory:
+    """The ground truth of a ``ground-truth`` detector run, with its landmarks and their visits
+    (:func:`ptm_ros.io.groundtruth.with_placed_landmarks`; the visit stamps are its passages').
+
+    Raises:
+        ConfigError: no ground truth.
+        DataError: the landmarks are never visited (a path shorter than nothing to place).
+    """
+    if truth is None:
+        msg = (
+            "detector 'ground-truth' needs the run's ground truth: pass --ground-truth FILE "
+            "(a simulated bag's ground_truth.json is found by itself)"
+        )
+        raise ConfigError(msg)
+    placed = with_placed_landmarks(truth, config.detector.ground_truth)
+    if not placed.passages:
+        msg = "the ground truth's path visits no landmark: nothing for the ground-truth detector to fire at"
+        raise DataError(msg)
+    return placed
 
 
 def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
@@ -703,10 +753,14 @@ def run_offline(
     truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
     sensors = run_sensors(run)
     used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
+    schedule = None
+    if used.detector.kind == "ground-truth":
+        truth = ground_truth_schedule(truth, config)
+        schedule = [p.stamp for p in truth.passages]
     if saved is not None and checkpoint is not None:
         check_state_config(saved[1], used, checkpoint.path)
     diag: dict[str, Any] = {}
-    extractor = run_extractor(run, config)
+    extractor = run_extractor(run, config, schedule)
     visits = detect_visits(run, config, diag, extractor=extractor)
     memo: dict[tuple[int, int], Any] = {}
     persistence, resumed = None, 0
@@ -753,6 +807,8 @@ def run_offline(
     files["ptm"] = ptm_path
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
     files["route_graph"] = write_route_graph(ptm, out / OUTPUT_FILES["route_graph"])
+    if schedule is not None and truth is not None:  # what ptm-eval needs for the true-topology mass
+        files["ground_truth"] = save_sim_gt(truth, out / OUTPUT_FILES["ground_truth"])
     if checkpoint is not None and checkpoint.every:
         files["state"] = checkpoint.path
     score = score_against(ptm, truth) if truth is not None else None

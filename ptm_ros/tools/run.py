@@ -13,6 +13,11 @@ after the last one to ``DIR/filter_state.npz`` (``--state-file`` elsewhere; atom
 ``--resume`` continues from that file when it exists — after checking it was made with the same
 parameters on the same visits, else exit code 2 and a one-line reason — and writes the same ``ptm.json``
 as an uninterrupted run (timings aside); without the file it starts afresh.
+
+``--detector ground-truth`` replays the thesis' experiments with a perfect landmark detector (Ch. 1–3;
+its Intel run placed landmarks every 5 m): landmarks placed along the ground truth's path
+(``detector.ground_truth`` parameters; a simulated bag's own places), visits where the robot passes them;
+it needs the ground truth, scores the mass on the true topology, and writes ``DIR/ground_truth.json``.
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ PROG = "ptm-run"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ptm_ros.config import DETECTORS
+
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Compute a probabilistic topological map from a bag.",
@@ -42,9 +49,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("rbpf", "mcmc", "exact"), default=None, help="estimator")
     p.add_argument(
         "--detector",
-        choices=("equidistant", "laser-surprise", "appearance-surprise"),
+        choices=DETECTORS,
         default=None,
-        help="landmark detector (default: the default for the bag's sensors)",
+        help="landmark detector (default: the default for the bag's sensors; ground-truth: landmarks "
+        "placed along the ground truth's path, the thesis' perfect detector, needs --ground-truth or a "
+        "simulated bag)",
     )
     p.add_argument("--particles", type=int, default=None, help="particles of the RBPF")
     p.add_argument("--params", type=Path, default=None, help="YAML parameter file (see config/ptm.yaml)")
