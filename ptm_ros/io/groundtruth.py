@@ -282,12 +282,11 @@ def with_placed_landmarks(
     )
 
 
-def save_sim_gt(truth: GroundTruthTrajectory, path: str | Path) -> Path:
-    """Write ``truth`` as a ``ptm_ros.ground_truth/1`` document (corrected poses, places, passages) that
-    :func:`load_sim_gt` reads back; returns the path."""
-    p = Path(path)
+def sim_gt_document(truth: GroundTruthTrajectory) -> dict[str, Any]:
+    """``truth`` as a ``ptm_ros.ground_truth/1`` document (corrected poses, places, passages): what
+    :func:`load_sim_gt` reads (the simulator adds its own keys)."""
     t = truth.poses_corrected
-    doc = {
+    return {
         "schema": SIM_SCHEMA,
         "frame_id": truth.frame_id,
         "poses": {
@@ -299,8 +298,13 @@ def save_sim_gt(truth: GroundTruthTrajectory, path: str | Path) -> Path:
         "places": [{"id": pl.id, "x": pl.x, "y": pl.y, "kind": pl.kind} for pl in truth.places],
         "passages": [{"stamp": ps.stamp, "place": ps.place} for ps in truth.passages],
     }
+
+
+def save_sim_gt(truth: GroundTruthTrajectory, path: str | Path) -> Path:
+    """Write :func:`sim_gt_document` of ``truth`` to ``path``; returns the path."""
+    p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(doc), encoding="utf-8")
+    p.write_text(json.dumps(sim_gt_document(truth)), encoding="utf-8")
     return p
 
 

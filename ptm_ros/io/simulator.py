@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 from ptm_ros.detectors import landmark_passages
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.geometry import between, wrap_angle
+from ptm_ros.io.groundtruth import GroundTruthTrajectory, Passage, Place, sim_gt_document
 from ptm_ros.io.worlds import World
 
 FloatArray = NDArray[np.float64]
@@ -569,14 +570,6 @@ class PanoramaRenderer:
 # The run
 
 
-@dataclass(frozen=True)
-class Passage:
-    """The robot passed closest to place ``place`` at time ``stamp`` (s)."""
-
-    stamp: float
-    place: str
-
-
 @dataclass(frozen=True, eq=False)
 class SimRun:
     """A simulated run, all in memory. Stamps in s; poses ``(x, y, yaw)``.
@@ -625,20 +618,17 @@ class SimRun:
         stamps, every place of the world, the passages, and ``odometry_frame_offset``, the world pose of
         the odometry frame's origin (``true ≈ offset ⊕ odom``); plus the planned ``route`` and the
         ``config`` used."""
-        t = self.true_poses
+        truth = GroundTruthTrajectory(
+            self.odom_stamps,
+            self.true_poses,
+            frame_id="map",
+            places=tuple(Place(p.id, p.x, p.y, p.kind) for p in self.world.places),
+            passages=self.passages,
+        )
         return {
-            "schema": GROUND_TRUTH_SCHEMA,
-            "frame_id": "map",
+            **sim_gt_document(truth),
             "world": self.world.name,
             "seed": self.seed,
-            "poses": {
-                "stamp": self.odom_stamps.tolist(),
-                "x": t[:, 0].tolist(),
-                "y": t[:, 1].tolist(),
-                "yaw": t[:, 2].tolist(),
-            },
-            "places": [{"id": p.id, "x": p.x, "y": p.y, "kind": p.kind} for p in self.world.places],
-            "passages": [{"stamp": p.stamp, "place": p.place} for p in self.passages],
             "odometry_frame_offset": list(self.odometry_frame_offset),
             "route": list(self.route),
             "config": self.config.to_dict(),

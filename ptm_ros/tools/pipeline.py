@@ -17,7 +17,7 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
   (:func:`run_offline`);
 * ``ground_truth.json`` — with the ``ground-truth`` detector (the thesis' perfect landmark detector,
-  :func:`ground_truth_schedule`): the ground truth with the landmarks it placed and their visits
+  :func:`ground_truth_landmarks`): the ground truth with the landmarks it placed and their visits
   (simulator schema), so that ``ptm-eval DIR/ptm.json --ground-truth DIR`` scores the mass on the true
   topology as ``ptm-run`` did.
 
@@ -110,7 +110,7 @@ def run_sensors(run: RunData) -> dict[str, bool]:
 
 def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Any:
     """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`);
-    ``ground-truth`` fires at the ``schedule`` stamps (:func:`ground_truth_schedule`) and needs them."""
+    ``ground-truth`` fires at the ``schedule`` stamps (:func:`ground_truth_landmarks`) and needs them."""
     det = config.detector
     if kind == "ground-truth":
         if schedule is None:
@@ -188,7 +188,7 @@ def run_extractor(run: RunData, config: PtmConfig, schedule: Sequence[float] | N
     )
 
 
-def ground_truth_schedule(truth: GroundTruthTrajectory | None, config: PtmConfig) -> GroundTruthTrajectory:
+def ground_truth_landmarks(truth: GroundTruthTrajectory | None, config: PtmConfig) -> GroundTruthTrajectory:
     """The ground truth of a ``ground-truth`` detector run, with its landmarks and their visits
     (:func:`ptm_ros.io.groundtruth.with_placed_landmarks`; the visit stamps are its passages').
 
@@ -755,7 +755,7 @@ def run_offline(
     used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
     schedule = None
     if used.detector.kind == "ground-truth":
-        truth = ground_truth_schedule(truth, config)
+        truth = ground_truth_landmarks(truth, config)
         schedule = [p.stamp for p in truth.passages]
     if saved is not None and checkpoint is not None:
         check_state_config(saved[1], used, checkpoint.path)
