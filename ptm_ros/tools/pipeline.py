@@ -190,23 +190,16 @@ def run_extractor(run: RunData, config: PtmConfig, schedule: Sequence[float] | N
 
 def ground_truth_landmarks(truth: GroundTruthTrajectory | None, config: PtmConfig) -> GroundTruthTrajectory:
     """The ground truth of a ``ground-truth`` detector run, with its landmarks and their visits
-    (:func:`ptm_ros.io.groundtruth.with_placed_landmarks`; the visit stamps are its passages').
-
-    Raises:
-        ConfigError: no ground truth.
-        DataError: the landmarks are never visited (a path shorter than nothing to place).
-    """
+    (:func:`ptm_ros.io.groundtruth.with_placed_landmarks`; the visit stamps are its passages'; placed
+    landmarks always have one, the first lies on the path's start). Raises :class:`ConfigError` without
+    a ground truth."""
     if truth is None:
         msg = (
             "detector 'ground-truth' needs the run's ground truth: pass --ground-truth FILE "
             "(a simulated bag's ground_truth.json is found by itself)"
         )
         raise ConfigError(msg)
-    placed = with_placed_landmarks(truth, config.detector.ground_truth)
-    if not placed.passages:
-        msg = "the ground truth's path visits no landmark: nothing for the ground-truth detector to fire at"
-        raise DataError(msg)
-    return placed
+    return with_placed_landmarks(truth, config.detector.ground_truth)
 
 
 def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
