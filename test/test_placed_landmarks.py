@@ -3,6 +3,7 @@ placed along the true path, their visits, the scheduled detector, and ``ptm-run 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -209,6 +210,30 @@ def test_the_ground_truth_detector_needs_a_ground_truth(
         run_cli.main([str(bag), "--out", str(tmp_path / "o"), "--detector", "ground-truth", "--quiet"]) == 2
     )
     assert "needs the run's ground truth: pass --ground-truth FILE" in capsys.readouterr().err
+
+
+def test_a_ground_truth_of_another_clock_is_refused_before_the_work(
+    loop_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    truth = load_ground_truth(loop_bag)
+    shifted = dataclasses.replace(
+        truth,
+        stamps=truth.stamps + 1e6,
+        passages=tuple(dataclasses.replace(p, stamp=p.stamp + 1e6) for p in truth.passages),
+    )
+    gt = save_sim_gt(shifted, tmp_path / "late.json")
+    argv = [
+        str(loop_bag),
+        "--out",
+        str(tmp_path / "o"),
+        "--detector",
+        "ground-truth",
+        "--ground-truth",
+        str(gt),
+    ]
+    assert run_cli.main([*argv, "--quiet"]) == 2
+    assert "all lie outside the bag's odometry" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "ptm.json").exists()
 
 
 def test_intel_with_landmarks_every_5_m_beats_the_thesis(datasets_dir: Path, tmp_path: Path) -> None:

@@ -45,7 +45,7 @@ from ptm_ros.configio import to_dict
 from ptm_ros.detectors import EquidistantDetector, ScheduledDetector
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.geometry import Registrar
-from ptm_ros.io.bag import RunData, read_run
+from ptm_ros.io.bag import OdometryData, RunData, read_run
 from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
     interpolate_pose,
@@ -188,18 +188,33 @@ def run_extractor(run: RunData, config: PtmConfig, schedule: Sequence[float] | N
     )
 
 
-def ground_truth_landmarks(truth: GroundTruthTrajectory | None, config: PtmConfig) -> GroundTruthTrajectory:
-    """The ground truth of a ``ground-truth`` detector run, with its landmarks and their visits
-    (:func:`ptm_ros.io.groundtruth.with_placed_landmarks`; the visit stamps are its passages'; placed
-    landmarks always have one, the first lies on the path's start). Raises :class:`ConfigError` without
-    a ground truth."""
+def ground_truth_landmarks(
+    truth: GroundTruthTrajectory | None, config: PtmConfig, span: tuple[float, float]
+) -> GroundTruthTrajectory:
+    """The ground truth of a ``ground-truth`` detector run, with its landmarks and their visits within
+    the odometry's time ``span`` (:func:`ptm_ros.io.groundtruth.with_placed_landmarks`; the visit stamps
+    are its passages').
+
+    Raises:
+        ConfigError: no ground truth.
+        DataError: no visit within ``span`` (a ground truth of another run, or on another clock).
+    """
     if truth is None:
         msg = (
             "detector 'ground-truth' needs the run's ground truth: pass --ground-truth FILE "
             "(a simulated bag's ground_truth.json is found by itself)"
         )
         raise ConfigError(msg)
-    return with_placed_landmarks(truth, config.detector.ground_truth)
+    placed = with_placed_landmarks(truth, config.detector.ground_truth)
+    inside = tuple(p for p in placed.passages if span[0] <= p.stamp <= span[1])
+    if not inside:
+        first, last = placed.passages[0].stamp, placed.passages[-1].stamp
+        msg = (
+            f"the ground truth's landmark visits ({first:.3f} … {last:.3f} s) all lie outside the bag's "
+            f"odometry ({span[0]:.3f} … {span[1]:.3f} s): wrong ground-truth file or stamps on another clock?"
+        )
+        raise DataError(msg)
+    return replace(placed, passages=inside)
 
 
 def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
@@ -215,6 +230,15 @@ def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
     return apply_corrections(odom.stamps, wheel, stamps, [c for _, c in extractor.corrections])
 
 
+def run_odometry(run: RunData) -> OdometryData:
+    """The run's odometry stream; :class:`DataError` when the bag has none."""
+    odom = run.odometry
+    if odom is None or len(odom.stamps) == 0:
+        msg = f"bag {run.path} has no odometry"
+        raise DataError(msg)
+    return odom
+
+
 def detect_visits(
     run: RunData,
     config: PtmConfig,
@@ -228,10 +252,7 @@ def detect_visits(
     object the detector node uses (``extractor``, a fresh one, else :func:`run_extractor`; pass one to
     read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters.
     """
-    odom = run.odometry
-    if odom is None or len(odom.stamps) == 0:
-        msg = f"bag {run.path} has no odometry"
-        raise DataError(msg)
+    odom = run_odometry(run)
     if extractor is None:
         extractor = run_extractor(run, config)
     visits: list[Visit] = []
@@ -748,7 +769,8 @@ def run_offline(
     used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
     schedule = None
     if used.detector.kind == "ground-truth":
-        truth = ground_truth_landmarks(truth, config)
+        odom_stamps = run_odometry(run).stamps
+        truth = ground_truth_landmarks(truth, config, (float(odom_stamps[0]), float(odom_stamps[-1])))
         schedule = [p.stamp for p in truth.passages]
     if saved is not None and checkpoint is not None:
         check_state_config(saved[1], used, checkpoint.path)
