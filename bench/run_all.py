@@ -12,9 +12,9 @@
    the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``). Every
    run with scans is also calibrated for the laser's time offset (``ptm-calibrate``, no ground truth);
    where it chooses a non-zero offset the pipeline runs again with it (``ptm-rbpf calibrated``). Every
-   run is also replayed with the thesis' perfect landmark detector (``--detector ground-truth``: a
+   run is also replayed with landmarks fixed in the environment (``--detector ground-truth``: a
    simulated world's own places, on a real run landmarks placed every 5 m along the true path, the
-   protocol of the thesis' Intel experiment), with the filter (``ptm-rbpf gt-landmarks``) and, on the
+   protocol of the thesis' Intel experiment, Ch. 4.5), with the filter (``ptm-rbpf gt-landmarks``) and, on the
    real runs, with MCMC (``ptm-mcmc gt-landmarks``; the thesis used MC³ there). Writes
    ``bench/results.json``, ``bench/results.md`` and the occupancy maps of the real runs,
    ``bench/maps/<run>.png`` (downscaled to at most 300 kB).
@@ -190,12 +190,12 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
             dest = work / "out" / f"{name}-calibrated"
             result, row = pipeline_row(name, kind, bag, gt, dest, cal.applied(config), "ptm-rbpf calibrated")
             rows.append(row)
-    perfect = replace(config, detector=replace(config.detector, kind="ground-truth"))
+    fixed = replace(config, detector=replace(config.detector, kind="ground-truth"))
     methods = [("rbpf", "ptm-rbpf gt-landmarks")] + (
         [("mcmc", "ptm-mcmc gt-landmarks")] if kind == "real" else []
     )
     for method, label in methods:
-        cfg = replace(perfect, inference=replace(perfect.inference, method=method))
+        cfg = replace(fixed, inference=replace(fixed.inference, method=method))
         _, row = pipeline_row(name, kind, bag, gt, work / "out" / f"{name}-gt-{method}", cfg, label)
         rows.append(row)
     if kind == "real" and "map_png" in result.files:  # the calibrated run's map when there is one
@@ -285,10 +285,11 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json). "
         "`ptm-rbpf` runs with the default parameters; `ptm-rbpf calibrated` (only where the calibration "
         "below chose a non-zero offset) with `laser_odometry.time_offset` = `time_offset_s` (s) from "
-        "`ptm-calibrate`, everything else default. `gt-landmarks`: the thesis' perfect landmark detector "
+        "`ptm-calibrate`, everything else default. `gt-landmarks`: landmarks fixed in the environment "
         "(`ptm-run --detector ground-truth`: the simulated world's places; on the real runs landmarks "
         "placed every 5 m along the true path, visited within 1 m, as in the thesis' Intel experiment, "
-        "Fig. 57: 63 visits, 72 % of the mass on the true topology with MC³), defaults otherwise; "
+        "Ch. 4.5 and Fig. 57: 63 visits, 72 % of the mass on the true topology with MC³), defaults "
+        "otherwise; "
         "`true_topology_mass` = mass of the exactly-true topology (visits of one landmark share a label).",
         "",
         "| " + " | ".join(cols) + " |",

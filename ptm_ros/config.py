@@ -38,9 +38,9 @@ class TopicsConfig:
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Which landmark detector to use; None = the default for the bag's sensors. ``ground-truth`` is the
-    thesis' perfect detector (:class:`ptm_ros.detectors.PlacedLandmarksConfig`), offline only: it needs
-    the run's ground truth."""
+    """Which landmark detector to use; None = the default for the bag's sensors. ``ground-truth`` fires where
+    the true path passes landmarks fixed in the environment (:class:`ptm_ros.detectors.PlacedLandmarksConfig`,
+    the thesis' Intel protocol), offline only: it needs the run's ground truth."""
 
     kind: str | None = None
     equidistant: EquidistantConfig = field(default_factory=EquidistantConfig)

@@ -4,12 +4,13 @@ Detectors are streaming objects fed with odometry (and, for the surprise detecto
 scans or images); each ``on_*`` call returns True when a landmark visit happens at that message. The
 same objects run offline (``ptm-run``) and inside the detector node.
 
-The *perfect* landmark detector that the thesis assumes up to Ch. 3 (its Intel experiment, Ch. 3 /
-Fig. 57: "landmarks were placed every 5 meters", 63 landmark visits) needs the true path:
+Landmarks fixed in the environment, as in the thesis' Intel experiment (Ch. 4.5, Fig. 57: "63 landmarks
+were placed in the environment at a distance of 5 meters from each other"), need the true path:
 :func:`place_landmarks` places landmarks along it, :func:`landmark_passages` finds when the robot passes
-them, and :class:`ScheduledDetector` fires at those stamps. It separates topology inference from
-landmark detection (Ch. 4.1): the visits are right by construction, so what is left wrong is the
-inference's. Only offline runs with a ground truth can use it.
+them, and :class:`ScheduledDetector` fires at those stamps. The visits are then right by construction,
+like those of the perfect landmark detector that Ch. 1–3 assume, so what is left wrong is the
+inference's (topology inference judged apart from landmark detection, Ch. 4.1). Only offline runs with
+a ground truth can use it.
 
 :class:`OdometryTracker` accumulates the odometry path length and absolute rotation between visits,
 which the odometry noise model needs (:class:`ptm_ros.visits.Visit` ``travel`` / ``rotation``).
@@ -158,7 +159,7 @@ def landmark_passages(
 
 
 class ScheduledDetector:
-    """Fires at given stamps: the perfect landmark detector's visits (:func:`landmark_passages`).
+    """Fires at given stamps: the visits of landmarks fixed in the environment (:func:`landmark_passages`).
 
     :meth:`on_odometry` returns True at the first odometry sample at or after each scheduled stamp and
     sets :attr:`last_landmark_stamp` to it (the extractor then snaps the visit to the odometry sample

@@ -1,5 +1,6 @@
-"""The thesis' perfect landmark detector (Ch. 1–3; its Intel run placed landmarks every 5 m): landmarks
-placed along the true path, their visits, the scheduled detector, and ``ptm-run --detector ground-truth``."""
+"""Landmarks fixed in the environment (the thesis' Intel protocol, Ch. 4.5: placed 5 m from each other):
+landmarks placed along the true path, their visits, the scheduled detector, and
+``ptm-run --detector ground-truth``."""
 
 from __future__ import annotations
 
@@ -237,8 +238,8 @@ def test_a_ground_truth_of_another_clock_is_refused_before_the_work(
 
 
 def test_intel_with_landmarks_every_5_m_beats_the_thesis(datasets_dir: Path, tmp_path: Path) -> None:
-    """The thesis' Intel experiment (Ch. 3, Fig. 57: landmarks placed every 5 m, 63 visits, 72 % of the
-    mass on the true topology with MC³), replayed with the filter at its defaults."""
+    """The thesis' Intel experiment (Ch. 4.5, Fig. 57: landmarks placed 5 m from each other, 63 visits,
+    72 % of the mass on the true topology with MC³), replayed with the filter at its defaults."""
     from ptm_ros.tools import convert
 
     bag = tmp_path / "intel"

@@ -18,9 +18,10 @@ Simulator ground truth (schema ``ptm_ros.ground_truth/1``)::
      "places": [{"id": 0, "x": 1.0, "y": 2.0, "kind": "junction"}],
      "passages": [{"stamp": 12.5, "place": 0}]}
 
-:func:`with_placed_landmarks` adds the places and passages of the thesis' perfect landmark detector to a
-trajectory that has none (:mod:`ptm_ros.detectors`); :func:`save_sim_gt` writes any ground truth in the
-simulator's schema (what ``ptm-run --detector ground-truth`` leaves beside its ``ptm.json``).
+:func:`with_placed_landmarks` adds landmarks fixed along the path and their visits (the
+``ground-truth`` detector's) to a trajectory that has none (:mod:`ptm_ros.detectors`); :func:`save_sim_gt`
+writes any ground truth in the simulator's schema (what ``ptm-run --detector ground-truth`` leaves beside
+its ``ptm.json``).
 """
 
 from __future__ import annotations
@@ -265,7 +266,7 @@ def load_ground_truth(path: str | Path) -> GroundTruthTrajectory:
 def with_placed_landmarks(
     truth: GroundTruthTrajectory, config: PlacedLandmarksConfig | None = None
 ) -> GroundTruthTrajectory:
-    """``truth`` with the places and passages of the perfect landmark detector (:mod:`ptm_ros.detectors`):
+    """``truth`` with the places and passages of the ``ground-truth`` detector (:mod:`ptm_ros.detectors`):
     unchanged when it has passages already (a simulated run: its world's places), else landmarks placed
     along the corrected trajectory every ``config.spacing`` m (places ``0 … K−1`` of kind ``"placed"``)
     and their visits."""

@@ -16,10 +16,10 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
 * ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
   (:func:`run_offline`);
-* ``ground_truth.json`` — with the ``ground-truth`` detector (the thesis' perfect landmark detector,
-  :func:`ground_truth_landmarks`): the ground truth with the landmarks it placed and their visits
-  (simulator schema), so that ``ptm-eval DIR/ptm.json --ground-truth DIR`` scores the mass on the true
-  topology as ``ptm-run`` did.
+* ``ground_truth.json`` — with the ``ground-truth`` detector (landmarks fixed along the true path, the
+  thesis' Intel protocol, :func:`ground_truth_landmarks`): the ground truth with the landmarks it placed
+  and their visits (simulator schema), so that ``ptm-eval DIR/ptm.json --ground-truth DIR`` scores the
+  mass on the true topology as ``ptm-run`` did.
 
 With a ground truth, ``ptm.json`` carries ``extra["trajectory_error"]`` (:func:`trajectory_errors`):
 ``ate_smoothed_m`` and ``ate_odometry_m``, the absolute trajectory errors
@@ -115,7 +115,7 @@ def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None
     if kind == "ground-truth":
         if schedule is None:
             msg = (
-                "detector 'ground-truth' (the thesis' perfect landmark detector) needs the run's ground "
+                "detector 'ground-truth' (landmarks fixed along the true path) needs the run's ground "
                 "truth: only ptm-run can use it, with --ground-truth FILE or a simulated bag"
             )
             raise ConfigError(msg)

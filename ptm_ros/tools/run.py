@@ -14,8 +14,8 @@ after the last one to ``DIR/filter_state.npz`` (``--state-file`` elsewhere; atom
 parameters on the same visits, else exit code 2 and a one-line reason — and writes the same ``ptm.json``
 as an uninterrupted run (timings aside); without the file it starts afresh.
 
-``--detector ground-truth`` replays the thesis' experiments with a perfect landmark detector (Ch. 1–3;
-its Intel run placed landmarks every 5 m): landmarks placed along the ground truth's path
+``--detector ground-truth`` replays the protocol of the thesis' Intel experiment (Ch. 4.5, Fig. 57:
+landmarks placed in the environment 5 m from each other): landmarks fixed along the ground truth's path
 (``detector.ground_truth`` parameters; a simulated bag's own places), visits where the robot passes them;
 it needs the ground truth, scores the mass on the true topology, and writes ``DIR/ground_truth.json``.
 """
@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=DETECTORS,
         default=None,
         help="landmark detector (default: the default for the bag's sensors; ground-truth: landmarks "
-        "placed along the ground truth's path, the thesis' perfect detector, needs --ground-truth or a "
+        "fixed along the ground truth's path, the thesis' Intel protocol, needs --ground-truth or a "
         "simulated bag)",
     )
     p.add_argument("--particles", type=int, default=None, help="particles of the RBPF")
