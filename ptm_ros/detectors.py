@@ -19,6 +19,7 @@ which the odometry noise model needs (:class:`ptm_ros.visits.Visit` ``travel`` /
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -166,7 +167,7 @@ class ScheduledDetector:
     nearest that stamp). Stamps that fall between the same two samples fire one per sample.
     """
 
-    def __init__(self, stamps: list[float] | np.ndarray) -> None:
+    def __init__(self, stamps: Sequence[float] | np.ndarray) -> None:
         s = np.sort(np.asarray(stamps, dtype=float).reshape(-1))
         if not np.all(np.isfinite(s)):
             msg = "scheduled landmark stamps must be finite"

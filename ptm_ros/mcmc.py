@@ -1329,10 +1329,17 @@ def pair_marginal_change(p: dict[Labels, float], q: dict[Labels, float], n: int)
     """Largest absolute difference between two PTMs' same-place probabilities of a visit pair
     (:func:`ptm_ros.posterior.same_place_probabilities`), each PTM cut to its most probable topologies
     holding all but ``1e-6`` of its mass (the cut moves a marginal by at most that)."""
-    if n < 2:
-        return 0.0
-    a, b = (same_place_probabilities(_head(d, 1.0 - _PAIR_MASS_TAIL), n) for d in (p, q))
-    return float(np.max(np.abs(a - b)[np.triu_indices(n, 1)]))
+    return _largest_pair_change(_pair_marginals(p, n), _pair_marginals(q, n))
+
+
+def _pair_marginals(probs: dict[Labels, float], n: int) -> FloatArray:
+    """Same-place probabilities ``(n, n)`` of a PTM cut to all but ``_PAIR_MASS_TAIL`` of its mass."""
+    return same_place_probabilities(_head(probs, 1.0 - _PAIR_MASS_TAIL), n)
+
+
+def _largest_pair_change(a: FloatArray, b: FloatArray) -> float:
+    n = a.shape[0]
+    return 0.0 if n < 2 else float(np.max(np.abs(a - b)[np.triu_indices(n, 1)]))
 
 
 def _head(probs: dict[Labels, float], mass: float) -> dict[Labels, float]:
@@ -1484,12 +1491,14 @@ class McmcSampler:
         full = self.estimate(kind, stop=n)
         half = self.estimate(kind, stop=n // 2)
         doubling = total_variation(half, full)
-        pair = pair_marginal_change(half, full, self.model.n)
+        nv = self.model.n
+        pair = _largest_pair_change(_pair_marginals(half, nv), _pair_marginals(full, nv))
         chain_tv = chain_pair = None
         if len(self.records) > 1:
             per = [self.estimate(kind, stop=n, chain=c) for c in range(len(self.records))]
             chain_tv = max(total_variation(p, q) for p, q in combinations(per, 2))
-            chain_pair = max(pair_marginal_change(p, q, self.model.n) for p, q in combinations(per, 2))
+            marginals = [_pair_marginals(p, nv) for p in per]  # once per chain, not once per pair of chains
+            chain_pair = max(_largest_pair_change(a, b) for a, b in combinations(marginals, 2))
         n_eval = len(set().union(*(rec.visited for rec in self.records)))
         return McmcCheck(n, self.wall_s, doubling, chain_tv, n_eval, pair, chain_pair)
 

@@ -119,7 +119,7 @@ def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None
                 "truth: only ptm-run can use it, with --ground-truth FILE or a simulated bag"
             )
             raise ConfigError(msg)
-        return ScheduledDetector(list(schedule))
+        return ScheduledDetector(schedule)
     if kind == "laser-surprise":
         from ptm_ros.surprise import LaserSurpriseDetector
 
