@@ -28,8 +28,9 @@ $(VENV): requirements.txt
 install: $(VENV)
 	$(PIP) install -q --no-deps --no-build-isolation .
 
-test: install
-	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider test
+# The whole suite, after the lint (formatting, ruff, the import layers of .importlinter).
+test: lint install
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 test
 
 # The node suite over DDS on the bundled bag (separate processes, launch-free), then the score.
 demo: install
@@ -41,6 +42,7 @@ bench: install
 lint: $(VENV)
 	$(VENV)/bin/ruff check ptm_ros test bench
 	$(VENV)/bin/ruff format --check ptm_ros test bench
+	$(VENV)/bin/lint-imports --no-cache
 
 clean:
 	rm -rf build *.egg-info out .pytest_cache

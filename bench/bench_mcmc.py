@@ -29,8 +29,8 @@ JSON (other parts already there are kept):
   ``../shared/datasets``), one after the other. Visits are detected once per run with the default
   :class:`~ptm_ros.config.PtmConfig` (cached in ``--cache``); one cached registrar is shared by every
   estimator of a run (the RBPF runs first and pays for most registrations). The RBPF
-  (``pipeline.infer``, method rbpf, its whole particle set) against MCMC (``run_mcmc`` on the model
-  ``pipeline.infer`` builds, i.e. ``--method mcmc``, with a ``--cap`` on wall time) started (a) from
+  (``session.infer``, method rbpf, its whole particle set) against MCMC (``run_mcmc`` on the model
+  ``session.infer`` builds, i.e. ``--method mcmc``, with a ``--cap`` on wall time) started (a) from
   all-singletons (``initial: singletons``, the thesis' start) and (b) from the RBPF's most probable
   topologies, one per chain (``initial: rbpf``, what the default ``auto`` does on these runs). All
   three runs have more than ``max_sampled_visits`` visits, so the batch posterior is the deterministic
@@ -79,7 +79,7 @@ from ptm_ros.mcmc import McmcConfig, McmcSampler, run_mcmc
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.partitions import canonical, enumerate_partitions
 from ptm_ros.posterior import ModelConfig, PosteriorModel, normalize_log, total_variation
-from ptm_ros.tools.pipeline import compare_to_filter
+from ptm_ros.session import compare_to_filter
 from ptm_ros.visits import Visit
 
 THRESHOLD = 0.02
@@ -594,8 +594,8 @@ BIG_FILTER_PARTICLES = 1000
 
 def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
     """RBPF and MCMC (from singletons, from the RBPF's MAP) on one real run (module docstring)."""
+    from ptm_ros import factories, session
     from ptm_ros.config import PtmConfig
-    from ptm_ros.tools import pipeline
 
     bag = REAL_BAGS / name
     gt = DATASETS / name / REAL_RUNS[name]
@@ -606,10 +606,10 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
         base.inference, top=10**9, mcmc=dataclasses.replace(base.inference.mcmc, max_seconds=cap_s)
     )
     config = dataclasses.replace(base, inference=inf)
-    registrar = pipeline.cached(pipeline.make_registrar(visits, config))
+    registrar = factories.cached(factories.make_registrar(visits, config))
 
     t0 = time.perf_counter()
-    rb = pipeline.infer(
+    rb = session.infer(
         visits,
         dataclasses.replace(config, inference=dataclasses.replace(inf, method="rbpf")),
         registrar=registrar,
@@ -618,7 +618,7 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
     rbpf = dict(rb.probabilities)
     rbpf_map = next(iter(rbpf))
 
-    # the model ``pipeline.infer`` builds for ``--method mcmc``; its values depend only on (seed, labels)
+    # the model ``session.infer`` builds for ``--method mcmc``; its values depend only on (seed, labels)
     model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
     rbpf_batch = normalize_log({lab: model.log_posterior(lab) for lab in rbpf})
     truth = truth_of_pairs(visits, gt)
@@ -651,7 +651,7 @@ def real_run(name: str, cap_s: float, cache: Path) -> dict[str, Any]:
     # does a filter with 10x the particles hold the MAPs MCMC found (why the 100-particle filter missed them)
     big = BIG_FILTER_PARTICLES
     t0 = time.perf_counter()
-    more = pipeline.infer(
+    more = session.infer(
         visits,
         dataclasses.replace(config, inference=dataclasses.replace(inf, method="rbpf", particles=big)),
         registrar=registrar,

@@ -43,7 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from ptm_ros.errors import DataError, ModelError
+from ptm_ros.appearance import AppearanceModel, NigPrior
+from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import NoMatch, RelativePose
 from ptm_ros.rbpf import registration_from_row, registration_row, visit_dict, visit_from_dict
 from ptm_ros.visits import Visit
@@ -291,6 +292,40 @@ def visit_from_state(d: dict[str, Any]) -> Visit:
         return visit_from_dict(d)
     except (KeyError, TypeError, ValueError, ModelError) as err:
         msg = f"corrupt filter state: bad visit entry ({type(err).__name__}: {err})"
+        raise DataError(msg) from err
+
+
+def appearance_to_state(model: AppearanceModel | None) -> dict[str, Any] | None:
+    """Fitted appearance priors (:class:`~ptm_ros.appearance.AppearanceModel`) as plain values and
+    arrays: a restored filter then scores with exactly the priors it was built with."""
+    if model is None:
+        return None
+    nig = model.nig
+    return {
+        "nig": None
+        if nig is None
+        else {"mu": nig.mu, "kappa": nig.kappa, "alpha": nig.alpha, "beta": nig.beta},
+        "dcm_alpha": model.dcm_alpha,
+    }
+
+
+def appearance_from_state(d: Mapping[str, Any] | None) -> AppearanceModel | None:
+    """Inverse of :func:`appearance_to_state`.
+
+    Raises:
+        DataError: a malformed entry.
+    """
+    if d is None:
+        return None
+    try:
+        nig = (
+            None
+            if d["nig"] is None
+            else NigPrior(**{k: d["nig"][k] for k in ("mu", "kappa", "alpha", "beta")})
+        )
+        return AppearanceModel(nig=nig, dcm_alpha=d["dcm_alpha"])
+    except (KeyError, TypeError, ValueError, PtmError) as err:
+        msg = f"corrupt filter state: bad appearance priors ({type(err).__name__}: {err})"
         raise DataError(msg) from err
 
 

@@ -46,3 +46,18 @@ def multi_loop_run(tmp_path_factory):
         labels.append(near[0] if near else max(labels, default=-1) + 1)
     assert len(set(labels)) < len(labels), "the run must revisit a place"
     return run, config, visits, odom, labels, sim.true_poses
+
+
+@pytest.fixture(scope="session")
+def sim_bag(tmp_path_factory):
+    """A short simulated t-junction run (5 visits of its places, seed 4)."""
+    out = tmp_path_factory.mktemp("nodes") / "tj"
+    write_run(simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(4), visits=5), out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def sim_visits(sim_bag):
+    """Equidistant visits of :func:`sim_bag`, with signatures and laser patches."""
+    # equidistant visits: enough of them on this short bag (laser surprise finds only its 2 junctions)
+    return detect_visits(read_run(sim_bag), load_config(None, {"detector": {"kind": "equidistant"}}))

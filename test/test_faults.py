@@ -97,7 +97,7 @@ def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
 
     from ptm_ros.nodes.common import STREAM_QOS
     from ptm_ros.nodes.messages import parse_visit_message
-    from ptm_ros.nodes.topology_filter import FilterSession
+    from ptm_ros.session import FilterSession
     from ptm_ros.tools.bringup import load_parameters
 
     out = tmp_path / "faulted"

@@ -658,7 +658,7 @@ def test_filter_neutral_storm_leaves_the_ensemble_exact(ros):
     from std_msgs.msg import String
 
     from ptm_ros.nodes.landmark_detector import visit_message
-    from ptm_ros.nodes.topology_filter import FilterSession
+    from ptm_ros.session import FilterSession
 
     rng = np.random.default_rng(11)
     visits = synthetic_visits(rng)
@@ -741,7 +741,7 @@ def test_filter_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros):
     from std_msgs.msg import String
 
     from ptm_ros.nodes.landmark_detector import visit_message
-    from ptm_ros.nodes.topology_filter import FilterSession
+    from ptm_ros.session import FilterSession
 
     rng = np.random.default_rng(12)
     visits = synthetic_visits(rng)

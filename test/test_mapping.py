@@ -10,12 +10,11 @@ import pytest
 
 from ptm_ros.config import load_config
 from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.factories import cached, make_registrar
 from ptm_ros.mapping import KeyframeStream, MappingConfig, OnlineMap
 from ptm_ros.occupancy import aligned_windows as aligned
 from ptm_ros.tools.pipeline import (
-    cached,
     detect_visits,
-    make_registrar,
     map_trajectory,
     merged_messages,
     occupancy_grid,

@@ -18,9 +18,8 @@ from ros_helpers import Inbox, dds_env, next_domain_id, ros_context, wait_for
 
 from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.errors import ConfigError, DataError, ModelError
+from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
-from ptm_ros.io.simulator import SimConfig, simulate, write_run
-from ptm_ros.io.worlds import get_world
 from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
@@ -28,7 +27,6 @@ from ptm_ros.nodes.messages import parse_visit_message, scan_payload
 from ptm_ros.nodes.topology_filter import (
     BENIGN,
     COUNTERS,
-    FilterSession,
     edge_probabilities,
     ensemble_markers,
     graph_document,
@@ -36,31 +34,12 @@ from ptm_ros.nodes.topology_filter import (
 )
 from ptm_ros.occupancy import load_map, to_ros_data, trinary
 from ptm_ros.partitions import enumerate_partitions
-from ptm_ros.persistence import load_filter_state, save_filter_state
+from ptm_ros.persistence import load_filter_state
 from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
-from ptm_ros.tools.pipeline import (
-    corrected_odometry,
-    detect_visits,
-    infer,
-    make_extractor,
-    make_registrar,
-    run_extractor,
-)
+from ptm_ros.session import FilterSession
+from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
 
 # --------------------------------------------------------------------------------------------- fixtures
-
-
-@pytest.fixture(scope="module")
-def sim_bag(tmp_path_factory):
-    out = tmp_path_factory.mktemp("nodes") / "tj"
-    write_run(simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(4), visits=5), out)
-    return out
-
-
-@pytest.fixture(scope="module")
-def sim_visits(sim_bag):
-    # equidistant visits: enough of them on this short bag (laser surprise finds only its 2 junctions)
-    return detect_visits(read_run(sim_bag), load_config(None, {"detector": {"kind": "equidistant"}}))
 
 
 def no_laser() -> PtmConfig:
@@ -396,128 +375,6 @@ def test_an_error_raised_by_the_shutdown_itself_is_a_clean_stop(monkeypatch):
     with pytest.raises(RuntimeError, match="a bug"):
         common.run_node(Probe, ["probe"], "probe")
     assert destroyed == [True, True] and not rclpy.ok()
-
-
-# ------------------------------------------------------------------------------------- filter session
-
-
-def cached(registrar):
-    cache = {}
-
-    def reg(i, j):
-        if (i, j) not in cache:
-            cache[(i, j)] = registrar(i, j)
-        return cache[(i, j)]
-
-    return reg
-
-
-def test_streaming_session_equals_the_offline_rbpf_after_every_visit(sim_visits):
-    """The ensemble after visit n is ptm-run's RBPF on visits 0..n, exactly (appearance refit + replay)."""
-    config = load_config(None, {"inference": {"particles": 30}})
-    session = FilterSession(config)
-    registrar = cached(make_registrar(sim_visits, config))
-    assert any(v.signature is not None for v in sim_visits) and any(v.patch is not None for v in sim_visits)
-    for n, visit in enumerate(sim_visits):
-        session.add(visit)
-        offline = infer(sim_visits[: n + 1], config, registrar=registrar)
-        online = session.inference()
-        assert online.probabilities == offline.probabilities  # same topologies, bit-identical masses
-        for lab in offline.probabilities:
-            assert np.array_equal(online.positions[lab], offline.positions[lab])
-    assert session.replays > 0  # the appearance priors did change along the way
-
-
-def test_session_rejects_out_of_order_visits_and_resets(sim_visits):
-    session = FilterSession(no_laser())
-    session.add(sim_visits[0])
-    before = session.inference().probabilities
-    with pytest.raises(DataError, match="expected visit 1, got visit 2"):
-        session.add(sim_visits[2])
-    assert session.inference().probabilities == before and len(session.visits) == 1
-    session.reset()
-    assert session.filter is None and not session.visits
-    with pytest.raises(DataError, match="no visit"):
-        session.inference()
-    with pytest.raises(ConfigError, match="use ptm-run for 'exact'"):
-        FilterSession(load_config(None, {"inference": {"method": "exact"}}))
-
-
-def test_frozen_appearance_priors_stop_replays(sim_visits):
-    from ptm_ros.appearance import fit_appearance_model
-
-    # with every visit carrying a signature: replays only while at most 3 visits, then the fit is frozen
-    signed = [replace(v, index=i) for i, v in enumerate(v for v in sim_visits if v.signature is not None)]
-    assert len(signed) >= 5
-    session = FilterSession(no_laser(), refit_max_visits=3)
-    for v in signed:
-        session.add(v)
-    assert session.replays == 2
-    frozen = fit_appearance_model(signed[:3], no_laser().model.appearance)
-    assert np.array_equal(session.filter.appearance.nig.mu, frozen.nig.mu)
-    assert np.array_equal(session.filter.appearance.nig.beta, frozen.nig.beta)
-    # appearance switching on (a second visit with a signature; visits without one are missing
-    # measurements) replays the filter, even when the priors are frozen; a missing one later does not
-    session = FilterSession(no_laser(), refit_max_visits=3)
-    visits = [replace(v, signature=None) if n < 4 or n == 6 else v for n, v in enumerate(signed)]
-    for n, v in enumerate(visits):
-        before = session.replays
-        session.add(v)
-        if n >= 3:
-            assert (session.replays > before) == (n == 5)
-    assert session.filter.appearance is not None
-
-
-@pytest.mark.parametrize(
-    ("laser", "refit", "k"),
-    [(False, 0, 4), (True, 3, 5)],  # appearance refit + replay after every visit; frozen priors, updates
-)
-def test_session_restored_from_a_state_file_continues_exactly(sim_visits, tmp_path, laser, refit, k):
-    """Issue #8: a session saved after k visits, restored into a new session and continued, ends exactly
-    where the uninterrupted session does (ensemble, positions, replays, registration counters)."""
-    config = load_config(
-        None, {"model": {"use_laser": laser}, "inference": {"particles": 30 if laser else 20}}
-    )
-    whole = FilterSession(config, refit_max_visits=refit)
-    for v in sim_visits:
-        whole.add(v)
-    first = FilterSession(config, refit_max_visits=refit)
-    for v in sim_visits[:k]:
-        first.add(v)
-    save_filter_state(tmp_path / "s.npz", first.state_dict(), meta={})
-    resumed = FilterSession(config, refit_max_visits=refit)
-    resumed.load_state(load_filter_state(tmp_path / "s.npz")[0])
-    assert resumed.visits == first.visits and resumed.filter.log_weights() == first.filter.log_weights()
-    if laser:
-        assert resumed._pairs.keys() == first._pairs.keys() and resumed.registrations == first.registrations
-    for v in sim_visits[k:]:
-        resumed.add(v)
-    assert resumed.inference().probabilities == whole.inference().probabilities  # bit-identical masses
-    for lab, pos in whole.inference().positions.items():
-        assert np.array_equal(resumed.inference().positions[lab], pos)
-    assert resumed.filter.log_evidence == whole.filter.log_evidence
-    assert resumed.replays == whole.replays and resumed.registrations == whole.registrations
-    if refit:
-        assert resumed.replays < len(sim_visits) - 1  # the restored filter itself was updated
-
-
-def test_session_state_errors_leave_an_empty_session(sim_visits):
-    session = FilterSession(no_laser())
-    for v in sim_visits[:3]:
-        session.add(v)
-    state = session.state_dict()
-    with pytest.raises(DataError, match="not a filter session state"):
-        session.load_state({"schema": "ptm_ros.rbpf/1"})
-    for broken in (
-        {k: v for k, v in state.items() if k != "pairs"},
-        {**state, "built_at": 7},
-        {**state, "visits": state["visits"][:2]},
-    ):
-        with pytest.raises(DataError, match="malformed filter session state"):
-            session.load_state(broken)
-        assert session.filter is None and not session.visits
-    session.load_state(state)
-    assert len(session.visits) == 3 and session.filter.visits == session.visits
 
 
 # ------------------------------------------------------------------------------------- graph and markers

@@ -22,8 +22,9 @@ from ptm_ros.occupancy import FREE, OCCUPIED, load_map
 from ptm_ros.partitions import bell, num_places
 from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, to_json_dict
 from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
+from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import cold_chain_details, detect_visits, inference_notes, run_offline
+from ptm_ros.tools.pipeline import detect_visits, inference_notes, run_offline
 
 
 @pytest.fixture(scope="module")

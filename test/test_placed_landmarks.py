@@ -22,6 +22,7 @@ from ptm_ros.detectors import (
     resample_path,
 )
 from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.factories import make_detector
 from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
     Passage,
@@ -35,7 +36,7 @@ from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
 from ptm_ros.tools import evaluate as eval_cli
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import make_detector, run_offline
+from ptm_ros.tools.pipeline import run_offline
 
 
 def square_laps(laps: int = 2, side: float = 20.0, speed: float = 0.5, dt: float = 0.1) -> tuple:

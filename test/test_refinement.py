@@ -10,12 +10,13 @@ import pytest
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.evaluation import absolute_trajectory_error
+from ptm_ros.factories import cached, make_registrar
 from ptm_ros.geometry import between
 from ptm_ros.mapping import scan_points
 from ptm_ros.posegraph import RelativeFactors
 from ptm_ros.refinement import RefinementConfig, keyframe_scans, refine_trajectory
 from ptm_ros.smoothing import RobustGraph, SmoothingConfig, robust_optimum, smooth_topology
-from ptm_ros.tools.pipeline import cached, make_registrar, map_trajectory
+from ptm_ros.tools.pipeline import map_trajectory
 
 
 @pytest.mark.parametrize(

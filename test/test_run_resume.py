@@ -270,7 +270,7 @@ def test_other_methods_and_bad_options_are_refused(bag, params, tmp_path, capsys
         err = capsys.readouterr().err.strip()
         assert err.startswith("ptm-run: error: ") and "\n" not in err, err
     assert not (tmp_path / "o").exists()
-    with pytest.raises(ConfigError, match="needs method rbpf"):
+    with pytest.raises(ConfigError, match="needs the particle filter"):
         run_offline(
             bag,
             tmp_path / "o",

@@ -113,6 +113,7 @@ from std_srvs.srv import Trigger
 from ptm_ros.appearance import AppearanceConfig
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
+from ptm_ros.factories import detector_kind, make_extractor
 from ptm_ros.io.bag import quaternion_to_yaw
 from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, diagnostics_dict, visit_to_json
 from ptm_ros.mapping import KeyframeStream
@@ -145,7 +146,6 @@ from ptm_ros.nodes.common import (
     valid_stamp,
 )
 from ptm_ros.nodes.messages import Rejection, ScanPayload, scan_payload
-from ptm_ros.tools.pipeline import detector_kind, make_extractor
 from ptm_ros.visits import Visit
 
 NODE_NAME = "landmark_detector"

@@ -76,6 +76,7 @@ from std_srvs.srv import Trigger
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import DataError, PtmError
+from ptm_ros.factories import cached
 from ptm_ros.geometry import Registrar
 from ptm_ros.laser import patch_registrar
 from ptm_ros.mapping import MapInputs, MapResult, OnlineMap, draw_map
@@ -98,7 +99,6 @@ from ptm_ros.nodes.common import (
 from ptm_ros.nodes.messages import parse_visit_envelope, scan_payload
 from ptm_ros.occupancy import OccupancyGrid, save_map, save_png, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
-from ptm_ros.tools.pipeline import cached
 from ptm_ros.visits import Visit
 
 NODE_NAME = "map_publisher"

@@ -79,7 +79,6 @@ import colorsys
 import dataclasses
 import json
 import math
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -96,7 +95,6 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
 from ptm_ros.errors import ConfigError, DataError, PtmError
-from ptm_ros.geometry import NoMatch, RelativePose
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
     STREAM_QOS,
@@ -113,22 +111,16 @@ from ptm_ros.nodes.messages import parse_visit_envelope
 from ptm_ros.persistence import (
     differences,
     load_filter_state,
-    registrations_from_state,
-    registrations_to_state,
     save_filter_state,
-    visit_from_state,
-    visit_to_state,
 )
-from ptm_ros.posterior import PosteriorModel
 from ptm_ros.ptm import Ptm, Topology, to_json_dict
-from ptm_ros.rbpf import FilterState, RbpfConfig, TopologyFilter
-from ptm_ros.tools.pipeline import Inference, build_ptm, make_registrar, rbpf_inference
+from ptm_ros.rbpf import FilterState
+from ptm_ros.session import FilterSession
 from ptm_ros.visits import Visit
 
 NODE_NAME = "topology_filter"
 GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
-#: Schema tags of :meth:`FilterSession.state_dict` and of the node's state file content.
-SESSION_STATE_SCHEMA = "ptm_ros.filter_session/1"
+#: Schema tag of the node's state file content (its ``session`` is a :class:`FilterSession` state).
 NODE_STATE_SCHEMA = "ptm_ros.topology_filter_state/1"
 MARKER_Z_STEP = 1.0  # m between stacked hypotheses
 MAX_VISIT_GAP = 1000  # visits: a larger jump of the detector's index is a corrupt message
@@ -150,216 +142,6 @@ COUNTERS = (
 #: Counters that are no problem (the others turn /diagnostics to WARN).
 BENIGN = ("messages", "accepted", "ends", "resets", "redelivered")
 MAX_RETIRED = 64  # finished detector sessions remembered (their late visits never start a new map)
-
-
-# ------------------------------------------------------------------------------------- filter session
-
-
-def same_model(a: Any, b: Any) -> bool:
-    """Whether two fitted appearance models (or None) are identical, array by array."""
-    if a is None or b is None:
-        return a is b
-    if dataclasses.is_dataclass(a):
-        return type(a) is type(b) and all(
-            same_model(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)
-        )
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return bool(np.array_equal(a, b))
-    return bool(a == b)
-
-
-class FilterSession:
-    """The RBPF over a stream of visits; after every visit, exactly ``ptm-run``'s RBPF on the visits so far.
-
-    Args:
-        config: the configuration (``inference.method`` must be ``rbpf``).
-        refit_max_visits: re-fit the appearance priors (and replay when they change) up to this many
-            visits; later the priors stay as fitted then. 0: always (exactly ``ptm-run``).
-
-    Raises:
-        ConfigError: another inference method, or ``refit_max_visits < 0``.
-    """
-
-    def __init__(self, config: PtmConfig, *, refit_max_visits: int = 100) -> None:
-        if config.inference.method != "rbpf":
-            msg = (
-                f"{NODE_NAME} computes the PTM online with the RBPF (inference.method: rbpf), got "
-                f"{config.inference.method!r}; use ptm-run for '{config.inference.method}'"
-            )
-            raise ConfigError(msg)
-        if refit_max_visits < 0:
-            msg = f"refit_max_visits must be >= 0, got {refit_max_visits}"
-            raise ConfigError(msg)
-        self.config = config
-        self.refit_max_visits = refit_max_visits
-        self.registrations: dict[str, Any] = {}
-        self._visits: list[Visit] = []
-        self._pairs: dict[tuple[int, int], RelativePose | NoMatch | None] = {}
-        self._filter: TopologyFilter | None = None
-        self._built_at = 0  # visits when the filter was last (re)built: its appearance priors' data
-        self.replays = 0
-        self.wall_s = 0.0
-        inner = make_registrar(self._visits, config, self.registrations) if config.model.use_laser else None
-        self._registrar = None if inner is None else self._cached(inner)
-
-    def _cached(self, inner: Any) -> Any:
-        def registrar(i: int, j: int) -> RelativePose | NoMatch | None:
-            key = (i, j)
-            if key not in self._pairs:
-                self._pairs[key] = inner(i, j)
-            return self._pairs[key]
-
-        return registrar
-
-    @property
-    def visits(self) -> tuple[Visit, ...]:
-        """The visits processed so far."""
-        return tuple(self._visits)
-
-    @property
-    def filter(self) -> TopologyFilter | None:
-        """The particle filter (None before the first visit)."""
-        return self._filter
-
-    def add(self, visit: Visit) -> FilterState:
-        """Process the next visit (``visit.index`` must equal the number of visits so far).
-
-        Raises:
-            DataError: a visit out of order.
-            ModelError: a visit the models cannot use; the session is unchanged.
-        """
-        start = time.perf_counter()
-        n = len(self._visits)
-        if visit.index != n:
-            msg = f"expected visit {n}, got visit {visit.index}"
-            raise DataError(msg)
-        self._visits.append(visit)
-        try:
-            state = self._advance(visit)
-        except BaseException:
-            self._visits.pop()
-            for key in [k for k in self._pairs if k[1] == n]:
-                del self._pairs[key]
-            raise
-        self.wall_s += time.perf_counter() - start
-        return state
-
-    def _advance(self, visit: Visit) -> FilterState:
-        inf = self.config.inference
-        # the same model object ptm-run builds: its prior and its (re-)fitted appearance priors
-        model = PosteriorModel(self._visits, self.config.model, seed=inf.seed)
-        old = self._filter
-        if old is not None:
-            frozen = 0 < self.refit_max_visits < len(self._visits)
-            if same_model(model.appearance, old.appearance) or (
-                frozen and (model.appearance is None) == (old.appearance is None)
-            ):
-                return old.update(visit)
-        new = TopologyFilter(
-            RbpfConfig(particles=inf.particles, resample=inf.resample),
-            model.prior,
-            self.config.model.odometry,
-            appearance=model.appearance,
-            registrar=self._registrar,
-            seed=inf.seed,
-        )
-        state = None
-        for v in self._visits:
-            state = new.update(v)
-        assert state is not None
-        self._filter = new
-        self._built_at = len(self._visits)
-        self.replays += int(old is not None)
-        return state
-
-    def reset(self) -> None:
-        """Forget every visit."""
-        self._visits.clear()
-        self._pairs.clear()
-        self._filter = None
-        self._built_at = 0
-        self.replays = 0
-        self.wall_s = 0.0
-        self.registrations.clear()
-
-    def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue the session (plain values and arrays, for
-        :func:`ptm_ros.persistence.save_filter_state`): the visits, the registration cache and its
-        counters, the filter's own :meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`."""
-        return {
-            "schema": SESSION_STATE_SCHEMA,
-            "visits": [visit_to_state(v) for v in self._visits],
-            "pairs": registrations_to_state(self._pairs),
-            "registrations": dict(self.registrations),
-            "built_at": self._built_at,
-            "replays": self.replays,
-            "wall_s": self.wall_s,
-            "filter": None if self._filter is None else self._filter.state_dict(),
-        }
-
-    def load_state(self, state: dict[str, Any]) -> None:
-        """Replace the session by a saved one (:meth:`state_dict`), continuing exactly where it stopped.
-
-        The filter is rebuilt with the appearance priors fitted to the visits it was built on, so that
-        frozen priors (``refit_max_visits``) are restored too.
-
-        Raises:
-            DataError: a state of another schema or a malformed one (the session is then empty).
-        """
-        if not isinstance(state, dict) or state.get("schema") != SESSION_STATE_SCHEMA:
-            schema = state.get("schema") if isinstance(state, dict) else type(state).__name__
-            msg = f"not a filter session state ({SESSION_STATE_SCHEMA}), got schema {schema!r}"
-            raise DataError(msg)
-        self.reset()
-        try:
-            self._visits.extend(visit_from_state(d) for d in state["visits"])  # the registrar's list
-            self._pairs.update(registrations_from_state(state["pairs"]))
-            self.registrations.update(state["registrations"])
-            self._built_at = int(state["built_at"])
-            self.replays = int(state["replays"])
-            self.wall_s = float(state["wall_s"])
-            if state["filter"] is not None:
-                self._filter = self._restore_filter(state["filter"])
-        except (KeyError, TypeError, ValueError, PtmError) as err:
-            self.reset()
-            msg = f"malformed filter session state: {type(err).__name__}: {err}"
-            raise DataError(msg) from err
-
-    def _restore_filter(self, state: dict[str, Any]) -> TopologyFilter:
-        if [v.index for v in self._visits] != list(range(len(self._visits))):
-            msg = "the saved visits are not numbered 0, 1, 2, ..."
-            raise DataError(msg)
-        if not 1 <= self._built_at <= len(self._visits):
-            msg = f"the filter was built on {self._built_at} of {len(self._visits)} visits"
-            raise DataError(msg)
-        inf = self.config.inference
-        model = PosteriorModel(self._visits[: self._built_at], self.config.model, seed=inf.seed)
-        flt = TopologyFilter.from_state_dict(
-            state,
-            RbpfConfig(particles=inf.particles, resample=inf.resample),
-            model.prior,
-            self.config.model.odometry,
-            appearance=model.appearance,
-            registrar=self._registrar,
-        )
-        if flt.visits != tuple(self._visits):
-            msg = "the filter's visits differ from the session's"
-            raise DataError(msg)
-        return flt
-
-    def inference(self) -> Inference:
-        """The current ensemble as ``ptm-run``'s RBPF result (the ``inference.top`` most probable)."""
-        flt = self._filter
-        if flt is None:
-            msg = "no visit has been processed yet"
-            raise DataError(msg)
-        return rbpf_inference(flt, self.config, replays=self.replays)
-
-    def to_ptm(self, *, frame_id: str = "odom", **extra: Any) -> Ptm:
-        """The current PTM (as :func:`ptm_ros.tools.pipeline.build_ptm` writes it)."""
-        return build_ptm(
-            self._visits, self.inference(), self.config, frame_id=frame_id, wall_s=self.wall_s, **extra
-        )
 
 
 # ----------------------------------------------------------------------------------- graph document

@@ -1,8 +1,10 @@
 """The offline pipeline behind ``ptm-run``: bag → landmark visits → PTM → ptm.json, maps, report, score.
 
-The science is in the core modules; this module only loops over a recorded run, times, and writes
-files (kiss-icp's ``pipeline.py`` plays the same role). The detector and filter nodes call the same core
-functions on live messages.
+The science is in the core modules and the orchestration in :mod:`ptm_ros.session` (the filter session,
+the estimators, the ptm.json content) and :mod:`ptm_ros.factories` (detector, extractor, registrar);
+this module only loops over a recorded run, times, checkpoints and writes files (kiss-icp's
+``pipeline.py`` plays the same role). The detector and filter nodes drive the same core code on live
+messages.
 
 Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
 
@@ -33,7 +35,7 @@ from __future__ import annotations
 
 import heapq
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -42,9 +44,8 @@ import numpy as np
 
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
-from ptm_ros.detectors import EquidistantDetector, ScheduledDetector
-from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.geometry import Registrar
+from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.factories import cached, detector_kind, make_extractor, make_registrar
 from ptm_ros.io.bag import OdometryData, RunData, read_run
 from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
@@ -53,25 +54,23 @@ from ptm_ros.io.groundtruth import (
     save_sim_gt,
     with_placed_landmarks,
 )
-from ptm_ros.landmarks import IMAGE, ODOM, SCAN, ExtractorConfig, VisitExtractor, diagnostics_dict
-from ptm_ros.laser import patch_registrar
+from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
 from ptm_ros.partitions import Labels
-from ptm_ros.posterior import (
-    PosteriorModel,
-    exact_posterior,
-    normalize_log,
-    same_place_probabilities,
-    top_k,
-    total_variation,
+from ptm_ros.ptm import Ptm, save_ptm
+from ptm_ros.session import (
+    SESSION_STATE_SCHEMA,
+    VERSUS_KEY,
+    FilterSession,
+    Progress,
+    build_ptm,
+    filter_visits,
+    infer,
+    require_rbpf,
 )
-from ptm_ros.ptm import Landmark, Ptm, make_ptm, save_ptm
 from ptm_ros.visits import Visit
 
 if TYPE_CHECKING:
-    from ptm_ros.odometry import OdometryConfig
-    from ptm_ros.rbpf import RbpfConfig, TopologyFilter
-
-Progress = Callable[[Iterable[Any], int], Iterable[Any]]
+    from ptm_ros.geometry import Registrar
 
 #: Names of the files :func:`run_offline` writes (keys of :attr:`RunResult.files`).
 OUTPUT_FILES = {
@@ -88,79 +87,12 @@ OUTPUT_FILES = {
 TRAJECTORY_ERROR_KEY = "trajectory_error"
 
 
-def detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) -> str:
-    """The detector to use: the configured one, else the default for the sensors present: laser
-    surprise with scans, equidistant otherwise (appearance surprise needs a vocabulary: ask for it).
-    (The detector node decides with its ``use_scans`` / ``use_images`` parameters, ``ptm-run`` with the
-    bag's topics, so both pick the same.)"""
-    if config.detector.kind is not None:
-        return config.detector.kind
-    if has_scans and config.model.use_laser:
-        return "laser-surprise"
-    return "equidistant"
-
-
 def run_sensors(run: RunData) -> dict[str, bool]:
     """Which sensor streams a recorded run has (keyword arguments of :func:`detector_kind`)."""
     return {
         "has_scans": run.scans is not None and len(run.scans.stamps) > 0,
         "has_images": run.images is not None and len(run.images.images) > 0,
     }
-
-
-def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Any:
-    """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`);
-    ``ground-truth`` fires at the ``schedule`` stamps (:func:`ground_truth_landmarks`) and needs them."""
-    det = config.detector
-    if kind == "ground-truth":
-        if schedule is None:
-            msg = (
-                "detector 'ground-truth' (landmarks fixed along the true path) needs the run's ground "
-                "truth: only ptm-run can use it, with --ground-truth FILE or a simulated bag"
-            )
-            raise ConfigError(msg)
-        return ScheduledDetector(schedule)
-    if kind == "laser-surprise":
-        from ptm_ros.surprise import LaserSurpriseDetector
-
-        return LaserSurpriseDetector(det.laser_surprise)
-    if kind == "appearance-surprise":
-        from ptm_ros.surprise import AppearanceSurpriseDetector
-        from ptm_ros.vocabulary import Vocabulary
-
-        vocabulary = Vocabulary.load(det.vocabulary) if det.vocabulary else None
-        if det.appearance_surprise.model == "words" and vocabulary is None:
-            msg = "appearance-surprise with model 'words' needs detector.vocabulary (a .npz vocabulary)"
-            raise ConfigError(msg)
-        return AppearanceSurpriseDetector(det.appearance_surprise, vocabulary)
-    return EquidistantDetector(det.equidistant)
-
-
-def make_extractor(
-    config: PtmConfig,
-    kind: str,
-    *,
-    use_scans: bool,
-    use_images: bool,
-    record_corrections: bool = False,
-    schedule: Sequence[float] | None = None,
-) -> VisitExtractor:
-    """The streaming visit extractor shared by ``ptm-run`` and the detector node (``record_corrections``:
-    keep the laser-odometry corrections for smoothing the whole trajectory offline; ``schedule``: the
-    ``ground-truth`` detector's stamps)."""
-    ext = ExtractorConfig(
-        use_scans=use_scans and config.model.use_laser,
-        use_images=use_images,
-        image_max_dt=config.detector.image_max_dt,
-        record_corrections=record_corrections,
-    )
-    return VisitExtractor(
-        make_detector(kind, config, schedule),
-        laser=config.laser,
-        appearance=config.model.appearance,
-        config=ext,
-        laser_odometry=config.laser_odometry,
-    )
 
 
 def merged_messages(run: RunData) -> Iterator[tuple[float, int, int]]:
@@ -279,304 +211,6 @@ def detect_visits(
     return visits
 
 
-def make_registrar(
-    visits: Sequence[Visit], config: PtmConfig, diag: dict[str, Any] | None = None
-) -> Registrar:
-    """Laser registration of visit j's patch onto visit i's (i < j) under the same-place hypothesis."""
-    return patch_registrar(visits, config.laser, diag)
-
-
-@dataclass(frozen=True)
-class Inference:
-    """A PTM's topologies with probabilities, and method-specific details."""
-
-    probabilities: dict[Labels, float]
-    positions: dict[Labels, np.ndarray]
-    log_posteriors: dict[Labels, float]
-    details: dict[str, Any]
-
-
-def infer(
-    visits: Sequence[Visit],
-    config: PtmConfig,
-    *,
-    registrar: Registrar | None = None,
-    progress: Progress | None = None,
-    persistence: FilterPersistence | None = None,
-) -> Inference:
-    """Run the configured estimator over a visit sequence (``persistence``: save / resume the RBPF's
-    state, :class:`FilterPersistence`; the other methods refuse it)."""
-    inf = config.inference
-    if not visits:
-        msg = "no landmark visits were detected: nothing to infer"
-        raise DataError(msg)
-    if persistence is not None and inf.method != "rbpf":
-        msg = f"saving and resuming the inference state needs method rbpf, not {inf.method!r}"
-        raise ConfigError(msg)
-    model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
-    if inf.method == "exact":
-        if len(visits) > inf.max_exact_visits:
-            msg = (
-                f"exact enumeration over {len(visits)} visits is too large (max_exact_visits = "
-                f"{inf.max_exact_visits}); use --method rbpf"
-            )
-            raise ConfigError(msg)
-        logp = exact_posterior(model, progress=progress)
-        probs = normalize_log(logp)
-        ranked = dict(top_k(probs, inf.top))
-        return Inference(
-            probabilities=ranked,
-            positions=_metric_positions(model, ranked),
-            log_posteriors={lab: logp[lab] for lab in ranked},
-            details={"n_topologies_evaluated": len(logp)},
-        )
-    if inf.method == "rbpf":
-        return _infer_rbpf(visits, model, config, registrar, progress, persistence=persistence)
-    if inf.method == "mcmc":
-        from ptm_ros.mcmc import starts_from_filter
-
-        ensemble = None
-        if starts_from_filter(inf.mcmc, len(visits)):  # the filter's ensemble: the starts and the yardstick
-            every = replace(config, inference=replace(inf, top=inf.particles))
-            ensemble = _infer_rbpf(visits, model, every, registrar, progress).probabilities
-        return _infer_mcmc(model, config, ensemble)
-    msg = f"inference method {inf.method!r} is not available"
-    raise ConfigError(msg)
-
-
-def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[Labels, np.ndarray]:
-    """Optimised place positions of some topologies (from the cached metric likelihood)."""
-    out = {}
-    for lab in labels:
-        res = model.terms(lab).metric_result
-        if res is not None:
-            out[lab] = res.place_positions
-    return out
-
-
-#: ``ptm.inference`` key of MCMC's comparison with the particle filter it started from.
-VERSUS_KEY = "versus_rbpf"
-
-
-def _infer_mcmc(
-    model: PosteriorModel, config: PtmConfig, ensemble: Mapping[Labels, float] | None = None
-) -> Inference:
-    """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
-    particle filter's ``ensemble`` (``initial: rbpf``, or ``auto`` on a long run), chain c starts from
-    its c-th topology and the details compare the two PTMs (:func:`compare_to_filter`)."""
-    from ptm_ros.mcmc import initial_kind, run_mcmc
-
-    inf = config.inference
-    starts = None if ensemble is None else list(ensemble)[: inf.mcmc.chains]
-    res = run_mcmc(model, inf.mcmc, inf.seed, initial=starts)
-    ranked = dict(top_k(res.probabilities, inf.top))
-    d = res.diagnostics
-    versus = {} if ensemble is None else {VERSUS_KEY: compare_to_filter(model, res.probabilities, ensemble)}
-    return Inference(
-        probabilities=ranked,
-        positions=_metric_positions(model, ranked),
-        log_posteriors={lab: res.log_posteriors[lab] for lab in ranked},
-        details={
-            "estimate": inf.mcmc.estimate,
-            "iterations": d.iterations,
-            "chains": d.chains,
-            "betas": list(d.betas),
-            "converged": d.converged,
-            "stop_reason": d.stop_reason,
-            "doubling_tv": d.doubling_tv,
-            "chain_tv": d.chain_tv,
-            "doubling_pair": d.doubling_pair,
-            "chain_pair": d.chain_pair,
-            "n_evaluated": d.n_evaluated,
-            "samples": res.samples,
-            "acceptance": dict(d.acceptance),
-            "initial": initial_kind(inf.mcmc, model.n),
-            **versus,
-            **cold_chain_details(res),
-        },
-    )
-
-
-def compare_to_filter(
-    model: PosteriorModel, mcmc: Mapping[Labels, float], rbpf: Mapping[Labels, float]
-) -> dict[str, Any]:
-    """How an MCMC PTM differs from a particle filter's (issue #7): total variation to the filter's PTM
-    and to its topologies re-weighted by the batch posterior (so only the support differs), the log
-    posterior of each MAP under the batch model (``map_gain_nats`` > 0: MCMC found a topology the filter
-    ranked lower or lost), and the same-place marginals of the visit pairs either PTM gives >= 0.01
-    (:func:`same_place_probabilities`): largest and mean absolute difference, and how many differ by more
-    than 0.1. With many near-equal topologies (long runs) two samplers can share little of their support
-    (TV near 1) yet agree on which visits are one place."""
-    mcmc_map = max(mcmc, key=mcmc.__getitem__)
-    rbpf_map = max(rbpf, key=rbpf.__getitem__)
-    reweighted = normalize_log({lab: model.log_posterior(lab) for lab in rbpf})
-    gain = model.log_posterior(mcmc_map) - model.log_posterior(rbpf_map)
-    p_mcmc, p_rbpf = (same_place_probabilities(d, model.n)[np.triu_indices(model.n, 1)] for d in (mcmc, rbpf))
-    in_play = np.maximum(p_mcmc, p_rbpf) >= 0.01  # pairs either PTM deems possibly one place
-    upper = np.abs(p_mcmc - p_rbpf)[in_play]
-    return {
-        "rbpf_topologies": len(rbpf),
-        "tv": total_variation(mcmc, rbpf),
-        "tv_reweighted": total_variation(mcmc, reweighted),
-        "map_equal": mcmc_map == rbpf_map,
-        "map_gain_nats": float(gain),
-        "rbpf_map_mass": float(mcmc.get(rbpf_map, 0.0)),
-        "rbpf_map_among": rbpf_map in mcmc,
-        "pairs_in_play": int(upper.size),
-        "pair_max_diff": float(upper.max(initial=0.0)),
-        "pair_mean_diff": float(upper.mean()) if upper.size else 0.0,
-        "pairs_differing": int(np.count_nonzero(upper > 0.1)),
-    }
-
-
-def _json_state(state: Any) -> Any:
-    """An MCMC state (an integer id or a label sequence) as plain JSON values."""
-    if isinstance(state, Iterable) and not isinstance(state, str | bytes):
-        return [int(v) for v in state]
-    return int(state)
-
-
-def cold_chain_details(res: Any) -> dict[str, Any]:
-    """The cold-chain states of an MCMC result for the report's SRQ plot (``ptm_ros.report.SRQ_KEY``),
-    one list per chain, and their thinning stride; nothing when the result holds none."""
-    chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
-    if not chains:
-        return {}
-    return {
-        "cold_chain_states": [[_json_state(s) for s in c] for c in chains],
-        "cold_chain_thin": int(getattr(res, "cold_thin", 1)),
-    }
-
-
-@dataclass(frozen=True)
-class FilterPersistence:
-    """How :func:`infer` saves and restores the RBPF (``ptm-run --autosave/--resume``, issue #8).
-
-    Attributes:
-        restored: a :meth:`ptm_ros.rbpf.TopologyFilter.state_dict` to continue from (its visits must be
-            the first of the run's, checked by the caller), or None to start afresh.
-        save: called with the filter after every ``every``-th visit and after the last one; None: never.
-        every: visits between saves (>= 1 when ``save`` is given).
-    """
-
-    restored: dict[str, Any] | None = None
-    save: Callable[[TopologyFilter], None] | None = None
-    every: int = 1
-
-    def __post_init__(self) -> None:
-        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
-            msg = f"FilterPersistence.every must be an integer >= 1, got {self.every!r}"
-            raise ConfigError(msg)
-
-
-def _infer_rbpf(
-    visits: Sequence[Visit],
-    model: PosteriorModel,
-    config: PtmConfig,
-    registrar: Registrar | None,
-    progress: Progress | None,
-    *,
-    persistence: FilterPersistence | None = None,
-) -> Inference:
-    """The Rao-Blackwellized particle filter over the whole run (thesis Algorithm 8); with
-    ``persistence``, continued from a saved state and/or saved along the way."""
-    from ptm_ros.rbpf import RbpfConfig, TopologyFilter
-
-    inf = config.inference
-    rbpf = RbpfConfig(particles=inf.particles, resample=inf.resample)
-    odometry = config.model.odometry
-    restored = None if persistence is None else persistence.restored
-    if restored is None:
-        flt = TopologyFilter(
-            rbpf, model.prior, odometry, appearance=model.appearance, registrar=registrar, seed=inf.seed
-        )
-    else:
-        flt = restore_filter(restored, rbpf, model, odometry, registrar)
-    save, every = (None, 1) if persistence is None else (persistence.save, persistence.every)
-    todo = visits[len(flt.visits) :]
-    items: Iterable[Visit] = todo if progress is None else progress(todo, len(todo))
-    saved_at = len(flt.visits) if restored is not None else -1
-    for visit in items:
-        flt.update(visit)
-        if save is not None and len(flt.visits) % every == 0:
-            save(flt)
-            saved_at = len(flt.visits)
-    if save is not None and saved_at != len(flt.visits):
-        save(flt)
-    return rbpf_inference(flt, config)
-
-
-def restore_filter(
-    state: dict[str, Any],
-    rbpf: RbpfConfig,
-    model: PosteriorModel,
-    odometry: OdometryConfig,
-    registrar: Registrar | None,
-) -> TopologyFilter:
-    """A :class:`ptm_ros.rbpf.TopologyFilter` continued from its :meth:`state_dict` with ``model``'s prior
-    and appearance priors (the same objects an uninterrupted run uses).
-
-    Raises:
-        DataError: a malformed state, or one saved with another laser setting.
-    """
-    from ptm_ros.rbpf import TopologyFilter
-
-    try:
-        return TopologyFilter.from_state_dict(
-            state, rbpf, model.prior, odometry, appearance=model.appearance, registrar=registrar
-        )
-    except (KeyError, IndexError, TypeError, ValueError, ModelError) as err:
-        msg = f"cannot restore the filter from the saved state: {type(err).__name__}: {err}"
-        raise DataError(msg) from err
-
-
-def rbpf_inference(flt: Any, config: PtmConfig, **details: Any) -> Inference:
-    """A particle filter's current ensemble as an :class:`Inference` (used by ``ptm-run`` and the node)."""
-    inf = config.inference
-    probs = flt.ptm_weights()
-    logw = flt.log_weights()
-    ranked = dict(top_k(probs, inf.top))
-    updates = np.array([h.update_s for h in flt.history])
-    return Inference(
-        probabilities=ranked,
-        positions={lab: flt.place_positions(lab) for lab in ranked},
-        log_posteriors={lab: logw[lab] for lab in ranked},
-        details={
-            "resample": inf.resample,
-            "n_topologies": flt.n_topologies,
-            "ess": flt.history[-1].ess if flt.history else 0.0,
-            "log_evidence": flt.log_evidence,
-            "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
-            "update_ms_p95": float(np.percentile(updates, 95) * 1e3) if len(updates) else 0.0,
-            **details,
-        },
-    )
-
-
-def build_ptm(
-    visits: Sequence[Visit],
-    inference: Inference,
-    config: PtmConfig,
-    *,
-    frame_id: str,
-    wall_s: float,
-    **extra: Any,
-) -> Ptm:
-    """The ptm.json content of an inference result."""
-    landmarks = [Landmark.from_visit(v) for v in visits]
-    inf = config.inference
-    return make_ptm(
-        landmarks,
-        inference.probabilities,
-        positions=inference.positions,
-        log_posteriors=inference.log_posteriors,
-        frame_id=frame_id,
-        inference={"method": inf.method, "particles": inf.particles, "seed": inf.seed, **inference.details},
-        timing={"wall_s": wall_s},
-        extra=extra,
-    )
-
-
 @dataclass(frozen=True)
 class RunResult:
     """What ``run_offline`` wrote: ``files`` maps the keys of :data:`OUTPUT_FILES` to the files written;
@@ -592,8 +226,6 @@ class RunResult:
     resumed_visits: int = 0
 
 
-#: Schema tag of the state :func:`run_offline` saves (inside :mod:`ptm_ros.persistence`'s file).
-RUN_STATE_SCHEMA = "ptm_ros.run_state/1"
 #: ``meta["tool"]`` of that file.
 RUN_STATE_TOOL = "ptm-run"
 
@@ -687,11 +319,12 @@ def check_run_state(
     if meta.get("visits_sha256") != visits_fingerprint(visits):
         msg = f"{where}: its visits differ from this bag's (another bag?)"
         raise DataError(msg)
-    if state.get("schema") != RUN_STATE_SCHEMA:
-        msg = f"{where}: not a {RUN_STATE_TOOL} state (schema {state.get('schema')!r})"
+    if state.get("schema") != SESSION_STATE_SCHEMA:
+        schema = state.get("schema")
+        msg = f"{where}: not a filter session state (schema {schema!r}, not {SESSION_STATE_SCHEMA!r})"
         raise DataError(msg)
     try:
-        saved = [visit_from_state(d) for d in state["filter"]["visits"]]
+        saved = [visit_from_state(d) for d in state["visits"]]
     except (KeyError, TypeError) as err:
         msg = f"{where}: malformed state ({type(err).__name__}: {err})"
         raise DataError(msg) from err
@@ -751,9 +384,8 @@ def run_offline(
     t0 = time.perf_counter()
     bag = Path(bag)
     out = Path(out_dir)
-    if checkpoint is not None and config.inference.method != "rbpf":
-        msg = f"saving and resuming the filter state needs method rbpf, not {config.inference.method!r}"
-        raise ConfigError(msg)
+    if checkpoint is not None:
+        require_rbpf(config, "saving and resuming the filter state (--autosave/--resume)")
     saved = _load_run_state(checkpoint, log) if checkpoint is not None else None
     topics = config.topics
     run = read_run(
@@ -777,16 +409,20 @@ def run_offline(
     diag: dict[str, Any] = {}
     extractor = run_extractor(run, config, schedule)
     visits = detect_visits(run, config, diag, extractor=extractor)
-    memo: dict[tuple[int, int], Any] = {}
-    persistence, resumed = None, 0
-    if checkpoint is not None:
-        persistence, resumed = _run_persistence(
-            checkpoint, saved, used=used, bag=bag, visits=visits, memo=memo, diag=diag
-        )
-        if resumed and log is not None:
-            log(f"resumed from {checkpoint.path}: {resumed} of {len(visits)} visits already filtered")
-    registrar = cached(make_registrar(visits, config, diag), memo) if config.model.use_laser else None
-    result = infer(visits, config, registrar=registrar, progress=progress, persistence=persistence)
+    session, resumed = None, 0
+    if config.inference.method == "rbpf":
+        session = FilterSession(config, fitted_to=visits)
+        registrar = session.registrar
+        if checkpoint is not None:
+            resumed, save = _checkpoint(
+                session, checkpoint, saved, meta=run_state_meta(used, bag, visits), visits=visits
+            )
+            if resumed and log is not None:
+                log(f"resumed from {checkpoint.path}: {resumed} of {len(visits)} visits already filtered")
+            filter_visits(session, visits, progress=progress, save=save, every=max(checkpoint.every, 1))
+    else:
+        registrar = cached(make_registrar(visits, config, diag)) if config.model.use_laser else None
+    result = infer(visits, config, session=session, registrar=registrar, progress=progress)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
     ptm = build_ptm(
@@ -817,6 +453,8 @@ def run_offline(
         t1 = time.perf_counter()
         files |= write_occupancy_map(run, traj, out, config)
         timing["map_s"] = time.perf_counter() - t1
+    if session is not None:
+        diag.update(session.registrations)  # the laser registrations' counters (ptm.json's diagnostics)
     ptm = replace(ptm, timing=timing, extra=extra)
     ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["ptm"] = ptm_path
@@ -853,52 +491,30 @@ def run_offline(
     )
 
 
-def _run_persistence(
+def _checkpoint(
+    session: FilterSession,
     checkpoint: RunCheckpoint,
     saved: tuple[dict[str, Any], dict[str, Any]] | None,
     *,
-    used: PtmConfig,
-    bag: Path,
+    meta: dict[str, Any],
     visits: Sequence[Visit],
-    memo: dict[tuple[int, int], Any],
-    diag: dict[str, Any],
-) -> tuple[FilterPersistence, int]:
-    """The RBPF's :class:`FilterPersistence` for a checkpoint, and the number of visits restored.
+) -> tuple[int, Callable[[FilterSession], None] | None]:
+    """Restore ``session`` from a saved state (checked against this run's ``visits``); the number of
+    visits restored, and the saver of the session's state (:data:`~ptm_ros.session.SESSION_STATE_SCHEMA`,
+    with ``meta``) that ``checkpoint`` asks for (None: it only resumes)."""
+    from ptm_ros.persistence import save_filter_state
 
-    A saved state (checked against this run) refills the registration cache ``memo`` and the
-    diagnostics its registrations counted into ``diag``; saving writes the filter, ``memo`` and ``diag``.
-    """
-    from ptm_ros.persistence import registrations_from_state, registrations_to_state, save_filter_state
-
-    restored = None
+    resumed = 0
     if saved is not None:
-        state, meta = saved
-        restored_visits = check_run_state(state, meta, visits, checkpoint.path)
-        try:
-            memo.update(registrations_from_state(state["pairs"]))
-            for key, value in state["diagnostics"].items():
-                diag.setdefault(key, value)  # the registration counters; detection's are recomputed
-        except (KeyError, TypeError, AttributeError) as err:
-            msg = f"cannot resume from {checkpoint.path}: malformed state ({type(err).__name__}: {err})"
-            raise DataError(msg) from err
-        restored = state["filter"]
-        resumed = len(restored_visits)
-    else:
-        resumed = 0
-    meta = run_state_meta(used, bag, visits)
+        state, saved_meta = saved
+        resumed = len(check_run_state(state, saved_meta, visits, checkpoint.path))
+        session.load_state(state)
 
-    def save(flt: TopologyFilter) -> None:
-        state = {
-            "schema": RUN_STATE_SCHEMA,
-            "filter": flt.state_dict(),
-            "pairs": registrations_to_state(memo),
-            "diagnostics": dict(diag),
-        }
+    def save(s: FilterSession) -> None:
         checkpoint.path.parent.mkdir(parents=True, exist_ok=True)
-        save_filter_state(checkpoint.path, state, meta=meta)
+        save_filter_state(checkpoint.path, s.state_dict(), meta=meta)
 
-    every = checkpoint.every
-    return FilterPersistence(restored=restored, save=save if every else None, every=max(every, 1)), resumed
+    return resumed, (save if checkpoint.every else None)
 
 
 def surprise_trace(detector: Any) -> Any | None:
@@ -1023,19 +639,6 @@ def write_route_graph(ptm: Ptm, path: Path) -> Path:
     from ptm_ros.routes import route_graph, save_route_graph
 
     return save_route_graph(route_graph(ptm), path)
-
-
-def cached(registrar: Registrar, memo: dict[tuple[int, int], Any] | None = None) -> Registrar:
-    """A registrar that registers each pair once (shared by the estimator and the smoothing); ``memo``
-    (optional) is the cache itself, pre-filled or read by the caller (``ptm-run``'s state file)."""
-    memo = {} if memo is None else memo
-
-    def reg(i: int, j: int) -> Any:
-        if (i, j) not in memo:
-            memo[(i, j)] = registrar(i, j)
-        return memo[(i, j)]
-
-    return reg
 
 
 def map_trajectory(

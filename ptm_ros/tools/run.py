@@ -172,17 +172,12 @@ def format_summary(result, top: int) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from ptm_ros.config import load_config
-    from ptm_ros.errors import ConfigError, PtmError
+    from ptm_ros.errors import PtmError
     from ptm_ros.tools.pipeline import run_offline
 
     try:
         config = load_config(args.params, _overrides(args))
         checkpoint = checkpoint_of(args)
-        if checkpoint is not None and config.inference.method != "rbpf":
-            msg = (
-                f"--autosave/--resume need --method rbpf (the particle filter), not {config.inference.method}"
-            )
-            raise ConfigError(msg)
         result = run_offline(
             args.bag,
             args.out,

@@ -1,0 +1,575 @@
+"""The mapping session: a configuration and a stream of landmark visits in, a PTM out (the orchestration).
+
+``ptm-run`` (:mod:`ptm_ros.tools.pipeline`) and the ``topology_filter`` node are two thin drivers of the
+code here, as kiss-icp's ``OdometryPipeline`` and its ROS wrapper drive one ``KissICP``:
+
+* :class:`FilterSession` — the Rao-Blackwellized particle filter over topologies (thesis Algorithm 8,
+  :mod:`ptm_ros.rbpf`) fed one visit at a time, with its laser registrations cached per pair and one
+  checkpoint schema (:data:`SESSION_STATE_SCHEMA`) that both drivers save and resume;
+* :func:`infer` — the batch estimators over a whole visit sequence: exact enumeration (Ch. 2.1), MCMC /
+  MC³ (Ch. 3.1–3.6, started from the filter's topologies on long runs) and the filter itself;
+* :func:`build_ptm` — the ptm.json content (CONTRACT.md schema) of an :class:`Inference`.
+
+Appearance priors. The appearance model's priors are fitted to the visits by empirical Bayes
+(:func:`ptm_ros.appearance.fit_appearance_model`). Offline the whole run is known, and the priors are
+fitted once to all of its visits (``fitted_to``), as the batch posterior is. A live stream only knows the
+visits so far: the session re-fits the priors after every visit and, when they change, replays the
+(deterministic, seeded) filter over the visits so far, so that after every visit the ensemble is exactly
+the offline one on those visits. Beyond ``refit_max_visits`` visits the priors are frozen as fitted then
+and the filter only moves forward (a replay costs one filter update per visit so far).
+
+Checkpoints. :meth:`FilterSession.state_dict` holds the visits with their measurements, the registration
+cache and its counters, the appearance priors in use, and the particle filter's own
+:meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`. A session restored from it continues exactly where it
+stopped. A session whose priors are fitted to the whole run (``fitted_to``) that restores a state made
+with other priors (a live node's) replays the restored visits with its own priors: the result is then
+exactly that of an uninterrupted offline run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from ptm_ros.appearance import AppearanceModel
+from ptm_ros.config import PtmConfig
+from ptm_ros.errors import ConfigError, DataError, PtmError
+from ptm_ros.factories import Registration, cached, make_registrar
+from ptm_ros.geometry import Registrar
+from ptm_ros.partitions import Labels
+from ptm_ros.persistence import (
+    appearance_from_state,
+    appearance_to_state,
+    registrations_from_state,
+    registrations_to_state,
+    visit_from_state,
+    visit_to_state,
+)
+from ptm_ros.posterior import (
+    PosteriorModel,
+    exact_posterior,
+    normalize_log,
+    same_place_probabilities,
+    top_k,
+    total_variation,
+)
+from ptm_ros.priors import make_prior
+from ptm_ros.ptm import Landmark, Ptm, make_ptm
+from ptm_ros.rbpf import FilterState, RbpfConfig, TopologyFilter
+from ptm_ros.visits import Visit
+
+#: A progress wrapper: ``progress(items, total)`` yields the items (e.g. a tqdm bar); None: none.
+Progress = Callable[[Iterable[Any], int], Iterable[Any]]
+#: Schema tag of :meth:`FilterSession.state_dict` (``ptm-run``'s state file and inside the node's).
+SESSION_STATE_SCHEMA = "ptm_ros.filter_session/2"
+#: ``ptm.inference`` key of MCMC's comparison with the particle filter it started from.
+VERSUS_KEY = "versus_rbpf"
+
+
+@dataclass(frozen=True)
+class Inference:
+    """A PTM's topologies with probabilities, and method-specific details."""
+
+    probabilities: dict[Labels, float]
+    positions: dict[Labels, np.ndarray]
+    log_posteriors: dict[Labels, float]
+    details: dict[str, Any]
+
+
+def require_rbpf(config: PtmConfig, what: str) -> None:
+    """Refuse another inference method than the particle filter for ``what`` (a streaming use).
+
+    Raises:
+        ConfigError: ``inference.method`` is not ``rbpf``.
+    """
+    method = config.inference.method
+    if method != "rbpf":
+        msg = (
+            f"{what} needs the particle filter (inference.method: rbpf), got {method!r}; "
+            f"use ptm-run for '{method}'"
+        )
+        raise ConfigError(msg)
+
+
+def same_model(a: Any, b: Any) -> bool:
+    """Whether two fitted appearance models (or None) are identical, array by array."""
+    if a is None or b is None:
+        return a is b
+    if dataclasses.is_dataclass(a):
+        return type(a) is type(b) and all(
+            same_model(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)
+        )
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return bool(np.array_equal(a, b))
+    return bool(a == b)
+
+
+# -------------------------------------------------------------------------------------- filter session
+
+
+class FilterSession:
+    """The RBPF over a stream of visits: after every visit, the offline RBPF on the visits so far.
+
+    Args:
+        config: the configuration (``inference.method`` must be ``rbpf``).
+        refit_max_visits: re-fit the appearance priors (and replay when they change) up to this many
+            visits; later the priors stay as fitted then. 0: always.
+        fitted_to: the whole run's visits when they are known in advance (offline): the priors are
+            fitted to them once and never re-fitted (the visits added must be a prefix of them).
+        registrar: a laser registrar over the run's visits to share with other users (offline: the batch
+            model of MCMC); default: one over the session's own visits, counting into
+            :attr:`registrations`. Either way the session caches its outcomes per pair.
+
+    Raises:
+        ConfigError: another inference method, or ``refit_max_visits < 0``.
+    """
+
+    def __init__(
+        self,
+        config: PtmConfig,
+        *,
+        refit_max_visits: int = 100,
+        fitted_to: Sequence[Visit] | None = None,
+        registrar: Registrar | None = None,
+    ) -> None:
+        require_rbpf(config, "a filter session")
+        if refit_max_visits < 0:
+            msg = f"refit_max_visits must be >= 0, got {refit_max_visits}"
+            raise ConfigError(msg)
+        self.config = config
+        self.refit_max_visits = refit_max_visits
+        self.registrations: dict[str, Any] = {}  # the registrar's counters
+        self._visits: list[Visit] = []
+        self._pairs: dict[tuple[int, int], Registration] = {}
+        self._filter: TopologyFilter | None = None
+        self._fitted: AppearanceModel | None = None
+        self._fixed = fitted_to is not None
+        if fitted_to is not None and fitted_to:
+            self._fitted = self._fit(fitted_to)
+        self._built_at = 0  # visits when the filter was last (re)built
+        self.replays = 0
+        self.wall_s = 0.0
+        inner = registrar
+        if inner is None and config.model.use_laser:
+            inner = make_registrar(self._visits, config, self.registrations)
+        self._registrar = None if inner is None or not config.model.use_laser else cached(inner, self._pairs)
+
+    def _fit(self, visits: Sequence[Visit]) -> AppearanceModel | None:
+        """The appearance priors fitted to ``visits`` (the same model object ``PosteriorModel`` builds)."""
+        return PosteriorModel(visits, self.config.model, seed=self.config.inference.seed).appearance
+
+    @property
+    def visits(self) -> tuple[Visit, ...]:
+        """The visits processed so far."""
+        return tuple(self._visits)
+
+    @property
+    def filter(self) -> TopologyFilter | None:
+        """The particle filter (None before the first visit)."""
+        return self._filter
+
+    @property
+    def registrar(self) -> Registrar | None:
+        """The cached laser registrar over the session's visits (None without laser)."""
+        return self._registrar
+
+    @property
+    def pairs(self) -> Mapping[tuple[int, int], Registration]:
+        """The registrations made so far, per visit pair ``(i, j)``."""
+        return self._pairs
+
+    def add(self, visit: Visit) -> FilterState:
+        """Process the next visit (``visit.index`` must equal the number of visits so far).
+
+        Raises:
+            DataError: a visit out of order.
+            ModelError: a visit the models cannot use; the session is unchanged.
+        """
+        start = time.perf_counter()
+        n = len(self._visits)
+        if visit.index != n:
+            msg = f"expected visit {n}, got visit {visit.index}"
+            raise DataError(msg)
+        self._visits.append(visit)
+        try:
+            state = self._advance(visit)
+        except BaseException:
+            self._visits.pop()
+            for key in [k for k in self._pairs if k[1] == n]:
+                del self._pairs[key]
+            raise
+        self.wall_s += time.perf_counter() - start
+        return state
+
+    def _advance(self, visit: Visit) -> FilterState:
+        old = self._filter
+        if self._fixed:
+            if old is not None:
+                return old.update(visit)
+            return self._rebuild(self._fitted)
+        appearance = self._fit(self._visits)
+        if old is not None:
+            frozen = 0 < self.refit_max_visits < len(self._visits)
+            if same_model(appearance, old.appearance) or (
+                frozen and (appearance is None) == (old.appearance is None)
+            ):
+                return old.update(visit)
+        return self._rebuild(appearance)
+
+    def _new_filter(self, appearance: AppearanceModel | None) -> TopologyFilter:
+        inf = self.config.inference
+        return TopologyFilter(
+            RbpfConfig(particles=inf.particles, resample=inf.resample),
+            make_prior(self.config.model.prior),
+            self.config.model.odometry,
+            appearance=appearance,
+            registrar=self._registrar,
+            seed=inf.seed,
+        )
+
+    def _rebuild(self, appearance: AppearanceModel | None) -> FilterState:
+        """A new filter with ``appearance`` priors, run over every visit so far (a replay when one
+        existed)."""
+        new = self._new_filter(appearance)
+        state = None
+        for v in self._visits:
+            state = new.update(v)
+        if state is None:
+            msg = "a filter session rebuilds only over at least one visit"
+            raise DataError(msg)
+        self.replays += int(self._filter is not None)
+        self._filter = new
+        self._built_at = len(self._visits)
+        return state
+
+    def reset(self) -> None:
+        """Forget every visit (priors fitted to a known run, ``fitted_to``, are kept)."""
+        self._visits.clear()
+        self._pairs.clear()
+        self._filter = None
+        self._built_at = 0
+        self.replays = 0
+        self.wall_s = 0.0
+        self.registrations.clear()
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the session (plain values and arrays, for
+        :func:`ptm_ros.persistence.save_filter_state`); schema :data:`SESSION_STATE_SCHEMA`."""
+        flt = self._filter
+        return {
+            "schema": SESSION_STATE_SCHEMA,
+            "visits": [visit_to_state(v) for v in self._visits],
+            "pairs": registrations_to_state(self._pairs),
+            "registrations": dict(self.registrations),
+            "appearance": None if flt is None else appearance_to_state(flt.appearance),
+            "built_at": self._built_at,
+            "replays": self.replays,
+            "wall_s": self.wall_s,
+            "filter": None if flt is None else flt.state_dict(),
+        }
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        """Replace the session by a saved one (:meth:`state_dict`), continuing exactly where it stopped:
+        with the saved appearance priors, or (``fitted_to``) with this session's, replaying the saved
+        visits when they differ.
+
+        Raises:
+            DataError: a state of another schema or a malformed one (the session is then empty).
+        """
+        if not isinstance(state, Mapping) or state.get("schema") != SESSION_STATE_SCHEMA:
+            schema = state.get("schema") if isinstance(state, Mapping) else type(state).__name__
+            msg = f"not a filter session state ({SESSION_STATE_SCHEMA}), got schema {schema!r}"
+            raise DataError(msg)
+        self.reset()
+        try:
+            self._visits.extend(visit_from_state(d) for d in state["visits"])  # the registrar's list
+            self._pairs.update(registrations_from_state(state["pairs"]))
+            self.registrations.update(state["registrations"])
+            self._built_at = int(state["built_at"])
+            self.replays = int(state["replays"])
+            self.wall_s = float(state["wall_s"])
+            if state["filter"] is not None:
+                self._filter = self._restore_filter(
+                    state["filter"], appearance_from_state(state["appearance"])
+                )
+        except (KeyError, TypeError, ValueError, PtmError) as err:
+            self.reset()
+            msg = f"malformed filter session state: {type(err).__name__}: {err}"
+            raise DataError(msg) from err
+
+    def _restore_filter(self, state: dict[str, Any], appearance: AppearanceModel | None) -> TopologyFilter:
+        if [v.index for v in self._visits] != list(range(len(self._visits))):
+            msg = "the saved visits are not numbered 0, 1, 2, ..."
+            raise DataError(msg)
+        if not 1 <= self._built_at <= len(self._visits):
+            msg = f"the filter was built on {self._built_at} of {len(self._visits)} visits"
+            raise DataError(msg)
+        inf = self.config.inference
+        flt = TopologyFilter.from_state_dict(
+            state,
+            RbpfConfig(particles=inf.particles, resample=inf.resample),
+            make_prior(self.config.model.prior),
+            self.config.model.odometry,
+            appearance=appearance,
+            registrar=self._registrar,
+        )
+        if flt.visits != tuple(self._visits):
+            msg = "the filter's visits differ from the session's"
+            raise DataError(msg)
+        if self._fixed and not same_model(appearance, self._fitted):
+            self._filter = flt
+            self._rebuild(self._fitted)  # another session's priors: replay with this run's
+            return self._filter
+        return flt
+
+    def inference(self) -> Inference:
+        """The current ensemble as an :class:`Inference` (the ``inference.top`` most probable).
+
+        Raises:
+            DataError: no visit yet.
+        """
+        flt = self._filter
+        if flt is None:
+            msg = "no visit has been processed yet"
+            raise DataError(msg)
+        return rbpf_inference(flt, self.config, replays=self.replays)
+
+    def to_ptm(self, *, frame_id: str = "odom", **extra: Any) -> Ptm:
+        """The current PTM (as :func:`build_ptm` writes it)."""
+        return build_ptm(
+            self._visits, self.inference(), self.config, frame_id=frame_id, wall_s=self.wall_s, **extra
+        )
+
+
+def filter_visits(
+    session: FilterSession,
+    visits: Sequence[Visit],
+    *,
+    progress: Progress | None = None,
+    save: Callable[[FilterSession], None] | None = None,
+    every: int = 1,
+) -> FilterSession:
+    """Feed a session the visits of ``visits`` it has not seen yet (a resumed session continues), calling
+    ``save`` after every ``every``-th visit and after the last one (when it was not just saved)."""
+    done = len(session.visits)
+    todo = visits[done:]
+    items: Iterable[Visit] = todo if progress is None or not todo else progress(todo, len(todo))
+    saved_at = done if done else -1
+    for visit in items:
+        session.add(visit)
+        if save is not None and len(session.visits) % every == 0:
+            save(session)
+            saved_at = len(session.visits)
+    if save is not None and saved_at != len(session.visits):
+        save(session)
+    return session
+
+
+def rbpf_inference(flt: TopologyFilter, config: PtmConfig, **details: Any) -> Inference:
+    """A particle filter's current ensemble as an :class:`Inference`."""
+    inf = config.inference
+    probs = flt.ptm_weights()
+    logw = flt.log_weights()
+    ranked = dict(top_k(probs, inf.top))
+    updates = np.array([h.update_s for h in flt.history])
+    return Inference(
+        probabilities=ranked,
+        positions={lab: flt.place_positions(lab) for lab in ranked},
+        log_posteriors={lab: logw[lab] for lab in ranked},
+        details={
+            "resample": inf.resample,
+            "n_topologies": flt.n_topologies,
+            "ess": flt.history[-1].ess if flt.history else 0.0,
+            "log_evidence": flt.log_evidence,
+            "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
+            "update_ms_p95": float(np.percentile(updates, 95) * 1e3) if len(updates) else 0.0,
+            **details,
+        },
+    )
+
+
+def build_ptm(
+    visits: Sequence[Visit],
+    inference: Inference,
+    config: PtmConfig,
+    *,
+    frame_id: str,
+    wall_s: float,
+    **extra: Any,
+) -> Ptm:
+    """The ptm.json content of an inference result."""
+    landmarks = [Landmark.from_visit(v) for v in visits]
+    inf = config.inference
+    return make_ptm(
+        landmarks,
+        inference.probabilities,
+        positions=inference.positions,
+        log_posteriors=inference.log_posteriors,
+        frame_id=frame_id,
+        inference={"method": inf.method, "particles": inf.particles, "seed": inf.seed, **inference.details},
+        timing={"wall_s": wall_s},
+        extra=extra,
+    )
+
+
+# ------------------------------------------------------------------------------------ batch estimators
+
+
+def infer(
+    visits: Sequence[Visit],
+    config: PtmConfig,
+    *,
+    session: FilterSession | None = None,
+    registrar: Registrar | None = None,
+    progress: Progress | None = None,
+) -> Inference:
+    """Run the configured estimator over a visit sequence.
+
+    ``rbpf`` feeds ``session`` (a fresh one fitted to ``visits`` when None; a restored one continues)
+    the visits it has not seen; ``exact`` and ``mcmc`` score topologies with the batch model, laser
+    pairs from ``registrar``.
+
+    Raises:
+        DataError: no visits.
+        ConfigError: an unknown method, or exact enumeration over more than ``max_exact_visits``.
+    """
+    inf = config.inference
+    if not visits:
+        msg = "no landmark visits were detected: nothing to infer"
+        raise DataError(msg)
+    if inf.method == "rbpf":
+        if session is None:
+            session = FilterSession(config, fitted_to=visits, registrar=registrar)
+        return filter_visits(session, visits, progress=progress).inference()
+    model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
+    if inf.method == "exact":
+        if len(visits) > inf.max_exact_visits:
+            msg = (
+                f"exact enumeration over {len(visits)} visits is too large (max_exact_visits = "
+                f"{inf.max_exact_visits}); use --method rbpf"
+            )
+            raise ConfigError(msg)
+        logp = exact_posterior(model, progress=progress)
+        probs = normalize_log(logp)
+        ranked = dict(top_k(probs, inf.top))
+        return Inference(
+            probabilities=ranked,
+            positions=_metric_positions(model, ranked),
+            log_posteriors={lab: logp[lab] for lab in ranked},
+            details={"n_topologies_evaluated": len(logp)},
+        )
+    if inf.method == "mcmc":
+        from ptm_ros.mcmc import starts_from_filter
+
+        ensemble = None
+        if starts_from_filter(inf.mcmc, len(visits)):  # the filter's ensemble: the starts and the yardstick
+            every = replace(config, inference=replace(inf, method="rbpf", top=inf.particles))
+            ensemble = infer(visits, every, registrar=model.registrar, progress=progress).probabilities
+        return _infer_mcmc(model, config, ensemble)
+    msg = f"inference method {inf.method!r} is not available"
+    raise ConfigError(msg)
+
+
+def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[Labels, np.ndarray]:
+    """Optimised place positions of some topologies (from the cached metric likelihood)."""
+    out = {}
+    for lab in labels:
+        res = model.terms(lab).metric_result
+        if res is not None:
+            out[lab] = res.place_positions
+    return out
+
+
+def _infer_mcmc(
+    model: PosteriorModel, config: PtmConfig, ensemble: Mapping[Labels, float] | None = None
+) -> Inference:
+    """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
+    particle filter's ``ensemble`` (``initial: rbpf``, or ``auto`` on a long run), chain c starts from
+    its c-th topology and the details compare the two PTMs (:func:`compare_to_filter`)."""
+    from ptm_ros.mcmc import initial_kind, run_mcmc
+
+    inf = config.inference
+    starts = None if ensemble is None else list(ensemble)[: inf.mcmc.chains]
+    res = run_mcmc(model, inf.mcmc, inf.seed, initial=starts)
+    ranked = dict(top_k(res.probabilities, inf.top))
+    d = res.diagnostics
+    versus = {} if ensemble is None else {VERSUS_KEY: compare_to_filter(model, res.probabilities, ensemble)}
+    return Inference(
+        probabilities=ranked,
+        positions=_metric_positions(model, ranked),
+        log_posteriors={lab: res.log_posteriors[lab] for lab in ranked},
+        details={
+            "estimate": inf.mcmc.estimate,
+            "iterations": d.iterations,
+            "chains": d.chains,
+            "betas": list(d.betas),
+            "converged": d.converged,
+            "stop_reason": d.stop_reason,
+            "doubling_tv": d.doubling_tv,
+            "chain_tv": d.chain_tv,
+            "doubling_pair": d.doubling_pair,
+            "chain_pair": d.chain_pair,
+            "n_evaluated": d.n_evaluated,
+            "samples": res.samples,
+            "acceptance": dict(d.acceptance),
+            "initial": initial_kind(inf.mcmc, model.n),
+            **versus,
+            **cold_chain_details(res),
+        },
+    )
+
+
+def compare_to_filter(
+    model: PosteriorModel, mcmc: Mapping[Labels, float], rbpf: Mapping[Labels, float]
+) -> dict[str, Any]:
+    """How an MCMC PTM differs from a particle filter's (issue #7): total variation to the filter's PTM
+    and to its topologies re-weighted by the batch posterior (so only the support differs), the log
+    posterior of each MAP under the batch model (``map_gain_nats`` > 0: MCMC found a topology the filter
+    ranked lower or lost), and the same-place marginals of the visit pairs either PTM gives >= 0.01
+    (:func:`same_place_probabilities`): largest and mean absolute difference, and how many differ by more
+    than 0.1. With many near-equal topologies (long runs) two samplers can share little of their support
+    (TV near 1) yet agree on which visits are one place."""
+    mcmc_map = max(mcmc, key=mcmc.__getitem__)
+    rbpf_map = max(rbpf, key=rbpf.__getitem__)
+    reweighted = normalize_log({lab: model.log_posterior(lab) for lab in rbpf})
+    gain = model.log_posterior(mcmc_map) - model.log_posterior(rbpf_map)
+    p_mcmc, p_rbpf = (same_place_probabilities(d, model.n)[np.triu_indices(model.n, 1)] for d in (mcmc, rbpf))
+    in_play = np.maximum(p_mcmc, p_rbpf) >= 0.01  # pairs either PTM deems possibly one place
+    upper = np.abs(p_mcmc - p_rbpf)[in_play]
+    return {
+        "rbpf_topologies": len(rbpf),
+        "tv": total_variation(mcmc, rbpf),
+        "tv_reweighted": total_variation(mcmc, reweighted),
+        "map_equal": mcmc_map == rbpf_map,
+        "map_gain_nats": float(gain),
+        "rbpf_map_mass": float(mcmc.get(rbpf_map, 0.0)),
+        "rbpf_map_among": rbpf_map in mcmc,
+        "pairs_in_play": int(upper.size),
+        "pair_max_diff": float(upper.max(initial=0.0)),
+        "pair_mean_diff": float(upper.mean()) if upper.size else 0.0,
+        "pairs_differing": int(np.count_nonzero(upper > 0.1)),
+    }
+
+
+def _json_state(state: Any) -> Any:
+    """An MCMC state (an integer id or a label sequence) as plain JSON values."""
+    if isinstance(state, Iterable) and not isinstance(state, str | bytes):
+        return [int(v) for v in state]
+    return int(state)
+
+
+def cold_chain_details(res: Any) -> dict[str, Any]:
+    """The cold-chain states of an MCMC result for the report's SRQ plot (``ptm_ros.report.SRQ_KEY``),
+    one list per chain, and their thinning stride; nothing when the result holds none."""
+    chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
+    if not chains:
+        return {}
+    return {
+        "cold_chain_states": [[_json_state(s) for s in c] for c in chains],
+        "cold_chain_thin": int(getattr(res, "cold_thin", 1)),
+    }
