@@ -38,6 +38,7 @@ import numpy as np
 
 from ptm_ros.appearance import AppearanceModel
 from ptm_ros.config import PtmConfig
+from ptm_ros.doubts import doubts_dict, find_doubts
 from ptm_ros.errors import ConfigError, DataError, PtmError
 from ptm_ros.factories import Registration, cached, make_registrar
 from ptm_ros.geometry import Registrar
@@ -69,6 +70,8 @@ Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 SESSION_STATE_SCHEMA = "ptm_ros.filter_session/2"
 #: ``ptm.inference`` key of MCMC's comparison with the particle filter it started from.
 VERSUS_KEY = "versus_rbpf"
+#: ``ptm.extra`` key of the visits the map is unsure of (:func:`ptm_ros.doubts.doubts_dict`).
+DOUBTS_KEY = "doubts"
 
 
 @dataclass(frozen=True)
@@ -402,10 +405,11 @@ def build_ptm(
     wall_s: float,
     **extra: Any,
 ) -> Ptm:
-    """The ptm.json content of an inference result."""
+    """The ptm.json content of an inference result, with the visits the map is unsure of
+    (``extra["doubts"]``, :func:`ptm_ros.doubts.find_doubts`)."""
     landmarks = [Landmark.from_visit(v) for v in visits]
     inf = config.inference
-    return make_ptm(
+    ptm = make_ptm(
         landmarks,
         inference.probabilities,
         positions=inference.positions,
@@ -415,6 +419,7 @@ def build_ptm(
         timing={"wall_s": wall_s},
         extra=extra,
     )
+    return replace(ptm, extra={**ptm.extra, DOUBTS_KEY: doubts_dict(find_doubts(ptm))})
 
 
 # ------------------------------------------------------------------------------------ batch estimators

@@ -181,3 +181,18 @@ def test_an_offline_session_fits_its_priors_once(sim_visits):
     fitted = fit_appearance_model(sim_visits, config.model.appearance)
     assert np.array_equal(session.filter.appearance.nig.mu, fitted.nig.mu)
     assert session.inference().probabilities == infer(sim_visits, config).probabilities
+
+
+def test_the_ptm_says_which_visits_the_map_is_unsure_of(sim_visits):
+    """``build_ptm`` (ptm-run's ptm.json and the node's ptm_graph) carries ``extra["doubts"]``: the
+    visits whose place the ensemble is unsure of, with their answers (:mod:`ptm_ros.doubts`)."""
+    from ptm_ros.doubts import doubts_dict, find_doubts
+    from ptm_ros.ptm import to_json_dict
+
+    config = no_laser()
+    session = FilterSession(config, fitted_to=sim_visits)
+    for v in sim_visits:
+        session.add(v)
+    ptm = session.to_ptm()
+    assert ptm.extra["doubts"] == doubts_dict(find_doubts(ptm))
+    assert to_json_dict(ptm)["doubts"]["map_probability"] == ptm.topologies[0].probability

@@ -80,6 +80,7 @@ import dataclasses
 import json
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +95,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
+from ptm_ros.doubts import doubt_lines, find_doubts
 from ptm_ros.errors import ConfigError, DataError, PtmError
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
@@ -246,6 +248,17 @@ def ensemble_markers(ptm: Ptm, count: int, stamp: float) -> MarkerArray:
         label.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=alpha)
         out.markers += [visits, nodes, edges, label]
     return out
+
+
+def newest_doubt(ptm: Ptm | None) -> str | None:
+    """A log line when the map is unsure where its newest visit is (:mod:`ptm_ros.doubts`), else None."""
+    if ptm is None or not ptm.topologies:
+        return None
+    doubts = find_doubts(ptm)
+    last = len(ptm.landmarks) - 1
+    if not doubts.visits or doubts.visits[-1].visit != last:
+        return None
+    return doubt_lines(replace(doubts, visits=doubts.visits[-1:]))[-1]
 
 
 # ----------------------------------------------------------------------------------------------- node
@@ -441,7 +454,10 @@ class TopologyFilterNode(Node):
             f"{how} in {(self.session.wall_s - wall) * 1e3:.0f} ms"
         )
         self._maybe_autosave()
-        self._publish()
+        ptm = self._publish()
+        doubt = newest_doubt(ptm)
+        if doubt:
+            self.get_logger().info(doubt)
 
     def _redelivered(self, session: str | None, index: int, key: tuple[Any, ...]) -> bool:
         """Whether a visit was restored from the state file (the detector's history delivers it again to
@@ -467,14 +483,15 @@ class TopologyFilterNode(Node):
             )
         return self.session.to_ptm(frame_id=self.frame_id, diagnostics=self.diagnostics())
 
-    def _publish(self) -> None:
+    def _publish(self) -> Ptm | None:
         if self.session.filter is None and not self.complete:
-            return  # nothing to tell yet (a complete empty stream is published: it ends the run)
+            return None  # nothing to tell yet (a complete empty stream is published: it ends the run)
         ptm = self.current_ptm()
         doc = graph_document(ptm, complete=self.complete)
         self._graph_pub.publish(String(data=json.dumps(doc)))
         stamp = ptm.landmarks[-1].stamp if ptm.landmarks else 0.0
         self._marker_pub.publish(ensemble_markers(ptm, self.marker_topologies, stamp))
+        return ptm
 
     # --------------------------------------------------------------------------- persistence
 

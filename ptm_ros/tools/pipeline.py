@@ -44,6 +44,7 @@ import numpy as np
 
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
+from ptm_ros.doubts import doubt_lines, find_doubts
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import cached, detector_kind, make_extractor, make_registrar
 from ptm_ros.io.bag import OdometryData, RunData, read_run
@@ -476,7 +477,9 @@ def run_offline(
             score=score,
             surprise_trace=surprise_trace(extractor.detector),
             occupancy_map=files.get("map_png"),
-            notes=ate_notes(extra.get(TRAJECTORY_ERROR_KEY)) + inference_notes(ptm.inference),
+            notes=doubt_lines(find_doubts(ptm))
+            + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
+            + inference_notes(ptm.inference),
             title=f"PTM of {bag.name}",
         )
     return RunResult(

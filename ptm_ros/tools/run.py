@@ -134,6 +134,7 @@ def _progress(quiet: bool):
 
 def format_summary(result, top: int) -> str:
     """Human-readable lines: visits, the most probable topologies, and the score if any."""
+    from ptm_ros.doubts import doubt_lines, find_doubts
     from ptm_ros.report import label_string
     from ptm_ros.tools.pipeline import inference_notes
 
@@ -161,6 +162,7 @@ def format_summary(result, top: int) -> str:
             f"trajectory error (ATE, {ate['poses']} poses): smoothed MAP {ate['ate_smoothed_m']:.3f} m, "
             f"odometry {ate['ate_odometry_m']:.3f} m"
         )
+    lines.extend(doubt_lines(find_doubts(ptm), most=5))
     lines.extend(inference_notes(ptm.inference))
     written = [str(p) for p in result.files.values()] or [str(result.ptm_path)]
     if result.report_path:
