@@ -21,7 +21,19 @@ setup(
             for d in sorted(glob("bags/*/"))
         ],
     ],
-    install_requires=["setuptools", "numpy", "scipy", "pyyaml"],
+    # the Python dependencies of every module (ROS 2 itself, rclpy and the messages, come from the ROS
+    # install or the ros-jazzy-* wheels of requirements.txt; package.xml lists them for rosdep)
+    install_requires=[
+        "setuptools",
+        "numpy",
+        "scipy",
+        "pyyaml",
+        "opencv-python-headless",
+        "matplotlib",
+        "tqdm",
+        "rosbags>=0.11",
+        "kiss-icp>=1.3",
+    ],
     zip_safe=True,
     maintainer="ptm_ros maintainers",
     maintainer_email="maintainers@ptm-ros.dev",
