@@ -21,12 +21,74 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.geometry import wrap_angle
+
+
+class Detector(Protocol):
+    """What the visit extractor (:class:`ptm_ros.landmarks.VisitExtractor`) asks of a landmark detector:
+    each ``on_*`` call feeds one message and returns True when a landmark visit is declared; the visit
+    then lies at ``last_landmark_stamp`` when set (a detector that localises its landmark at an earlier
+    measurement, e.g. the surprise maximum), else at the message's stamp. ``flush`` ends the data (True:
+    one more visit)."""
+
+    last_landmark_stamp: float | None
+
+    def on_odometry(self, stamp: float, pose: NDArray[np.float64]) -> bool: ...
+
+    def on_scan(
+        self,
+        stamp: float,
+        ranges: ArrayLike,
+        *,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float,
+        range_max: float,
+    ) -> bool: ...
+
+    def on_image(self, stamp: float, image: ArrayLike) -> bool: ...
+
+    def flush(self) -> bool: ...
+
+
+class StreamingDetector:
+    """A :class:`Detector` that ignores every input: detectors override the ones they use."""
+
+    last_landmark_stamp: float | None = None
+
+    def on_odometry(self, stamp: float, pose: NDArray[np.float64]) -> bool:
+        """Odometry: no landmark here."""
+        del stamp, pose
+        return False
+
+    def on_scan(
+        self,
+        stamp: float,
+        ranges: ArrayLike,
+        *,
+        angle_min: float,
+        angle_increment: float,
+        range_min: float,
+        range_max: float,
+    ) -> bool:
+        """A laser scan: no landmark here."""
+        del stamp, ranges, angle_min, angle_increment, range_min, range_max
+        return False
+
+    def on_image(self, stamp: float, image: ArrayLike) -> bool:
+        """A panorama: no landmark here."""
+        del stamp, image
+        return False
+
+    def flush(self) -> bool:
+        """End of data: no landmark left."""
+        return False
 
 
 @dataclass(frozen=True)
@@ -159,7 +221,7 @@ def landmark_passages(
     return sorted(out)
 
 
-class ScheduledDetector:
+class ScheduledDetector(StreamingDetector):
     """Fires at given stamps: the visits of landmarks fixed in the environment (:func:`landmark_passages`).
 
     :meth:`on_odometry` returns True at the first odometry sample at or after each scheduled stamp and
@@ -176,7 +238,7 @@ class ScheduledDetector:
         self._next = 0
         self.last_landmark_stamp: float | None = None
 
-    def on_odometry(self, stamp: float, pose: np.ndarray) -> bool:
+    def on_odometry(self, stamp: float, pose: NDArray[np.float64]) -> bool:
         """Feed one odometry sample; True when a scheduled stamp has been reached."""
         del pose
         if self._next < self.stamps.size and stamp >= self.stamps[self._next]:
@@ -216,7 +278,7 @@ class OdometryTracker:
         return out
 
 
-class EquidistantDetector:
+class EquidistantDetector(StreamingDetector):
     """Fires every ``spacing`` metres of odometry travel and/or every ``period`` seconds (Ch. 4.5)."""
 
     def __init__(self, config: EquidistantConfig | None = None) -> None:
@@ -224,7 +286,7 @@ class EquidistantDetector:
         self._tracker = OdometryTracker()
         self._last_visit_stamp: float | None = None
 
-    def on_odometry(self, stamp: float, pose: np.ndarray) -> bool:
+    def on_odometry(self, stamp: float, pose: NDArray[np.float64]) -> bool:
         """Feed one odometry sample; True when a landmark visit is declared at this sample."""
         self._tracker.update(stamp, pose)
         cfg = self.config

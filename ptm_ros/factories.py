@@ -11,7 +11,7 @@ from collections.abc import Callable, MutableMapping, Sequence
 from typing import Any
 
 from ptm_ros.config import PtmConfig
-from ptm_ros.detectors import EquidistantDetector, ScheduledDetector
+from ptm_ros.detectors import Detector, EquidistantDetector, ScheduledDetector
 from ptm_ros.errors import ConfigError
 from ptm_ros.geometry import NoMatch, Registrar, RelativePose
 from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
@@ -35,7 +35,7 @@ def detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) -> st
     return "equidistant"
 
 
-def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Any:
+def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Detector:
     """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`);
     ``ground-truth`` fires at the ``schedule`` stamps (landmarks fixed along the true path) and needs them.
 

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ptm_ros.appearance import AppearanceConfig, panorama_signature
-from ptm_ros.detectors import EquidistantDetector
+from ptm_ros.detectors import Detector, EquidistantDetector
 from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
 from ptm_ros.laser import LaserConfig, passage_patch, scan_to_points
@@ -95,9 +95,6 @@ class _Pending:
     first_in: float  # stamp of the odometry sample just before the passage (scans are kept from here)
     wheel: NDArray[np.float64] | None = None  # input odometry pose of the visit when ``pose`` is corrected
     exit_stamp: float | None = None  # first odometry sample after the visit outside the patch radius
-
-
-Detector = Any  # duck-typed: on_odometry / on_scan / on_image -> bool, optional last_landmark_stamp
 
 
 class VisitExtractor:
@@ -209,8 +206,7 @@ class VisitExtractor:
         """End of data: process everything queued and complete every pending visit."""
         self._flushing = True
         out = self._drain(math.inf)
-        flush = getattr(self.detector, "flush", None)
-        if flush is not None and flush():
+        if self.detector.flush():
             self._fire(self._processed)
         self._resolve_requests()
         out += self._complete(math.inf)
@@ -262,7 +258,7 @@ class VisitExtractor:
     # ------------------------------------------------------------------------------- processing
 
     def _fire(self, stamp: float) -> None:
-        when = getattr(self.detector, "last_landmark_stamp", None)
+        when = self.detector.last_landmark_stamp
         self._requests.append(float(when) if when is not None else stamp)
 
     def _process_odometry(self, stamp: float, raw: NDArray[np.float64]) -> None:
@@ -275,7 +271,7 @@ class VisitExtractor:
         if self.config.stream_poses:
             self._poses_out.append((stamp, pose))
         try:
-            if hasattr(self.detector, "on_odometry") and self.detector.on_odometry(stamp, pose):
+            if self.detector.on_odometry(stamp, pose):
                 self._fire(stamp)
         except PtmError:
             self.diagnostics.skip("odometry-rejected-by-detector")
@@ -311,14 +307,13 @@ class VisitExtractor:
             self._scans_out.append((stamp, scan, self._odom_p[-1]))
         if self.config.use_scans:
             self._scans.append((stamp, res.points))
-        if hasattr(self.detector, "on_scan"):
-            try:
-                if self.detector.on_scan(
-                    stamp, ranges, angle_min=amin, angle_increment=ainc, range_min=rmin, range_max=rmax
-                ):
-                    self._fire(stamp)
-            except PtmError:
-                self.diagnostics.skip("scan-rejected-by-detector")
+        try:
+            if self.detector.on_scan(
+                stamp, ranges, angle_min=amin, angle_increment=ainc, range_min=rmin, range_max=rmax
+            ):
+                self._fire(stamp)
+        except PtmError:
+            self.diagnostics.skip("scan-rejected-by-detector")
         self._resolve_requests()
 
     def _process_image(self, stamp: float, image: Any) -> None:
@@ -329,12 +324,11 @@ class VisitExtractor:
             self.diagnostics.skip("image-undecodable")
         if self.config.use_images and sig is not None:
             self._images.append((stamp, sig))
-        if hasattr(self.detector, "on_image"):
-            try:
-                if self.detector.on_image(stamp, image):
-                    self._fire(stamp)
-            except PtmError:
-                self.diagnostics.skip("image-rejected-by-detector")
+        try:
+            if self.detector.on_image(stamp, image):
+                self._fire(stamp)
+        except PtmError:
+            self.diagnostics.skip("image-rejected-by-detector")
         self._resolve_requests()
 
     def _resolve_requests(self) -> None:
