@@ -12,6 +12,7 @@ a stack of poses of shape ``(..., 3)`` and broadcast.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -54,6 +55,13 @@ def between(a: ArrayLike, b: ArrayLike) -> FloatArray:
     dx = b[..., 0] - a[..., 0]
     dy = b[..., 1] - a[..., 1]
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
+
+
+def moved(a: ArrayLike, b: ArrayLike, xy: float, yaw: float) -> bool:
+    """Whether pose ``b`` lies ``xy`` or more from pose ``a`` or is turned ``yaw`` or more from it (the
+    keyframe and motion-gate test of the laser modules and the map)."""
+    d = between(a, b)
+    return bool(math.hypot(d[0], d[1]) >= xy or abs(d[2]) >= yaw)
 
 
 def transform_points(pose: ArrayLike, points: ArrayLike) -> FloatArray:

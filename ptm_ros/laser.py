@@ -59,6 +59,7 @@ from ptm_ros.geometry import (
     between,
     compose,
     inverse,
+    moved,
     transform_points,
     wrap_angle,
 )
@@ -369,7 +370,7 @@ def keyframes(scan_poses: ArrayLike, min_xy: float, min_yaw: float) -> NDArray[n
     poses = _as_poses(scan_poses, "scan_poses")
     kept: list[int] = []
     for k in range(len(poses)):
-        if not kept or _moved(poses[kept[-1]], poses[k], min_xy, min_yaw):
+        if not kept or moved(poses[kept[-1]], poses[k], min_xy, min_yaw):
             kept.append(k)
     return np.array(kept, dtype=np.intp)
 
@@ -418,7 +419,7 @@ def refine_scan_poses(
             aligned = _polished_alignment(
                 icp, pts, voxel_map, map_points, guess, cfg, cfg.voxel, cfg.correspondence_distance
             )
-            if aligned is not None and not _moved(guess, aligned, *_MAX_STEP_CORRECTION):
+            if aligned is not None and not moved(guess, aligned, *_MAX_STEP_CORRECTION):
                 refined[k] = aligned
         world = transform_points(refined[k], pts)
         voxel_map.add_points(_lift(voxel_downsample(world, 0.5 * cfg.voxel)))
@@ -632,7 +633,7 @@ class PatchBuilder:
             raise ModelError(msg)
         scan = (float(stamp), robot, pts)
         cfg = self.config
-        if not self._scans or _moved(self._scans[-1][1], robot, cfg.keyframe_xy, cfg.keyframe_yaw):
+        if not self._scans or moved(self._scans[-1][1], robot, cfg.keyframe_xy, cfg.keyframe_yaw):
             self._scans.append(scan)
         still_open = []
         for patch in self._open:
@@ -687,7 +688,7 @@ class PatchBuilder:
         cfg = self.config
         if len(patch.scans) >= self._max_scans:
             return
-        if not patch.scans or _moved(patch.scans[-1][1], scan[1], cfg.keyframe_xy, cfg.keyframe_yaw):
+        if not patch.scans or moved(patch.scans[-1][1], scan[1], cfg.keyframe_xy, cfg.keyframe_yaw):
             patch.scans.append(scan)
 
     def _close(self, patch: _OpenPatch) -> None:
@@ -985,8 +986,8 @@ class _Overlap:
     def _target_distances(self, poses: Sequence[FloatArray]) -> FloatArray:
         """``(K, M)``: distances of the target evaluation points to the source placed at each pose."""
         tgt = self.target.eval
-        moved = np.vstack([transform_points(inverse(p), tgt) for p in poses])
-        d, _ = self.source.tree.query(moved, distance_upper_bound=self._bound)
+        placed = np.vstack([transform_points(inverse(p), tgt) for p in poses])
+        d, _ = self.source.tree.query(placed, distance_upper_bound=self._bound)
         return d.reshape(len(poses), len(tgt))
 
     def __call__(self, pose: FloatArray) -> _Fit:
@@ -1044,7 +1045,7 @@ def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -
     for other in fits[1:]:
         if other.fraction < best.fraction - cfg.ambiguity_margin:
             break
-        if _moved(best.pose, other.pose, cfg.distinct_xy, cfg.distinct_yaw):
+        if moved(best.pose, other.pose, cfg.distinct_xy, cfg.distinct_yaw):
             return (
                 f"ambiguous: distinct solution {np.round(other.pose, 3).tolist()} has inlier fraction "
                 f"{other.fraction:.3f} vs {best.fraction:.3f}"
@@ -1063,8 +1064,8 @@ def _slide_axis(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -> Fl
     ``distinct_yaw`` turned.
     """
     best = fits[0]
-    moved = transform_points(best.pose, overlap.src_eval)
-    dist, idx = overlap.near_target(moved)
+    placed = transform_points(best.pose, overlap.src_eval)
+    dist, idx = overlap.near_target(placed)
     n, line = overlap.normals_at(idx[dist <= cfg.inlier_distance])
     n = n[line]
     if len(n) < cfg.min_points:
@@ -1179,12 +1180,6 @@ def _offset(sensor_offset: ArrayLike | None) -> FloatArray:
     return _IDENTITY if sensor_offset is None else _as_pose(sensor_offset, "sensor_offset")
 
 
-def _moved(a: FloatArray, b: FloatArray, min_xy: float, min_yaw: float) -> bool:
-    """Whether pose ``b`` is at least ``min_xy`` away from or ``min_yaw`` turned from pose ``a``."""
-    d = between(a, b)
-    return bool(math.hypot(d[0], d[1]) >= min_xy or abs(d[2]) >= min_yaw)
-
-
 def _within(poses: FloatArray, centre: FloatArray, radius: float) -> np.ndarray:
     return np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1]) <= radius
 
@@ -1264,15 +1259,15 @@ def _point_to_plane(
             # test: the iterations repeat with period it - start. Take the last one's result directly.
             info, current = done[start + (_GN_ITERATIONS - 1 - start) % (it - start)]
             break
-        moved = transform_points(current, src)
-        dist, idx = overlap.near_target(moved)
+        placed = transform_points(current, src)
+        dist, idx = overlap.near_target(placed)
         close = np.flatnonzero(dist <= cfg.inlier_distance)
         n, flat = overlap.normals_at(idx[close])
         inl = close[flat]
         n = n[flat]
         if len(inl) <= 3:
             return pose, _spd_inverse(prior)
-        q = moved[inl]
+        q = placed[inl]
         e = np.einsum("ij,ij->i", n, q - tgt[idx[inl]])
         arm = q - current[:2]
         g = np.column_stack([n, arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]])
@@ -1289,7 +1284,7 @@ def _point_to_plane(
         done.append((info, current))
         if np.max(np.abs(step)) < 1e-7:
             break
-    if _moved(pose, current, cfg.distinct_xy, cfg.distinct_yaw):
+    if moved(pose, current, cfg.distinct_xy, cfg.distinct_yaw):
         current = pose
     cov = _spd_inverse(info)
     return current, 0.5 * (cov + cov.T)

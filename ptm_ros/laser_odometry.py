@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import between, compose, interpolate_poses, inverse, transform_points
+from ptm_ros.geometry import between, compose, interpolate_poses, inverse, moved, transform_points
 from ptm_ros.laser import LaserConfig, ScanMap, voxel_downsample
 
 FloatArray = NDArray[np.float64]
@@ -232,7 +232,7 @@ class LaserOdometry:
                 self._correction = compose(pose, inverse(wheel))
                 self.counters.matched += 1
         self._last_match, self._last_match_stamp = pose, stamp
-        if self._last_key is None or _moved(self._last_key, pose, cfg.keyframe_xy, cfg.keyframe_yaw):
+        if self._last_key is None or moved(self._last_key, pose, cfg.keyframe_xy, cfg.keyframe_yaw):
             self._window.append(transform_points(pose, pts))
             self._map = ScanMap(np.vstack(tuple(self._window)), self.laser, voxel=cfg.voxel)
             self._last_key = pose
@@ -242,17 +242,12 @@ class LaserOdometry:
     def _inside_gate(self, guess: FloatArray, stamp: float | None) -> bool:
         """Whether a scan at corrected pose ``guess`` (and ``stamp``) is skipped by the motion gate."""
         cfg = self.config
-        if self._last_match is None or _moved(self._last_match, guess, cfg.match_xy, cfg.match_yaw):
+        if self._last_match is None or moved(self._last_match, guess, cfg.match_xy, cfg.match_yaw):
             return False
         last = self._last_match_stamp
         if stamp is None or last is None or cfg.match_interval == 0.0:
             return True
         return stamp - last < cfg.match_interval
-
-
-def _moved(a: FloatArray, b: FloatArray, xy: float, yaw: float) -> bool:
-    d = between(a, b)
-    return math.hypot(d[0], d[1]) >= xy or abs(d[2]) >= yaw
 
 
 def apply_corrections(
@@ -272,9 +267,9 @@ def apply_corrections(
     out = wheel.copy()
     k = np.searchsorted(ct, t, side="left") - 1
     carried = k >= 0
-    moved = carried.copy()
-    moved[carried] = np.any(c[k[carried]] != 0.0, axis=1)
-    out[moved] = compose(c[k[moved]], wheel[moved])
+    shifted = carried.copy()
+    shifted[carried] = np.any(c[k[carried]] != 0.0, axis=1)
+    out[shifted] = compose(c[k[shifted]], wheel[shifted])
     return out
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, DataError, PtmError
-from ptm_ros.geometry import Registrar, interpolate_poses, wrap_angle
+from ptm_ros.geometry import Registrar, interpolate_poses, moved
 from ptm_ros.laser import LaserConfig, scan_to_points
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.posterior import ModelConfig, chained_registrations, split_aliases
@@ -94,12 +94,6 @@ class MappingConfig:
         if isinstance(v, bool) or not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
             msg = f"MappingConfig.max_speed must be a finite number > 0 (m/s), got {v!r}"
             raise ConfigError(msg)
-
-
-def moved(a: ArrayLike, b: ArrayLike, xy: float, yaw: float) -> bool:
-    """Whether pose ``b`` lies ``xy`` or more from pose ``a`` or is turned ``yaw`` or more from it."""
-    far = math.hypot(b[0] - a[0], b[1] - a[1]) >= xy
-    return far or abs(float(wrap_angle(b[2] - a[2]))) >= yaw
 
 
 def topology_trajectory(

@@ -534,7 +534,7 @@ def _stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
 
 
-def _decode_image(msg: Any) -> NDArray[Any] | None:
+def decode_image(msg: Any) -> NDArray[Any] | None:
     """``(H, W)`` or ``(H, W, C)`` array of an Image message; ``None`` for unsupported encodings."""
     spec = IMAGE_ENCODINGS.get(msg.encoding)
     if spec is None:
@@ -657,7 +657,7 @@ def _images(msgs: list[Any]) -> ImageData:
     images: list[NDArray[Any]] = []
     skipped: dict[str, int] = {}
     for m in msgs:
-        img = _decode_image(m)
+        img = decode_image(m)
         if img is None:
             skipped[m.encoding] = skipped.get(m.encoding, 0) + 1
             continue

@@ -67,7 +67,7 @@ from ptm_ros.configio import from_dict
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.io.bag import (
     NS_PER_S,
-    _decode_image,
+    decode_image,
     ns_to_stamp,
     quaternion_to_yaw,
     stamp_to_ns,
@@ -479,7 +479,7 @@ def image_array(msg: Any) -> NDArray[Any] | None:
     Raises:
         BagError: the data is shorter than ``height × step``.
     """
-    return _decode_image(msg)
+    return decode_image(msg)
 
 
 def pose_msg(x: float, y: float, yaw: float, z: float = 0.0) -> Pose:
