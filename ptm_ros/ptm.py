@@ -152,9 +152,12 @@ def _pose(values: Any, what: str) -> tuple[float, float, float]:
 def _landmark(d: Mapping[str, Any]) -> Landmark:
     corrected = d.get("corrected_pose")
     where = f"landmark {d.get('index')}"
+    stamp = float(d["stamp"])
+    if not math.isfinite(stamp):
+        raise _fail(f"{where}: stamp {stamp} must be finite")
     return Landmark(
         int(d["index"]),
-        float(d["stamp"]),
+        stamp,
         _pose(d["pose"], f"{where}: pose"),
         None if corrected is None else _pose(corrected, f"{where}: corrected_pose"),
     )
@@ -180,6 +183,11 @@ def from_json_dict(doc: Mapping[str, Any]) -> Ptm:
             if not (0.0 <= p <= 1.0 + 1e-9) or math.isnan(p):
                 raise _fail(f"topology {k}: probability {p} outside [0, 1]")
             pos = d.get("positions")
+            if pos is not None and (
+                len(pos) != max(labels, default=-1) + 1
+                or not all(len(xy) == 2 and all(math.isfinite(float(c)) for c in xy) for xy in pos)
+            ):
+                raise _fail(f"topology {k}: positions must be finite, one (x, y) per place")
             topologies.append(
                 Topology(
                     labels=labels,

@@ -14,6 +14,7 @@ import pytest
 from scipy.optimize import minimize
 
 from ptm_ros.config import PtmConfig, load_config
+from ptm_ros.errors import DataError
 from ptm_ros.geometry import between, compose
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
@@ -305,3 +306,24 @@ def testcold_chain_details_become_json_values():
     assert json.loads(json.dumps(got)) == got
     assert cold_chain_details(SimpleNamespace()) == {}  # an McmcResult without the fields
     assert cold_chain_details(SimpleNamespace(cold_states=[[], []], cold_thin=1)) == {}
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda d: d["landmarks"][1].update(stamp=math.nan), "landmark 1: stamp nan must be finite"),
+        (lambda d: d["landmarks"][0].update(pose=[0.0, math.inf, 0.0]), "3 finite numbers"),
+        (lambda d: d["topologies"][0].update(positions=[[0.0, 0.0]]), "one \\(x, y\\) per place"),
+        (lambda d: d["topologies"][0].update(positions=[[0.0, 0.0], [math.nan, 1.0]]), "must be finite"),
+    ],
+)
+def test_ptm_json_with_non_finite_or_misshapen_values_is_refused(edit, match):
+    """ptm.json is validated in one place (``ptm_ros.ptm.from_json_dict``, used by ptm-eval and the map
+    publisher): stamps, poses and place positions finite, one position per place."""
+    landmarks = [Landmark(k, float(k), (float(k), 0.0, 0.0)) for k in range(3)]
+    doc = to_json_dict(make_ptm(landmarks, {(0, 1, 0): 1.0}, positions={(0, 1, 0): [[0.0, 0.0], [1.0, 0.0]]}))
+    assert from_json_dict(json.loads(json.dumps(doc))).topologies[0].positions == ((0.0, 0.0), (1.0, 0.0))
+    bad = json.loads(json.dumps(doc))
+    edit(bad)
+    with pytest.raises(DataError, match=f"invalid ptm.json: .*{match}"):
+        from_json_dict(bad)

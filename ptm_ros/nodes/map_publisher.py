@@ -156,26 +156,13 @@ def map_path(ptm: Ptm) -> PathMsg:
     return path
 
 
-def check_graph(doc: dict[str, Any], ptm: Ptm) -> None:
-    """What :func:`ptm_ros.ptm.from_json_dict` does not check: finite stamps and (x, y, yaw) poses of the
-    landmarks, finite ``(M, 2)`` place positions of every topology (M its number of places), and the
-    ``stream`` section of a graph document.
+def check_graph(doc: dict[str, Any]) -> None:
+    """What a ``ptm_graph`` document adds to ptm.json (which :func:`ptm_ros.ptm.from_json_dict`
+    validates): its ``stream`` section.
 
     Raises:
         DataError: naming the offending item.
     """
-    for lm in ptm.landmarks:
-        if not (math.isfinite(lm.stamp) and len(lm.pose) == 3 and all(map(math.isfinite, lm.pose))):
-            msg = f"landmark {lm.index}: stamp {lm.stamp} and pose {lm.pose} must be finite (x, y, yaw)"
-            raise DataError(msg)
-    for rank, t in enumerate(ptm.topologies):
-        if t.positions is None:
-            continue
-        if len(t.positions) != max(t.labels, default=-1) + 1 or not all(
-            math.isfinite(c) for xy in t.positions for c in xy
-        ):
-            msg = f"topology {rank}: positions must be finite, one (x, y) per place"
-            raise DataError(msg)
     stream = doc.get("stream", {})
     if not isinstance(stream, dict) or not isinstance(stream.get("complete", False), bool):
         msg = f"stream must be a mapping with a boolean 'complete', got {stream!r:.80}"
@@ -201,7 +188,7 @@ def parse_graph(text: str) -> tuple[dict[str, Any], Ptm]:
     except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as err:  # beside DataError
         msg = f"invalid ptm.json document: {type(err).__name__}: {err}"
         raise DataError(msg) from err
-    check_graph(doc, ptm)
+    check_graph(doc)
     return doc, ptm
 
 
