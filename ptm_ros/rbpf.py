@@ -574,22 +574,29 @@ def _separation_update(
         out[rows] += log_e
         det = s_q[:, 0, 0] * s_q[:, 1, 1] - s_q[:, 0, 1] * s_q[:, 1, 0]
         ok = det > 1e-12 * np.maximum(np.square(s_q[:, 0, 0] + s_q[:, 1, 1]), 1e-300)
-        for i in np.flatnonzero(ok):
-            gain_t = np.linalg.solve(s_q[i], c_q[i])  # Kᵀ = Σ^{-1} cov(δ, ξ): (2, D)
-            row = rows[i]
-            mean[row] += shift[i] @ gain_t
-            lam, vec = np.linalg.eigh(s_new[i] - s_q[i])  # P += K (Σ' - Σ) Kᵀ = Σ_j λ_j (K v_j)(K v_j)ᵀ
-            target = cov[row].T
-            for j in range(2):
-                if lam[j] == 0.0:
-                    continue
-                u = math.sqrt(abs(lam[j])) * (vec[:, j] @ gain_t)
-                u = u[None, :]
-                res = dgemm(math.copysign(1.0, lam[j]), u, u, 1.0, target, trans_a=1, overwrite_c=1)
-                if not np.shares_memory(res, target):
-                    cov[row] = res.T
-                    target = cov[row].T
+        if not np.any(ok):
+            continue
+        rows, c_q, s_q, s_new, shift = rows[ok], c_q[ok], s_q[ok], s_new[ok], shift[ok]
+        gain_t = np.linalg.solve(s_q, c_q)  # Kᵀ = Σ^{-1} cov(δ, ξ): (R, 2, D)
+        mean[rows] += np.einsum("rk,rkd->rd", shift, gain_t)
+        upd = gain_t.transpose(0, 2, 1) @ ((s_new - s_q) @ gain_t)  # K (Σ' - Σ) Kᵀ: (R, D, D)
+        cov[rows] += 0.5 * (upd + upd.transpose(0, 2, 1))
     return out
+
+
+def _log_expectation(m: FloatArray, S: FloatArray, count: IntArray, config: OdometryConfig) -> FloatArray:
+    """``log E[exp(-count · c(‖δ‖))]`` for ``δ ~ N(m, S)`` ``(Q, 2)``, ``(Q, 2, 2)``, on :data:`_Z_PROXY`."""
+    if len(m) == 0:
+        return np.zeros(0)
+    a = np.sqrt(np.maximum(S[:, 0, 0], 0.0))
+    b = np.divide(S[:, 1, 0], a, out=np.zeros_like(a), where=a > 0.0)
+    d = np.sqrt(np.maximum(S[:, 1, 1] - b * b, 0.0))
+    z = _Z_PROXY
+    ex = m[:, 0, None] + a[:, None] * z[0]
+    ey = m[:, 1, None] + b[:, None] * z[0] + d[:, None] * z[1]
+    pen = _cubic(np.hypot(ex, ey), config) * count[:, None].astype(float)
+    low = pen.min(axis=1)
+    return np.log(np.mean(np.exp(low[:, None] - pen), axis=1)) - low
 
 
 def _tilted_moments(
@@ -621,6 +628,8 @@ def _tilted_moments(
 #: Points of the selection proxy's expectations (:func:`_separation_proxy`): coarser, as the weight is
 #: corrected after selection.
 _Z_PROXY = _penalty_points(64)
+#: Children lighter than the heaviest by more than this [nats] get no separation proxy before selection.
+_PROXY_NATS = 25.0
 
 
 def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positionally)
@@ -634,6 +643,9 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
     d: FloatArray,
     stride: int,
     config: OdometryConfig,
+    *,
+    worth_rev: NDArray[np.bool_],
+    worth_new: NDArray[np.bool_],
 ) -> tuple[FloatArray, FloatArray]:
     """``-log E[exp(-Σ_s |s| c(‖δ_s‖))]`` of every child before selection, ``(P, cap)`` and ``(P,)``.
 
@@ -642,43 +654,60 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
     ``h_k = x_n - p_k`` (predicted mean ``d``, covariance ``S`` with ``σ_T² I``) and
     ``C = cov(e_s, h_k)``, ``e_s | h_k = 0 ~ N(ê_s - C S^{-1} d, cov(e_s) - C S^{-1} Cᵀ)``; a new place
     leaves ``x_n`` as predicted. ``cov``: the parents' covariances; ``pxx``, ``cxp`` ``(P, cap, 2, 2)``:
-    the predicted ``cov(x_n^{xy})`` and ``cov(x_n^{xy}, p_k)``.
+    the predicted ``cov(x_n^{xy})`` and ``cov(x_n^{xy}, p_k)``. Only the pairs ``(k, s)`` whose place is
+    near ``x_n``'s updated mean (within the pruning distance of :func:`_separation_update` by the prior
+    spread of ``e_s``, ``p_s`` taken at its prior mean) are integrated: ``O(P · cap)`` work plus the near
+    pairs, not ``O(P · cap²)`` 2×2 algebra; and only for the children ``worth_rev`` ``(P, cap)`` /
+    ``worth_new`` ``(P,)`` within :data:`_PROXY_NATS` of the heaviest (the weight is corrected after
+    selection anyway, so the proxy only has to be good where selection is decided).
     """
     n_part, cap = counts.shape
-    pc = _place_cols(stride, np.arange(cap), 0, 2).reshape(-1)
-    cpp = cov[:, pc[:, None], pc[None, :]].reshape(n_part, cap, 2, cap, 2).transpose(0, 1, 3, 2, 4)
+    pc = _place_cols(stride, np.arange(cap), 0, 2)  # (cap, 2)
     cpx = cxp.swapaxes(-1, -2)  # cov(p_s, x_n): (P, s, 2, 2)
     ar = np.arange(cap)
     px = pxx[:, None, :2, :2]
+    cpp_diag = cov[:, pc[:, :, None], pc[:, None, :]]  # cov(p_s): (P, s, 2, 2)
     e_mean = p_hat - x_pred[:, None, :2]  # (P, s, 2)
-    e_cov = cpp[:, ar, ar] + px - cpx - cxp  # (P, s, 2, 2)
-    excess = (config.sigma_topology**2 / np.maximum(counts, 1))[..., None, None] * np.eye(2)
-    # revisit k: C = cov(p_s - x_n, x_n - p_k) = cov(p_s, x_n) - cov(p_s, p_k) - cov(x_n) + cov(x_n, p_k)
-    C = cpx[:, :, None] - cpp - px[:, None] + cxp[:, None, :]  # (P, s, k, 2, 2)
-    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
-    s_inv = np.stack([S[..., 1, 1], -S[..., 0, 1], -S[..., 1, 0], S[..., 0, 0]], axis=-1).reshape(S.shape)
-    s_inv /= det[..., None, None]
-    G = C @ s_inv[:, None]  # (P, s, k, 2, 2)
-    mean_rev = e_mean[:, :, None] - np.einsum("pskab,pkb->pska", G, d)
-    cov_rev = e_cov[:, :, None] - excess[:, :, None] - G @ C.swapaxes(-1, -2)
-    active = (counts > 0)[:, :, None] & (ar[:, None] != ar[None, :])[None]  # (P, s, k)
+    e_cov = cpp_diag + px - cpx - cxp  # (P, s, 2, 2)
+    excess = config.sigma_topology**2 / np.maximum(counts, 1)  # (P, s)
+    reach = _PENALTY_PRUNE_SD * np.sqrt(np.maximum(_max_eig2(e_cov), 0.0)) + config.penalty_radius  # (P, s)
     proxy_rev = np.zeros((n_part, cap))
     proxy_new = np.zeros(n_part)
-    for m, c, act, target in (
-        (mean_rev, cov_rev, active, proxy_rev),
-        (e_mean, e_cov - excess, counts > 0, proxy_new),
-    ):
-        sd_max = np.sqrt(np.maximum(_max_eig2(c), 0.0))
-        near = act & (np.hypot(m[..., 0], m[..., 1]) - config.penalty_radius < _PENALTY_PRUNE_SD * sd_max)
-        idx = np.nonzero(near)
-        if len(idx[0]) == 0:
-            continue
-        sym = 0.5 * (c[idx] + c[idx].swapaxes(-1, -2))
-        log_e, _, _ = _tilted_moments(m[idx], sym, counts[idx[0], idx[1]], config, _Z_PROXY)
-        if target.ndim == 2:
-            np.add.at(target, (idx[0], idx[2]), -log_e)
-        else:
-            np.add.at(target, idx[0], -log_e)
+    used = counts > 0
+    # new place: x_n as predicted
+    near = used & worth_new[:, None] & (np.hypot(e_mean[..., 0], e_mean[..., 1]) < reach)
+    pi, si = np.nonzero(near)
+    if len(pi):
+        c = e_cov[pi, si].copy()
+        c[:, 0, 0] -= excess[pi, si]
+        c[:, 1, 1] -= excess[pi, si]
+        np.add.at(proxy_new, pi, -_log_expectation(e_mean[pi, si], c, counts[pi, si], config))
+    # revisits: x_n moved by the coincidence with p_k (its updated mean, p_s at its prior mean, to select)
+    y = np.linalg.solve(S, d[..., None])[..., 0]  # S^{-1} d: (P, k, 2)
+    x_upd = x_pred[:, None, :2] - np.einsum("pkab,pkb->pka", px[:, 0][:, None] - cxp, y)  # (P, k, 2)
+    gap = p_hat[:, None, :, :] - x_upd[:, :, None, :]  # (P, k, s, 2)
+    near = (
+        used[:, None, :]
+        & worth_rev[:, :, None]
+        & (ar[:, None] != ar[None, :])[None]
+        & (np.hypot(gap[..., 0], gap[..., 1]) < reach[:, None, :])
+    )
+    pi, ki, si = np.nonzero(near)
+    if len(pi):
+        cpp_sk = cov[pi[:, None, None], pc[si][:, :, None], pc[ki][:, None, :]]  # cov(p_s, p_k): (Q, 2, 2)
+        C = cpx[pi, si] - cpp_sk - px[pi, 0] + cxp[pi, ki]  # cov(e_s, h_k)
+        gain = np.linalg.solve(S[pi, ki], C.swapaxes(-1, -2)).swapaxes(-1, -2)  # C S^{-1}
+        m = e_mean[pi, si] - np.einsum("qab,qb->qa", gain, d[pi, ki])
+        c = e_cov[pi, si] - gain @ C.swapaxes(-1, -2)
+        c = 0.5 * (c + c.swapaxes(-1, -2))
+        c[:, 0, 0] -= excess[pi, si]
+        c[:, 1, 1] -= excess[pi, si]
+        close = np.hypot(m[:, 0], m[:, 1]) - config.penalty_radius < _PENALTY_PRUNE_SD * np.sqrt(
+            np.maximum(_max_eig2(c), 0.0)
+        )  # pruned again with the updated moments
+        pi, ki, si = pi[close], ki[close], si[close]
+        log_e = _log_expectation(m[close], c[close], counts[pi, si], config)
+        np.add.at(proxy_rev, (pi, ki), -log_e)
     return proxy_rev, proxy_new
 
 
@@ -951,13 +980,28 @@ class TopologyFilter:
         ll_new = np.full(n_part, -math.log(cfg.area_m2))
         proxy_rev = np.zeros((n_part, cap))  # separation penalty of the new pairs (i, n), for selection
         proxy_new = np.zeros(n_part)
+        lp_rev, lp_new = self._discrete_terms(st, visits)
         if cfg.penalty_max > 0.0:
+            # children that selection can keep (the others' proxy would not matter: the weight is corrected)
+            base_rev = np.where(valid, st.log_w[:, None] + lp_rev + ll_rev, -np.inf)
+            base_new = st.log_w + lp_new + ll_new
+            top = max(float(np.max(base_rev)), float(np.max(base_new)))
             proxy_rev, proxy_new = _separation_proxy(
-                st.cov, p_hat, st.counts, x_pred, pxx, cxp, S, d, stride, cfg
+                st.cov,
+                p_hat,
+                st.counts,
+                x_pred,
+                pxx,
+                cxp,
+                S,
+                d,
+                stride,
+                cfg,
+                worth_rev=base_rev > top - _PROXY_NATS,
+                worth_new=base_new > top - _PROXY_NATS,
             )
             ll_rev -= proxy_rev
             ll_new -= proxy_new
-        lp_rev, lp_new = self._discrete_terms(st, visits)
         lw_rev = np.where(valid, st.log_w[:, None] + lp_rev + ll_rev, -np.inf)
         lw_new = st.log_w + lp_new + ll_new
         par_rev, k_rev = np.nonzero(valid)
