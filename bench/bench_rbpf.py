@@ -10,7 +10,9 @@ Writes ``bench/rbpf.json`` (beside this script, or ``--out``) and prints a table
   topologies): total variation of the filter keeping every child, and of 10–100 particles over seeds,
   for optimal (Fearnhead–Clifford) and top-N resampling.
 * ``approximations``: N = 6 cases, every child kept, against enumeration with and without the
-  separation prior (which the filter evaluates at place means).
+  separation prior (which this Laplace enumeration evaluates at its optimum, while the filter integrates
+  it over its Gaussian, issue #23: with the prior the TV mixes both; ``bench_exact.py`` compares with the
+  importance-sampling enumeration).
 * ``linearisation``: with a large heading noise, the filter (EKF, sequential linearisation) and the
   batch Laplace estimate against importance sampling (the model's own reference, eq. 18).
 
@@ -204,7 +206,8 @@ def accuracy(seeds: int) -> list[dict]:
 
 def approximations() -> list[dict]:
     """N = 6 cases where the filter (every child kept) and enumeration differ most, with and without the
-    separation prior: what is linearisation and what is the penalty at place means."""
+    separation prior: what is linearisation and what is the prior's point value (Laplace) vs its integral
+    (filter)."""
     square = [(0, 0), (5, 0), (5, 5), (0, 5)]
     close = [(0, 0), (2, 0), (2, 6), (0, 6)]  # places 0 and 1 within the penalty radius
     route = [0, 1, 2, 3, 0, 1]

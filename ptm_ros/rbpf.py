@@ -44,17 +44,10 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
      :math:`S_k = \mathrm{cov}(x_n^{xy} - p_k) + σ_T^2 I`;
    * new place: :math:`p(o \mid M) = \int \frac1A N(x_n^{xy}; p, σ_T^2 I)\,dp = 1/A` and
      :math:`p_M \sim N(x_n^{xy}, σ_T^2 I)` enters the state;
-   * separation prior (eq. 15–16): the batch model sums :math:`c(d) = c_{max}(1-d/D)^3` over every pair
-     of visits of different places, at its optimum. **Approximation** (past poses are marginalised):
-     every visit sits at the mean of its place, so the penalty of a topology is
-     :math:`Φ = \sum_{s<t} |s|\,|t|\, c(\lVert \hat p_s - \hat p_t \rVert)`, re-evaluated after every
-     update and charged as its change :math:`Φ_{child} - Φ_{parent}`; the total thus telescopes to
-     ``Φ`` at the latest means, as the batch evaluates at the optimum given all data. For selection,
-     before the update, the change is estimated by the new pairs only,
-     :math:`\sum_{s \ne k} |s|\, c(\lVert \hat x_{n|k}^{xy} - \hat p_s \rVert)` with ``x_n`` at its mean
-     after the coincidence (revisit) or predicted (new place); after selection the weight is corrected
-     to the exact change. The approximation is poor when a topology merges visits far apart within
-     ``D`` of another place (their individual positions matter there);
+   * separation prior (eq. 15–16), for selection only: the penalty of the new pairs ``(i, n)`` at the
+     means, :math:`\sum_{s \ne k} |s|\, c(\lVert \hat x_{n|k}^{xy} - \hat p_s \rVert)` with ``x_n`` at its
+     mean after the coincidence (revisit) or predicted (new place); replaced after selection by its
+     expectation (step 5);
    * appearance: the predictive of eq. 46, per distinct block (:func:`block_log_predictives`, equal to
      :func:`~ptm_ros.appearance.appearance_log_predictive`, vectorised).
 3. *Select* at most ``N`` children by Fearnhead–Clifford optimal resampling for discrete states
@@ -66,9 +59,24 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    linearised at the mode of the 6-D measurement problem (iterated EKF, :func:`_laser_factor`); finally
    ``x_{last(k)} := x_n`` (the old one is marginalised). New place: ``p_M`` and ``x_{last(M)} := x_n``
    are appended.
-5. The separation penalty is re-evaluated at the updated means (above). The PTM is the normalised
-   particle weights; the effective sample size ``1/Σ w²`` and the number of distinct topologies are
-   reported per step (:class:`FilterState`).
+5. *Separation prior* (eq. 15–16) of the new pairs ``(i, n)``, ``i`` of another place, by assumed
+   density filtering (:func:`_separation_update`): the weight is multiplied by
+   :math:`E[\exp(-\sum_{s \ne k} |s|\, c(\lVert \bar x_s - x_n^{xy} \rVert))]` under the child's
+   Gaussian after the factors above (the selection proxy divided out), and the state is replaced by the
+   moment-matched Gaussian of the tilted density. **Approximation**: past poses are marginalised, so the
+   visits of place ``s`` are taken at their mean :math:`\bar x_s` (exactly Gaussian in the state: the
+   model's :math:`p_s \mid X \sim N(\bar x_s, σ_T^2/|s|\, I)`); and the state stays Gaussian.
+   This is the chain rule of the batch integral, which integrates the penalty over the poses
+   (importance sampling, eq. 18: what ``ptm-run --method exact`` computes). Evaluating the penalty at
+   the means instead (the Laplace estimate's ``c`` at ``X*``; this filter before issue #23) charges a
+   split place — two visits ~1 m apart taken as two places, ``c ≈ 1.5`` nats — its penalty at the
+   point, where the integral over the visits' ~0.5 m uncertainty is ~1.6 nats milder: on
+   ``ptm-sim --seed 11 --landmarks 9`` the "no loop" topology got 0.04 instead of 0.16 (TV 0.125, now
+   0.004). Charging each pair's expectation without updating the state double-charges correlated pairs
+   (a split place whose next visit is split too: the first penalty pushes both apart), hence the ADF
+   update.
+6. The PTM is the normalised particle weights; the effective sample size ``1/Σ w²`` and the number of
+   distinct topologies are reported per step (:class:`FilterState`).
 
 For a model linear in the poses these steps are the chain rule of the batch integral
 :math:`\int f_G\,dX` (the product over steps of the predictive densities), so the particles' weights equal
@@ -84,6 +92,24 @@ topology is distorted (in ``bench/bench_rbpf.py``'s 6×6 world, 2.4 m RMS from t
 closing a 28 m drift) and its later revisits score too low; a wrong topology that avoided the closure
 can then overtake it (true topology 0.2 in the filter, preferred by 22 nats in the batch). A smoothing
 back-end, or re-optimising a particle's poses after a large innovation, would remove this.
+
+Measured against ``ptm-run --method exact`` (``bench/bench_exact.py``: 24 simulated runs of 8–9 visits
+through every world, 1000 particles; see ``bench/exact.json``), two differences remain:
+
+* the EKF linearisation above, also for moderate closures: a closure several metres off the odometry at
+  tens of metres from the pivoting headings is scored with the straight-line (linearised) image of the
+  heading errors, where the batch Laplace estimate linearises at the closed path (its arc), and
+  importance sampling confirms the batch. ``two-loop`` seed 103: visit 7 closing 10.8 m onto place 1
+  scores 2.3 nats lower than in the batch (TV 0.24); every ``multi-loop`` run (4 m closures at 15 m):
+  ~0.3 nats, TV 0.04–0.07. The gap vanishes as the heading noise goes to 0 (measured on seed 101).
+  A state that keeps the heading errors' pivots (a Lie-group or smoothing filter) would remove it.
+* the alias decision of a laser registration (below): the filter tests a registration against its state
+  *with* the topology's earlier registrations, the batch model (:func:`~ptm_ros.odometry.alias_test`)
+  against the optimum *without* any. On ``t-junction`` seed 106 the batch keeps as a true match a
+  registration (visits 0, 6) that contradicts two others, in a topology whose alternative alias set is
+  14 nats more probable; summing that topology's likelihood over all 16 alias sets (importance
+  sampling each) puts it 5.3 nats above the batch's MAP, the filter 5.1 nats, the batch 8.8 below: TV
+  0.99, an error of the batch model's max-mixture, not of the filter.
 
 The laser factor is known only after selection (registrations are expensive, so only the selected
 revisits are registered). As in :class:`~ptm_ros.posterior.PosteriorModel`, the data are the outcomes of
@@ -431,7 +457,7 @@ class _Particles:
     last: IntArray
     n_places: IntArray
     blocks: tuple[tuple[tuple[int, ...], ...], ...] | None  # per particle, per place (appearance only)
-    penalty: FloatArray  # (P,) Φ: the separation penalty at the current place means (see _separation)
+    penalty: FloatArray  # (P,) separation penalty charged so far [nats] (_separation_update)
 
 
 def _place_cols(stride: int, places: ArrayLike, offset: int, width: int) -> IntArray:
@@ -469,17 +495,241 @@ def _cubic(dist: FloatArray, config: OdometryConfig) -> FloatArray:
     return config.penalty_max * (gap * gap * gap)
 
 
-def _separation(mean: FloatArray, counts: IntArray, stride: int, config: OdometryConfig) -> FloatArray:
-    """``Φ = Σ_{s<t} |s| |t| c(‖p̂_s - p̂_t‖)`` per particle ``(P,)``: the batch model's penalty over pairs
-    of visits of different places (eq. 15–16) with every visit at the mean of its place."""
-    used = int(np.max(np.nonzero(counts.any(axis=0))[0], initial=-1)) + 1  # later slots are empty
-    if config.penalty_max == 0.0 or used < 2:
-        return np.zeros(len(mean))
-    s, t = np.triu_indices(used, 1)
-    p = mean[:, _place_cols(stride, np.arange(used), 0, 2)]  # (P, used, 2)
-    dist = np.hypot(p[:, s, 0] - p[:, t, 0], p[:, s, 1] - p[:, t, 1])  # (P, pairs)
-    w = counts[:, s] * counts[:, t]  # unused slots: 0
-    return np.sum(_cubic(dist, config) * w, axis=1)
+#: Standard normal points of the separation prior's expectation (:func:`_separation_update`): a
+#: golden-ratio lattice of the unit square mapped to the plane by Box–Muller (radius from the first
+#: coordinate, angle from the second). Deterministic: the filter's only randomness stays the resampling.
+#: 512 points integrate ``exp(-k c(‖δ‖))`` over a Gaussian ``δ`` to ~0.005 nats and its tilted moments to
+#: ~1 % (tested against sampling), from point-like to wider than the radius ``D``.
+_PENALTY_POINTS = 512
+#: Pairs whose mean distance exceeds ``D`` by more standard deviations contribute nothing: a 2-D normal
+#: is beyond ``t`` of its mean with probability ``exp(-t²/2)`` (here 4e-5), which bounds ``1 - E[g]``.
+_PENALTY_PRUNE_SD = 4.5
+
+
+def _penalty_points(count: int = _PENALTY_POINTS) -> FloatArray:
+    i = np.arange(count)
+    u = (i + 0.5) / count
+    angle = 2.0 * math.pi * np.mod(i / ((1.0 + math.sqrt(5.0)) / 2.0), 1.0)
+    radius = np.sqrt(-2.0 * np.log1p(-u))
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=0)  # (2, K)
+
+
+_Z = _penalty_points()
+
+
+def _separation_update(
+    mean: FloatArray, cov: FloatArray, counts: IntArray, kk: IntArray, *, stride: int, config: OdometryConfig
+) -> FloatArray:
+    r"""The separation prior of the new pairs ``(i, n)``, by assumed density filtering; in place.
+
+    Returns ``log E[exp(-Σ_s |s| c(‖x̄_s - x_n^{xy}‖))]`` per child ``(C,)`` and replaces each child's
+    Gaussian ``N(mean, cov)`` by the moment-matched (Gaussian) projection of the Gaussian times the
+    prior's factor. ``mean``/``cov``: the children's states after the Gaussian factors of visit ``n``;
+    ``counts`` ``(C, cap)``: visits of each place *before* ``n`` (the parents' counts); ``kk``: the place
+    of visit ``n`` (a revisited place has no new pair with ``n``).
+
+    The pairs ``(i, n)``, ``i`` of another place ``s``, are taken with every visit of ``s`` at the mean
+    of its visits, ``x̄_s``. Under the model ``p_s | X ~ N(x̄_s, σ_T²/|s| I)`` independently of the rest,
+    so ``δ_s = x̄_s - x_n^{xy} = p_s - x_n^{xy} - η_s`` is Gaussian with the mean of ``p_s - x_n^{xy}``, its
+    covariance minus ``σ_T²/|s| I``, and ``cov(ξ, δ_s) = cov(ξ, p_s - x_n^{xy}) - σ_T²/|s|`` on the rows
+    of ``p_s`` (the only state variable correlated with ``η_s``). Each place's factor
+    ``g(δ) = exp(-|s| c(‖δ‖))`` is integrated over ``N(δ; m, Σ)`` on the :data:`_Z` points (pairs more
+    than :data:`_PENALTY_PRUNE_SD` standard deviations beyond the radius contribute 0), giving the weight
+    factor ``E[g]`` and the tilted moments ``m', Σ'``; as ``ξ | δ`` is unchanged by a factor of ``δ``, the
+    moment-matched state is ``μ += K(m' - m)``, ``P += K(Σ' - Σ)Kᵀ`` with ``K = cov(ξ, δ) Σ^{-1}``
+    (the law of total variance: positive semi-definite). The near places of a child are taken one after
+    the other, each under the state updated by the previous ones, so that correlated pairs (a split
+    place whose next visits are split too) are not charged twice.
+    """
+    n_child = len(mean)
+    out = np.zeros(n_child)
+    if config.penalty_max == 0.0 or n_child == 0:
+        return out
+    cap = counts.shape[1]
+    active = (counts > 0) & (np.arange(cap)[None, :] != kk[:, None])
+    if not np.any(active):
+        return out
+    pc = _place_cols(stride, np.arange(cap), 0, 2)  # (cap, 2)
+    excess = config.sigma_topology**2 / np.maximum(counts, 1)  # (C, cap)
+    m, S = _delta_moments(mean, cov, pc, excess)
+    sd_max = np.sqrt(np.maximum(_max_eig2(S), 0.0))
+    dist = np.hypot(m[..., 0], m[..., 1])
+    near = active & (dist - config.penalty_radius < _PENALTY_PRUNE_SD * sd_max)
+    if not np.any(near):
+        return out
+    order = np.argsort(np.where(near, dist, np.inf), axis=1, kind="stable")  # nearest first
+    n_near = near.sum(axis=1)
+    for r in range(int(n_near.max())):
+        rows = np.flatnonzero(n_near > r)
+        places = order[rows, r]
+        cols = pc[places]  # (R, 2)
+        ar = np.arange(len(rows))[:, None]
+        m_q = mean[rows[:, None], cols] - mean[rows, :2]
+        # cov(δ, ξ) = cov(p_s - x_n, ξ) - cov(η_s, ξ), η_s = p_s - x̄_s: only p_s is correlated with η_s
+        c_q = cov[rows[:, None], cols, :] - cov[rows, :2, :]  # (R, 2, D)
+        c_q[ar, np.arange(2), cols] -= excess[rows, places][:, None]
+        s_q = c_q[ar, :, cols].transpose(0, 2, 1) - c_q[:, :, :2]  # cov(δ): (R, 2, 2)
+        s_q = 0.5 * (s_q + s_q.swapaxes(-1, -2))
+        log_e, shift, s_new = _tilted_moments(m_q, s_q, counts[rows, places], config, _Z)
+        out[rows] += log_e
+        det = s_q[:, 0, 0] * s_q[:, 1, 1] - s_q[:, 0, 1] * s_q[:, 1, 0]
+        ok = det > 1e-12 * np.maximum(np.square(s_q[:, 0, 0] + s_q[:, 1, 1]), 1e-300)
+        if not np.any(ok):
+            continue
+        rows, c_q, s_q, s_new, shift = rows[ok], c_q[ok], s_q[ok], s_new[ok], shift[ok]
+        gain_t = np.linalg.solve(s_q, c_q)  # Kᵀ = Σ^{-1} cov(δ, ξ): (R, 2, D)
+        mean[rows] += np.einsum("rk,rkd->rd", shift, gain_t)
+        upd = gain_t.transpose(0, 2, 1) @ ((s_new - s_q) @ gain_t)  # K (Σ' - Σ) Kᵀ: (R, D, D)
+        cov[rows] += 0.5 * (upd + upd.transpose(0, 2, 1))
+    return out
+
+
+def _log_expectation(m: FloatArray, S: FloatArray, count: IntArray, config: OdometryConfig) -> FloatArray:
+    """``log E[exp(-count · c(‖δ‖))]`` for ``δ ~ N(m, S)`` ``(Q, 2)``, ``(Q, 2, 2)``, on :data:`_Z_PROXY`."""
+    if len(m) == 0:
+        return np.zeros(0)
+    a = np.sqrt(np.maximum(S[:, 0, 0], 0.0))
+    b = np.divide(S[:, 1, 0], a, out=np.zeros_like(a), where=a > 0.0)
+    d = np.sqrt(np.maximum(S[:, 1, 1] - b * b, 0.0))
+    z = _Z_PROXY
+    ex = m[:, 0, None] + a[:, None] * z[0]
+    ey = m[:, 1, None] + b[:, None] * z[0] + d[:, None] * z[1]
+    pen = _cubic(np.hypot(ex, ey), config) * count[:, None].astype(float)
+    low = pen.min(axis=1)
+    return np.log(np.mean(np.exp(low[:, None] - pen), axis=1)) - low
+
+
+def _tilted_moments(
+    m: FloatArray, S: FloatArray, count: IntArray, config: OdometryConfig, points: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """For ``δ ~ N(m, S)`` ``(Q, 2)``, ``(Q, 2, 2)`` and ``g(δ) = exp(-count · c(‖δ‖))``: ``log E[g]``
+    ``(Q,)``, the tilted mean minus ``m`` ``(Q, 2)`` and the tilted covariance ``(Q, 2, 2)``, on the
+    standard normal ``points`` ``(2, K)``."""
+    a = np.sqrt(np.maximum(S[:, 0, 0], 0.0))
+    b = np.divide(S[:, 1, 0], a, out=np.zeros_like(a), where=a > 0.0)
+    d = np.sqrt(np.maximum(S[:, 1, 1] - b * b, 0.0))
+    ex = a[:, None] * points[0]  # δ - m at the points: (Q, K)
+    ey = b[:, None] * points[0] + d[:, None] * points[1]
+    pen = _cubic(np.hypot(m[:, 0, None] + ex, m[:, 1, None] + ey), config) * count[:, None].astype(float)
+    low = pen.min(axis=1, keepdims=True)
+    w = np.exp(low - pen)  # scaled weights of the tilted points
+    w_sum = w.sum(axis=1)
+    log_e = np.log(w_sum / points.shape[1]) - low[:, 0]
+    w /= w_sum[:, None]
+    mx, my = np.sum(w * ex, axis=1), np.sum(w * ey, axis=1)
+    dx, dy = ex - mx[:, None], ey - my[:, None]
+    s_new = np.empty_like(S)
+    s_new[:, 0, 0] = np.sum(w * dx * dx, axis=1)
+    s_new[:, 1, 1] = np.sum(w * dy * dy, axis=1)
+    s_new[:, 0, 1] = s_new[:, 1, 0] = np.sum(w * dx * dy, axis=1)
+    return log_e, np.stack([mx, my], axis=1), s_new
+
+
+#: Points of the selection proxy's expectations (:func:`_separation_proxy`): coarser, as the weight is
+#: corrected after selection.
+_Z_PROXY = _penalty_points(64)
+#: Children lighter than the heaviest by more than this [nats] get no separation proxy before selection.
+_PROXY_NATS = 25.0
+
+
+def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positionally)
+    cov: FloatArray,
+    p_hat: FloatArray,
+    counts: IntArray,
+    x_pred: FloatArray,
+    pxx: FloatArray,
+    cxp: FloatArray,
+    S: FloatArray,
+    d: FloatArray,
+    stride: int,
+    config: OdometryConfig,
+    *,
+    worth_rev: NDArray[np.bool_],
+    worth_new: NDArray[np.bool_],
+) -> tuple[FloatArray, FloatArray]:
+    """``-log E[exp(-Σ_s |s| c(‖δ_s‖))]`` of every child before selection, ``(P, cap)`` and ``(P,)``.
+
+    The expectation of :func:`_separation_update` (without its state update, on :data:`_Z_PROXY`),
+    under each child's Gaussian after the coincidence: for a revisit of ``k``, with ``e_s = p_s - x_n``,
+    ``h_k = x_n - p_k`` (predicted mean ``d``, covariance ``S`` with ``σ_T² I``) and
+    ``C = cov(e_s, h_k)``, ``e_s | h_k = 0 ~ N(ê_s - C S^{-1} d, cov(e_s) - C S^{-1} Cᵀ)``; a new place
+    leaves ``x_n`` as predicted. ``cov``: the parents' covariances; ``pxx``, ``cxp`` ``(P, cap, 2, 2)``:
+    the predicted ``cov(x_n^{xy})`` and ``cov(x_n^{xy}, p_k)``. Only the pairs ``(k, s)`` whose place is
+    near ``x_n``'s updated mean (within the pruning distance of :func:`_separation_update` by the prior
+    spread of ``e_s``, ``p_s`` taken at its prior mean) are integrated: ``O(P · cap)`` work plus the near
+    pairs, not ``O(P · cap²)`` 2×2 algebra; and only for the children ``worth_rev`` ``(P, cap)`` /
+    ``worth_new`` ``(P,)`` within :data:`_PROXY_NATS` of the heaviest (the weight is corrected after
+    selection anyway, so the proxy only has to be good where selection is decided).
+    """
+    n_part, cap = counts.shape
+    pc = _place_cols(stride, np.arange(cap), 0, 2)  # (cap, 2)
+    cpx = cxp.swapaxes(-1, -2)  # cov(p_s, x_n): (P, s, 2, 2)
+    ar = np.arange(cap)
+    px = pxx[:, None, :2, :2]
+    cpp_diag = cov[:, pc[:, :, None], pc[:, None, :]]  # cov(p_s): (P, s, 2, 2)
+    e_mean = p_hat - x_pred[:, None, :2]  # (P, s, 2)
+    e_cov = cpp_diag + px - cpx - cxp  # (P, s, 2, 2)
+    excess = config.sigma_topology**2 / np.maximum(counts, 1)  # (P, s)
+    reach = _PENALTY_PRUNE_SD * np.sqrt(np.maximum(_max_eig2(e_cov), 0.0)) + config.penalty_radius  # (P, s)
+    proxy_rev = np.zeros((n_part, cap))
+    proxy_new = np.zeros(n_part)
+    used = counts > 0
+    # new place: x_n as predicted
+    near = used & worth_new[:, None] & (np.hypot(e_mean[..., 0], e_mean[..., 1]) < reach)
+    pi, si = np.nonzero(near)
+    if len(pi):
+        c = e_cov[pi, si].copy()
+        c[:, 0, 0] -= excess[pi, si]
+        c[:, 1, 1] -= excess[pi, si]
+        np.add.at(proxy_new, pi, -_log_expectation(e_mean[pi, si], c, counts[pi, si], config))
+    # revisits: x_n moved by the coincidence with p_k (its updated mean, p_s at its prior mean, to select)
+    y = np.linalg.solve(S, d[..., None])[..., 0]  # S^{-1} d: (P, k, 2)
+    x_upd = x_pred[:, None, :2] - np.einsum("pkab,pkb->pka", px[:, 0][:, None] - cxp, y)  # (P, k, 2)
+    gap = p_hat[:, None, :, :] - x_upd[:, :, None, :]  # (P, k, s, 2)
+    near = (
+        used[:, None, :]
+        & worth_rev[:, :, None]
+        & (ar[:, None] != ar[None, :])[None]
+        & (np.hypot(gap[..., 0], gap[..., 1]) < reach[:, None, :])
+    )
+    pi, ki, si = np.nonzero(near)
+    if len(pi):
+        cpp_sk = cov[pi[:, None, None], pc[si][:, :, None], pc[ki][:, None, :]]  # cov(p_s, p_k): (Q, 2, 2)
+        C = cpx[pi, si] - cpp_sk - px[pi, 0] + cxp[pi, ki]  # cov(e_s, h_k)
+        gain = np.linalg.solve(S[pi, ki], C.swapaxes(-1, -2)).swapaxes(-1, -2)  # C S^{-1}
+        m = e_mean[pi, si] - np.einsum("qab,qb->qa", gain, d[pi, ki])
+        c = e_cov[pi, si] - gain @ C.swapaxes(-1, -2)
+        c = 0.5 * (c + c.swapaxes(-1, -2))
+        c[:, 0, 0] -= excess[pi, si]
+        c[:, 1, 1] -= excess[pi, si]
+        close = np.hypot(m[:, 0], m[:, 1]) - config.penalty_radius < _PENALTY_PRUNE_SD * np.sqrt(
+            np.maximum(_max_eig2(c), 0.0)
+        )  # pruned again with the updated moments
+        pi, ki, si = pi[close], ki[close], si[close]
+        log_e = _log_expectation(m[close], c[close], counts[pi, si], config)
+        np.add.at(proxy_rev, (pi, ki), -log_e)
+    return proxy_rev, proxy_new
+
+
+def _delta_moments(
+    mean: FloatArray, cov: FloatArray, pc: IntArray, excess: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Mean ``(C, cap, 2)`` and covariance ``(C, cap, 2, 2)`` of ``δ_s = x̄_s - x_n^{xy}`` for every place."""
+    m = mean[:, pc] - mean[:, None, :2]
+    cxp = cov[:, :2][:, :, pc].transpose(0, 2, 1, 3)  # cov(x_n, p_s): (C, cap, 2, 2)
+    cpp = cov[:, pc[:, :, None], pc[:, None, :]]
+    S = cpp + cov[:, None, :2, :2] - cxp - cxp.swapaxes(-1, -2)
+    S = 0.5 * (S + S.swapaxes(-1, -2))
+    S[..., 0, 0] -= excess
+    S[..., 1, 1] -= excess
+    return m, S
+
+
+def _max_eig2(S: FloatArray) -> FloatArray:
+    """Largest eigenvalue of symmetric ``(..., 2, 2)`` matrices."""
+    half_tr = 0.5 * (S[..., 0, 0] + S[..., 1, 1])
+    gap = np.sqrt(np.maximum(0.25 * np.square(S[..., 0, 0] - S[..., 1, 1]) + np.square(S[..., 0, 1]), 0.0))
+    return half_tr + gap
 
 
 def _chol2(S: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -730,21 +980,28 @@ class TopologyFilter:
         ll_new = np.full(n_part, -math.log(cfg.area_m2))
         proxy_rev = np.zeros((n_part, cap))  # separation penalty of the new pairs (i, n), for selection
         proxy_new = np.zeros(n_part)
+        lp_rev, lp_new = self._discrete_terms(st, visits)
         if cfg.penalty_max > 0.0:
-            s_inv_d = np.stack([(y[..., 0] - b_ * y[..., 1] / d_) / a_, y[..., 1] / d_], axis=-1)  # L^{-T} y
-            x_upd = x_pred[:, None, :2] - np.einsum("pkab,pkb->pka", cxd, s_inv_d)
-            w_count = st.counts.astype(float)  # zero for unused slots
-            dist = np.hypot(  # (P, k, s): child k's x_n to place s
-                x_upd[:, :, None, 0] - p_hat[:, None, :, 0], x_upd[:, :, None, 1] - p_hat[:, None, :, 1]
+            # children that selection can keep (the others' proxy would not matter: the weight is corrected)
+            base_rev = np.where(valid, st.log_w[:, None] + lp_rev + ll_rev, -np.inf)
+            base_new = st.log_w + lp_new + ll_new
+            top = max(float(np.max(base_rev)), float(np.max(base_new)))
+            proxy_rev, proxy_new = _separation_proxy(
+                st.cov,
+                p_hat,
+                st.counts,
+                x_pred,
+                pxx,
+                cxp,
+                S,
+                d,
+                stride,
+                cfg,
+                worth_rev=base_rev > top - _PROXY_NATS,
+                worth_new=base_new > top - _PROXY_NATS,
             )
-            pen = _cubic(dist, cfg) * w_count[:, None, :]
-            pen[:, np.arange(cap), np.arange(cap)] = 0.0
-            proxy_rev = pen.sum(axis=-1)
-            dist_new = np.hypot(x_pred[:, None, 0] - p_hat[..., 0], x_pred[:, None, 1] - p_hat[..., 1])
-            proxy_new = np.sum(_cubic(dist_new, cfg) * w_count, axis=-1)
             ll_rev -= proxy_rev
             ll_new -= proxy_new
-        lp_rev, lp_new = self._discrete_terms(st, visits)
         lw_rev = np.where(valid, st.log_w[:, None] + lp_rev + ll_rev, -np.inf)
         lw_new = st.log_w + lp_new + ll_new
         par_rev, k_rev = np.nonzero(valid)
@@ -848,7 +1105,7 @@ class TopologyFilter:
             mean[:, headings] = wrap_angle(mean[:, headings])
         mean[:, 2] = wrap_angle(mean[:, 2])
 
-        # bookkeeping, the separation penalty re-evaluated at the updated means, and the weights
+        # bookkeeping, the separation prior of the new pairs (i, n), and the weights
         counts = np.zeros((n_child, new_cap), dtype=np.intp)
         last = np.full((n_child, new_cap), -1, dtype=np.intp)
         counts[:, :cap] = st.counts[par]
@@ -856,8 +1113,12 @@ class TopologyFilter:
         ar = np.arange(n_child)
         counts[ar, kk] += 1
         last[ar, kk] = n
-        penalty = _separation(mean, counts, stride, cfg)
-        lw = sel_lw + laser_ll + fitness + proxy - (penalty - st.penalty[par])  # the proxy was in sel_lw
+        log_sep = _separation_update(mean, cov, st.counts[par], kk, stride=stride, config=cfg)
+        if stride == 5:
+            mean[:, headings] = wrap_angle(mean[:, headings])
+        mean[:, 2] = wrap_angle(mean[:, 2])
+        penalty = st.penalty[par] - log_sep
+        lw = sel_lw + laser_ll + fitness + proxy + log_sep  # the proxy (selection only) was in sel_lw
         lse = float(logsumexp(lw))
         increment = lse_children + lse
         labels = tuple(st.labels[p] + (int(k),) for p, k in zip(par.tolist(), kk.tolist(), strict=True))

@@ -259,7 +259,7 @@ def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tm
     the filter's topologies and ptm.json compares the PTMs."""
     from ptm_ros.posterior import total_variation
 
-    model = {"use_laser": False, "odometry": {"n_samples": 0}}
+    model = {"use_laser": False}  # importance sampling: the separation prior integrated, as the filter does
     inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {**start, "chains": 2}}
     ptm = run_offline(tjunction_bag, tmp_path / "m", small_config(model=model, inference=inference)).ptm
     exact_cfg = small_config(model=model, inference={"method": "exact", "top": 10_000})
