@@ -22,13 +22,13 @@ setup(
         ],
     ],
     # the Python dependencies of every module (ROS 2 itself, rclpy and the messages, come from the ROS
-    # install or the ros-jazzy-* wheels of requirements.txt; package.xml lists them for rosdep)
+    # install or the ros-jazzy-* wheels of requirements.txt; package.xml lists them for rosdep; OpenCV
+    # too: apt's python3-opencv or requirements.txt's opencv-python-headless, not a second cv2 here)
     install_requires=[
         "setuptools",
         "numpy",
         "scipy",
         "pyyaml",
-        "opencv-python-headless",
         "matplotlib",
         "tqdm",
         "rosbags>=0.11",

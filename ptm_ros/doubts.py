@@ -109,15 +109,20 @@ def doubt_lines(doubts: Doubts, *, most: int = 10) -> list[str]:
     head = f"the most probable topology holds {doubts.map_probability:.2f} of the probability"
     if doubts.runner_up_probability > 0.0:
         head += f", the next one {doubts.runner_up_probability:.2f}"
-    if doubts.sure:
-        return [f"the map is sure of every visit's place: {head}"]
     n = len(doubts.visits)
-    lines = [f"the map is unsure of {n} visit{'s' if n != 1 else ''}' place: {head}"]
+    if doubts.sure:
+        lines = [f"the map is sure where every visit is: {head}"]
+    else:
+        lines = [f"the map is unsure where {n} visit{'s are' if n != 1 else ' is'}: {head}"]
     for d in doubts.visits[:most]:
         options = " or ".join(_answer_words(a) for a in d.answers)
         lines.append(f"visit {d.visit} (t = {d.stamp:.1f} s) is {options}")
     if n > most:
-        lines.append(f"… and {n - most} more visits in doubt (ptm.json: extra.doubts)")
+        lines.append(f"… and {n - most} more visits in doubt (ptm.json: doubts)")
+    if doubts.listed_mass < 0.9:
+        lines.append(
+            f"(answers from the listed topologies, which hold {doubts.listed_mass:.2f} of the probability)"
+        )
     return lines
 
 
@@ -126,6 +131,7 @@ def doubts_dict(doubts: Doubts) -> dict[str, object]:
     return {
         "map_probability": doubts.map_probability,
         "runner_up_probability": doubts.runner_up_probability,
+        "listed_mass": doubts.listed_mass,
         "visits": [
             {
                 "visit": d.visit,

@@ -179,7 +179,7 @@ class McmcConfig:
         initial: "singletons" (thesis), "one-place", "random" (uniform over topologies, per chain),
             "rbpf": the particle filter's most probable topologies, chain ``c`` from the ``c``-th (a data-
             driven start for long runs, where chains from singletons stay trapped; ``ptm-run`` runs the
-            filter first, :func:`ptm_ros.tools.pipeline.infer`; :func:`run_mcmc` needs them as
+            filter first, :func:`ptm_ros.session.infer`; :func:`run_mcmc` needs them as
             ``initial``), or "auto" (default): "singletons" up to ``auto_filter_visits`` visits, "rbpf"
             beyond (:func:`starts_from_filter`). Measured on the real runs (``bench/mcmc.json``, 300 s):
             from singletons MCMC's best topology stayed 94 nats (Intel, 119 visits) and 21 nats (MIT,

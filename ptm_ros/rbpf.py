@@ -44,10 +44,10 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
      :math:`S_k = \mathrm{cov}(x_n^{xy} - p_k) + σ_T^2 I`;
    * new place: :math:`p(o \mid M) = \int \frac1A N(x_n^{xy}; p, σ_T^2 I)\,dp = 1/A` and
      :math:`p_M \sim N(x_n^{xy}, σ_T^2 I)` enters the state;
-   * separation prior (eq. 15–16), for selection only: the penalty of the new pairs ``(i, n)`` at the
-     means, :math:`\sum_{s \ne k} |s|\, c(\lVert \hat x_{n|k}^{xy} - \hat p_s \rVert)` with ``x_n`` at its
-     mean after the coincidence (revisit) or predicted (new place); replaced after selection by its
-     expectation (step 5);
+   * separation prior (eq. 15–16), for selection only (:func:`_separation_proxy`): per near place
+     ``s``, ``-log E[exp(-|s| c(‖x̄_s - x_n^{xy}‖))]`` on 64 lattice points under the child's Gaussian
+     after the coincidence (revisit) or as predicted (new place), summed over the places; replaced after
+     selection by the ADF expectation of step 5;
    * appearance: the predictive of eq. 46, per distinct block (:func:`block_log_predictives`, equal to
      :func:`~ptm_ros.appearance.appearance_log_predictive`, vectorised).
 3. *Select* at most ``N`` children by Fearnhead–Clifford optimal resampling for discrete states
@@ -497,9 +497,10 @@ def _cubic(dist: FloatArray, config: OdometryConfig) -> FloatArray:
 
 #: Standard normal points of the separation prior's expectation (:func:`_separation_update`): a
 #: golden-ratio lattice of the unit square mapped to the plane by Box–Muller (radius from the first
-#: coordinate, angle from the second). Deterministic: the filter's only randomness stays the resampling.
-#: 512 points integrate ``exp(-k c(‖δ‖))`` over a Gaussian ``δ`` to ~0.005 nats and its tilted moments to
-#: ~1 % (tested against sampling), from point-like to wider than the radius ``D``.
+#: coordinate, angle from the second), whitened to sample mean 0 and covariance I. Deterministic: the
+#: filter's only randomness stays the resampling. 512 points integrate ``exp(-k c(‖δ‖))`` over a Gaussian
+#: ``δ`` to ~0.005 nats and its tilted moments to ~1 % (tested against sampling), from point-like to
+#: wider than the radius ``D``.
 _PENALTY_POINTS = 512
 #: Pairs whose mean distance exceeds ``D`` by more standard deviations contribute nothing: a 2-D normal
 #: is beyond ``t`` of its mean with probability ``exp(-t²/2)`` (here 4e-5), which bounds ``1 - E[g]``.
@@ -507,11 +508,17 @@ _PENALTY_PRUNE_SD = 4.5
 
 
 def _penalty_points(count: int = _PENALTY_POINTS) -> FloatArray:
+    """``(2, count)`` lattice points whose sample mean is exactly 0 and sample covariance exactly ``I``
+    (whitened), so that a factor that is 1 everywhere leaves the moments of :func:`_tilted_moments`, and
+    hence the state, unchanged."""
     i = np.arange(count)
     u = (i + 0.5) / count
     angle = 2.0 * math.pi * np.mod(i / ((1.0 + math.sqrt(5.0)) / 2.0), 1.0)
     radius = np.sqrt(-2.0 * np.log1p(-u))
-    return np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=0)  # (2, K)
+    z = np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=0)  # (2, K)
+    z -= z.mean(axis=1, keepdims=True)
+    chol = np.linalg.cholesky(z @ z.T / count)
+    return np.linalg.solve(chol, z)
 
 
 _Z = _penalty_points()
@@ -573,7 +580,7 @@ def _separation_update(
         log_e, shift, s_new = _tilted_moments(m_q, s_q, counts[rows, places], config, _Z)
         out[rows] += log_e
         det = s_q[:, 0, 0] * s_q[:, 1, 1] - s_q[:, 0, 1] * s_q[:, 1, 0]
-        ok = det > 1e-12 * np.maximum(np.square(s_q[:, 0, 0] + s_q[:, 1, 1]), 1e-300)
+        ok = (s_q[:, 0, 0] > 0.0) & (det > 1e-12 * np.maximum(np.square(s_q[:, 0, 0] + s_q[:, 1, 1]), 1e-300))
         if not np.any(ok):
             continue
         rows, c_q, s_q, s_new, shift = rows[ok], c_q[ok], s_q[ok], s_new[ok], shift[ok]
@@ -647,7 +654,8 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
     worth_rev: NDArray[np.bool_],
     worth_new: NDArray[np.bool_],
 ) -> tuple[FloatArray, FloatArray]:
-    """``-log E[exp(-Σ_s |s| c(‖δ_s‖))]`` of every child before selection, ``(P, cap)`` and ``(P,)``.
+    """``Σ_s -log E[exp(-|s| c(‖δ_s‖))]`` (per near place ``s``) of every child before selection,
+    ``(P, cap)`` and ``(P,)``.
 
     The expectation of :func:`_separation_update` (without its state update, on :data:`_Z_PROXY`),
     under each child's Gaussian after the coincidence: for a revisit of ``k``, with ``e_s = p_s - x_n``,

@@ -151,9 +151,9 @@ class FilterSession:
         self._pairs: dict[tuple[int, int], Registration] = {}
         self._filter: TopologyFilter | None = None
         self._fitted: AppearanceModel | None = None
-        self._fixed = fitted_to is not None
-        if fitted_to is not None and fitted_to:
-            self._fitted = self._fit(fitted_to)
+        self._run: tuple[Visit, ...] | None = None if fitted_to is None else tuple(fitted_to)
+        if self._run:
+            self._fitted = self._fit(self._run)
         self._built_at = 0  # visits when the filter was last (re)built
         self.replays = 0
         self.wall_s = 0.0
@@ -198,6 +198,9 @@ class FilterSession:
         if visit.index != n:
             msg = f"expected visit {n}, got visit {visit.index}"
             raise DataError(msg)
+        if self._run is not None and (n >= len(self._run) or self._run[n] != visit):
+            msg = f"visit {n} is not the run's visit {n} that the appearance priors were fitted to"
+            raise DataError(msg)
         self._visits.append(visit)
         try:
             state = self._advance(visit)
@@ -211,7 +214,7 @@ class FilterSession:
 
     def _advance(self, visit: Visit) -> FilterState:
         old = self._filter
-        if self._fixed:
+        if self._run is not None:
             if old is not None:
                 return old.update(visit)
             return self._rebuild(self._fitted)
@@ -300,7 +303,7 @@ class FilterSession:
                 self._filter = self._restore_filter(
                     state["filter"], appearance_from_state(state["appearance"])
                 )
-        except (KeyError, TypeError, ValueError, PtmError) as err:
+        except (KeyError, IndexError, TypeError, ValueError, PtmError) as err:
             self.reset()
             msg = f"malformed filter session state: {type(err).__name__}: {err}"
             raise DataError(msg) from err
@@ -324,7 +327,10 @@ class FilterSession:
         if flt.visits != tuple(self._visits):
             msg = "the filter's visits differ from the session's"
             raise DataError(msg)
-        if self._fixed and not same_model(appearance, self._fitted):
+        if self._run is not None and self._run[: len(self._visits)] != flt.visits:
+            msg = "the saved visits are not the first ones of the run the priors were fitted to"
+            raise DataError(msg)
+        if self._run is not None and not same_model(appearance, self._fitted):
             self._filter = flt
             self._rebuild(self._fitted)  # another session's priors: replay with this run's
             return self._filter
@@ -340,7 +346,9 @@ class FilterSession:
         if flt is None:
             msg = "no visit has been processed yet"
             raise DataError(msg)
-        return rbpf_inference(flt, self.config, replays=self.replays)
+        return rbpf_inference(
+            flt, self.config, **({} if self._run is not None else {"replays": self.replays})
+        )
 
     def to_ptm(self, *, frame_id: str = "odom", **extra: Any) -> Ptm:
         """The current PTM (as :func:`build_ptm` writes it)."""
@@ -368,7 +376,7 @@ def filter_visits(
         if save is not None and len(session.visits) % every == 0:
             save(session)
             saved_at = len(session.visits)
-    if save is not None and saved_at != len(session.visits):
+    if save is not None and session.visits and saved_at != len(session.visits):
         save(session)
     return session
 
@@ -435,9 +443,10 @@ def infer(
 ) -> Inference:
     """Run the configured estimator over a visit sequence.
 
-    ``rbpf`` feeds ``session`` (a fresh one fitted to ``visits`` when None; a restored one continues)
-    the visits it has not seen; ``exact`` and ``mcmc`` score topologies with the batch model, laser
-    pairs from ``registrar``.
+    ``rbpf`` feeds ``session`` (a fresh one fitted to ``visits`` when None, registering with
+    ``registrar`` or, without one and with ``model.use_laser``, its own; a restored one continues) the
+    visits it has not seen; ``exact`` and ``mcmc`` score topologies with the batch model, laser pairs
+    from ``registrar`` (none without one).
 
     Raises:
         DataError: no visits.
@@ -473,7 +482,12 @@ def infer(
 
         ensemble = None
         if starts_from_filter(inf.mcmc, len(visits)):  # the filter's ensemble: the starts and the yardstick
-            every = replace(config, inference=replace(inf, method="rbpf", top=inf.particles))
+            laser = model.registrar is not None  # the yardstick scores the same data as the batch model
+            every = replace(
+                config,
+                model=replace(config.model, use_laser=laser),
+                inference=replace(inf, method="rbpf", top=inf.particles),
+            )
             ensemble = infer(visits, every, registrar=model.registrar, progress=progress).probabilities
         return _infer_mcmc(model, config, ensemble)
     msg = f"inference method {inf.method!r} is not available"

@@ -28,7 +28,10 @@ def test_a_visit_in_doubt_names_its_answers_most_probable_first():
     assert doubts.map_probability == pytest.approx(0.6) and doubts.runner_up_probability == pytest.approx(0.3)
     assert [a.place_of for a in find_doubts(ptm, 0.2).visits[0].answers] == [0, None]
     lines = doubt_lines(doubts)
-    assert lines[0].startswith("the map is unsure of 1 visit")
+    assert lines[0] == (
+        "the map is unsure where 1 visit is: the most probable topology holds 0.60 of the probability, "
+        "the next one 0.30"
+    )
     assert lines[1] == (
         "visit 2 (t = 20.0 s) is the place of visit 0 (0.60) or a new place (0.30) "
         "or the place of visit 1 (0.10)"
@@ -42,12 +45,13 @@ def test_a_visit_in_doubt_names_its_answers_most_probable_first():
 def test_a_sure_map_says_so_and_listed_masses_are_renormalised():
     sure = find_doubts(ptm_of({(0, 1, 0): 1.0}, 3))
     assert sure.sure and doubt_lines(sure) == [
-        "the map is sure of every visit's place: the most probable topology holds 1.00 of the probability"
+        "the map is sure where every visit is: the most probable topology holds 1.00 of the probability"
     ]
     # listed masses summing to 0.8: answers are shares of the listed mass
     part = find_doubts(ptm_of({(0, 1, 0): 0.4, (0, 1, 2): 0.4}, 3))
     assert [a.probability for a in part.visits[0].answers] == pytest.approx([0.5, 0.5])
     assert part.listed_mass == pytest.approx(0.8)
+    assert doubt_lines(part)[-1] == "(answers from the listed topologies, which hold 0.80 of the probability)"
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -376,11 +376,12 @@ def run_offline(
     occupancy map files.
 
     ``checkpoint`` (RBPF only) saves the filter's state along the way and/or resumes from it: the state
-    holds the filter (:meth:`ptm_ros.rbpf.TopologyFilter.state_dict`), the registration cache and the
-    diagnostics so far; its meta data :func:`run_state_meta`. A resumed run extracts the visits again,
-    refuses a state of another run (:func:`check_state_config`, :func:`check_run_state`), fits the models
-    on all visits as an uninterrupted run does, and continues the filter with the visits not yet seen:
-    the same ``ptm.json`` but for the timings. ``log`` receives progress notes (resumed, started afresh).
+    is the filter session's (:meth:`ptm_ros.session.FilterSession.state_dict`: the filter, the
+    registration cache and its counters); its meta data :func:`run_state_meta`. A resumed run extracts
+    the visits again, refuses a state of another run (:func:`check_state_config`,
+    :func:`check_run_state`), fits the models on all visits as an uninterrupted run does, and continues
+    the filter with the visits not yet seen: the same ``ptm.json`` but for the timings. ``log`` receives
+    progress notes (resumed, started afresh).
     """
     t0 = time.perf_counter()
     bag = Path(bag)
@@ -454,8 +455,8 @@ def run_offline(
         t1 = time.perf_counter()
         files |= write_occupancy_map(run, traj, out, config)
         timing["map_s"] = time.perf_counter() - t1
-    if session is not None:
-        diag.update(session.registrations)  # the laser registrations' counters (ptm.json's diagnostics)
+    if session is not None:  # the laser registrations' counters, after the smoothing's registrations
+        extra["diagnostics"] = {**diag, **session.registrations}
     ptm = replace(ptm, timing=timing, extra=extra)
     ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["ptm"] = ptm_path
