@@ -85,6 +85,9 @@ class Case:
         return f"{self.world}__{self.noise}__s{self.seed}"
 
 
+CASE_KEYS = ("family", "variant", "world", "noise", "seed")
+
+
 def grid(runs: int, quick: bool = False) -> list[Case]:
     """The first ``runs`` cases, seed-major over families x variants x noise levels (``quick``: the
     simulator's noise level only)."""
@@ -139,9 +142,65 @@ def run_case(case: Case, work: str, keep_bags: bool) -> dict[str, Any]:
         row.update(calibration_record(ptm, bag / "ground_truth.json"))
         row["map_labels"] = list(ptm.map_topology.labels)
         row["detector"] = ptm.extra.get("detector")
+        row["true_places"] = true_place_names(case.world, out / "ptm.json")
     if not keep_bags:
         shutil.rmtree(bag, ignore_errors=True)
     return row
+
+
+def true_place_names(world_name: str, ptm_path: Path) -> list[str]:
+    """The place each landmark of a run's ``ptm.json`` was detected at: the place nearest to the true
+    position at its stamp. The true path depends on the world and the default motion only (not on the
+    noise or the seed), so it is recomputed here rather than read from the (deleted) bag."""
+    from ptm_ros.io.simulator import SimConfig, plan_trajectory
+    from ptm_ros.io.worlds import get_world
+    from ptm_ros.ptm import load_ptm
+
+    world, config = get_world(world_name), SimConfig()
+    ptm = load_ptm(ptm_path)
+    t = np.array([lm.stamp for lm in ptm.landmarks], dtype=float) - config.start_stamp
+    xy = plan_trajectory(world, config).pose_at(t)[:, :2]
+    d = np.hypot(xy[:, None, 0] - world.place_xy[None, :, 0], xy[:, None, 1] - world.place_xy[None, :, 1])
+    return [world.places[k].id for k in np.argmin(d, axis=1)]
+
+
+def wrong_pairs(rows: Iterable[dict[str, Any]], top: int = 5) -> dict[str, dict[str, Any]]:
+    """Per world, over its wrong MAPs: the place pairs most often merged (with their distance, m) and the
+    places most often split (visit pairs counted)."""
+    from ptm_ros.io.worlds import get_world
+
+    merged: dict[str, dict[tuple[str, str], int]] = {}
+    split: dict[str, dict[str, int]] = {}
+    for r in rows:
+        if r.get("map_right") is not False or "true_places" not in r:
+            continue
+        lab, ids = r["map_labels"], r["true_places"]
+        m, sp = merged.setdefault(r["world"], {}), split.setdefault(r["world"], {})
+        for i in range(len(lab)):
+            for j in range(i + 1, len(lab)):
+                if lab[i] == lab[j] and ids[i] != ids[j]:
+                    key = (min(ids[i], ids[j]), max(ids[i], ids[j]))
+                    m[key] = m.get(key, 0) + 1
+                elif lab[i] != lab[j] and ids[i] == ids[j]:
+                    sp[ids[i]] = sp.get(ids[i], 0) + 1
+    out: dict[str, dict[str, Any]] = {}
+    for world in sorted(set(merged) | set(split)):
+        w = get_world(world)
+
+        def dist(a: str, b: str, w: Any = w) -> float:
+            pa, pb = w.place(a), w.place(b)
+            return round(float(np.hypot(pa.x - pb.x, pa.y - pb.y)), 1)
+
+        out[world] = {
+            "merged": [
+                {"places": list(k), "distance_m": dist(*k), "pairs": n}
+                for k, n in sorted(merged[world].items(), key=lambda kv: -kv[1])[:top]
+            ],
+            "split": [
+                {"place": k, "pairs": n} for k, n in sorted(split[world].items(), key=lambda kv: -kv[1])[:top]
+            ],
+        }
+    return out
 
 
 def run_all(cases: Sequence[Case], work: Path, jobs: int, keep_bags: bool) -> list[dict[str, Any]]:
@@ -153,14 +212,17 @@ def run_all(cases: Sequence[Case], work: Path, jobs: int, keep_bags: bool) -> li
         for line in ledger.read_text().splitlines():
             if line.strip():
                 rec = json.loads(line)
-                done[Case(rec["family"], rec["variant"], rec["world"], rec["noise"], rec["seed"]).key] = rec
+                ptm_path = work / Case(*(rec[k] for k in CASE_KEYS)).key / "out" / "ptm.json"
+                if rec["exit_code"] == 0 and "true_places" not in rec and ptm_path.is_file():
+                    rec["true_places"] = true_place_names(rec["world"], ptm_path)  # older records
+                done[Case(*(rec[k] for k in CASE_KEYS)).key] = rec
     todo = [c for c in cases if c.key not in done]
     print(
         f"[calibration] {len(cases)} runs, {len(cases) - len(todo)} already done, {jobs} job(s)", flush=True
     )
 
     def record(rec: dict[str, Any], k: int) -> None:
-        done[Case(rec["family"], rec["variant"], rec["world"], rec["noise"], rec["seed"]).key] = rec
+        done[Case(*(rec[k] for k in CASE_KEYS)).key] = rec
         with ledger.open("a") as fh:
             fh.write(json.dumps(rec) + "\n")
         status = (
@@ -257,6 +319,26 @@ def table(title: str, groups: dict[str, dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
+def wrong_maps_section(wrong: dict[str, dict[str, Any]]) -> list[str]:
+    """Markdown: per world, the place pairs its wrong MAPs merge most and the places they split most."""
+    lines = [
+        "### What the wrong MAPs get wrong",
+        "",
+        "Per world, over its wrong MAP topologies: the place pairs most often merged (distance between the "
+        "places; visit pairs counted) and the places most often split into several (visit pairs counted).",
+        "",
+        "| world | merged place pairs | split places |",
+        "|---|---|---|",
+    ]
+    for world, doc in wrong.items():
+        merged = ", ".join(
+            f"{'~'.join(m['places'])} ({m['distance_m']:g} m) x{m['pairs']}" for m in doc["merged"]
+        )
+        split = ", ".join(f"{m['place']} x{m['pairs']}" for m in doc["split"])
+        lines.append(f"| {world} | {merged or '–'} | {split or '–'} |")
+    return [*lines, ""]
+
+
 def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Namespace, wall: float) -> None:
     from ptm_ros.evaluation import OVERCONFIDENT_MASS
     from ptm_ros.io.calibration_plot import write_reliability_diagram
@@ -294,6 +376,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
             "jobs": args.jobs,
         },
         "overall": overall,
+        "wrong_maps_by_world": wrong_pairs(rows),
         **{f"by_{k}": v for k, v in docs.items()},
         "runs": list(rows),
     }
@@ -330,6 +413,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
             for k, v in NOISE_LEVELS.items()
         ),
         "",
+        *wrong_maps_section(record["wrong_maps_by_world"]),
         f"![reliability diagram]({png.name})",
         "",
     ]
