@@ -23,6 +23,10 @@ interruption; ``--fresh`` starts over). Bags are deleted after their run unless 
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=. .venv/bin/python bench/bench_calibration.py [--runs 240] [--quick]
         [--jobs 1] [--out bench/calibration.json] [--work out/calibration]
+        [--params FILE] [--families NAME ...] [--noise LEVEL ...]
+
+``--params FILE`` runs ``ptm-run --params FILE`` instead of the defaults (a diagnostic: e.g. without the
+laser odometry), its records kept apart under ``WORK/full-<stem>``.
 """
 
 from __future__ import annotations
@@ -88,16 +92,22 @@ class Case:
 CASE_KEYS = ("family", "variant", "world", "noise", "seed")
 
 
-def grid(runs: int, quick: bool = False) -> list[Case]:
+def grid(
+    runs: int,
+    quick: bool = False,
+    families: Sequence[str] | None = None,
+    noise_levels: Sequence[str] | None = None,
+) -> list[Case]:
     """The first ``runs`` cases, seed-major over families x variants x noise levels (``quick``: the
-    simulator's noise level only)."""
+    simulator's noise level only; ``families`` / ``noise_levels`` restrict the grid)."""
     from ptm_ros.io.worlds import CALIBRATION_FAMILIES
 
-    levels = ["sim"] if quick else list(NOISE_LEVELS)
+    levels = list(noise_levels) if noise_levels else ["sim"] if quick else list(NOISE_LEVELS)
     cells = [
         (family, variant, world, noise)
         for noise in levels
         for family, pair in CALIBRATION_FAMILIES.items()
+        if not families or family in families
         for variant, world in zip(("aliased", "control"), pair, strict=True)
     ]
     out: list[Case] = []
@@ -108,8 +118,9 @@ def grid(runs: int, quick: bool = False) -> list[Case]:
     return out
 
 
-def run_case(case: Case, work: str, keep_bags: bool) -> dict[str, Any]:
-    """Simulate, ``ptm-run`` at default parameters, score: the case's record (JSON values)."""
+def run_case(case: Case, work: str, keep_bags: bool, params: str | None = None) -> dict[str, Any]:
+    """Simulate, ``ptm-run`` at default parameters (or with ``--params params``), score: the case's record
+    (JSON values)."""
     from ptm_ros.io.simulator import SimConfig, simulate, write_run
     from ptm_ros.io.worlds import get_world
     from ptm_ros.ptm import load_ptm
@@ -130,7 +141,8 @@ def run_case(case: Case, work: str, keep_bags: bool) -> dict[str, Any]:
     t1 = time.perf_counter()
     log = io.StringIO()
     with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-        code = ptm_run.main([str(bag), "--out", str(out), "--no-map", "--no-report", "--quiet"])
+        extra = ["--params", params] if params else []
+        code = ptm_run.main([str(bag), "--out", str(out), "--no-map", "--no-report", "--quiet", *extra])
     t2 = time.perf_counter()
     row: dict[str, Any] = {**asdict(case), "sim_s": t1 - t0, "run_s": t2 - t1, "exit_code": code}
     row["final_odometry_error_m"] = drift
@@ -203,7 +215,9 @@ def wrong_pairs(rows: Iterable[dict[str, Any]], top: int = 5) -> dict[str, dict[
     return out
 
 
-def run_all(cases: Sequence[Case], work: Path, jobs: int, keep_bags: bool) -> list[dict[str, Any]]:
+def run_all(
+    cases: Sequence[Case], work: Path, jobs: int, keep_bags: bool, params: str | None = None
+) -> list[dict[str, Any]]:
     """Every case's record, reusing ``work/records.jsonl`` and appending to it as runs finish."""
     work.mkdir(parents=True, exist_ok=True)
     ledger = work / "records.jsonl"
@@ -239,10 +253,10 @@ def run_all(cases: Sequence[Case], work: Path, jobs: int, keep_bags: bool) -> li
 
     if jobs <= 1:
         for k, case in enumerate(todo, 1):
-            record(run_case(case, str(work), keep_bags), k)
+            record(run_case(case, str(work), keep_bags, params), k)
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [pool.submit(run_case, c, str(work), keep_bags) for c in todo]
+            futures = [pool.submit(run_case, c, str(work), keep_bags, params) for c in todo]
             for k, fut in enumerate(futures, 1):
                 record(fut.result(), k)
     return [done[c.key] for c in cases]
@@ -358,6 +372,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         "command": " ".join(sys.argv),
         "runs_requested": args.runs,
         "quick": args.quick,
+        "params": None if args.params is None else str(args.params),
         "wall_s": wall,
         "noise_levels": {k: asdict(v) for k, v in NOISE_LEVELS.items()},
         "definitions": {
@@ -393,7 +408,9 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         f"per-run records in `{out.name}`, reliability diagram `{png.name}`.",
         "",
         "Each run: a calibration world (aliased, or its control with distinct textures) simulated with one "
-        "odometry noise level and seed, `ptm-run` at the default parameters (laser-surprise detector), "
+        "odometry noise level and seed, `ptm-run` at "
+        + (f"the parameters of `{args.params}`" if args.params else "the default parameters")
+        + " (laser-surprise detector), "
         "scored against the simulator's places. *MAP right*: the MAP topology is exactly the true one. "
         "*ECE*: 10 equal-width bins of the stated MAP probability; *chance ECE*: the mean ECE a perfectly "
         "calibrated mapper shows on the same probabilities (outcomes redrawn as Bernoulli(p)). "
@@ -436,18 +453,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=REPO / "out" / "calibration")
     parser.add_argument("--fresh", action="store_true", help="ignore the records of earlier runs")
     parser.add_argument("--keep-bags", action="store_true", help="keep the simulated bags")
+    parser.add_argument(
+        "--params", type=Path, default=None, help="ptm-run --params FILE (default: the default parameters)"
+    )
+    parser.add_argument("--families", nargs="+", default=None, help="only these families")
+    parser.add_argument(
+        "--noise", nargs="+", default=None, choices=list(NOISE_LEVELS), help="only these levels"
+    )
     args = parser.parse_args(argv)
     if args.runs is None:
         args.runs = 8 if args.quick else DEFAULT_RUNS
     if args.runs < 1 or args.jobs < 1:
         parser.error("--runs and --jobs must be >= 1")
     work = args.work / ("quick" if args.quick else "full")
+    if args.params is not None:
+        work = work.with_name(f"{work.name}-{args.params.stem}")
     if args.out is None:
         args.out = work / "calibration.json" if args.quick else BENCH / "calibration.json"
     if args.fresh and work.exists():
         shutil.rmtree(work)
     t0 = time.perf_counter()
-    rows = run_all(grid(args.runs, args.quick), work, args.jobs, args.keep_bags)
+    cases = grid(args.runs, args.quick, args.families, args.noise)
+    params = None if args.params is None else str(args.params.resolve())
+    rows = run_all(cases, work, args.jobs, args.keep_bags, params)
     write_outputs(rows, args.out, args, time.perf_counter() - t0)
     return 0
 
