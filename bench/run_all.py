@@ -3,8 +3,10 @@
 1. Component benchmarks (each writes its own JSON beside this script): the metric likelihood
    (``bench_odometry.py``), log P(T|Z) (``bench_posterior.py``), the particle filter (``bench_rbpf.py``),
    MCMC (``bench_mcmc.py``), the surprise detectors (``bench_surprise.py``), the node suite's CPU and
-   memory over DDS (``bench_nodes.py``) and the map publisher's online occupancy map against ``ptm-run``'s
-   (``bench_online_map.py``), when present.
+   memory over DDS (``bench_nodes.py``), the map publisher's online occupancy map against ``ptm-run``'s
+   (``bench_online_map.py``) and the calibration of the MAP probability over simulated aliased worlds and
+   their controls (``bench_calibration.py``: ``calibration.{json,md,png}``, about an hour on one core,
+   resumable), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -55,6 +57,7 @@ COMPONENTS = (
     "bench_surprise.py",
     "bench_nodes.py",
     "bench_online_map.py",
+    "bench_calibration.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -60,6 +60,21 @@ motion ``(R_θ, t)`` that fits them best in least squares (Kabsch/Umeyama withou
 with ``ẽ, g̃`` the centred points: for fixed θ the best ``t`` matches the centroids, and the remaining
 cost is ``const − 2 (cos θ Σ ẽ·g̃ + sin θ Σ ẽ×g̃)``, largest at the ``θ*`` above (a rotation: the 2-D
 Kabsch solution can never be a reflection).
+
+Calibration (issue #23, "an honest posterior"). Over many runs ``r = 1..R`` with stated MAP probability
+``p_r`` (the listed probability of the most probable topology) and outcome ``y_r = 1`` when the MAP
+topology *is* the ground-truth topology (same partition of the visits as the true place ids), with
+equal-width bins ``B_b = [b/M, (b+1)/M)`` (``M = 10`` by default, the last bin closed at 1):
+
+.. math::
+    \\text{ECE} = \\sum_b \\frac{|B_b|}{R} \\Bigl| \\bar y_{B_b} - \\bar p_{B_b} \\Bigr|, \\qquad
+    \\text{Brier} = \\frac{1}{R} \\sum_r (p_r - y_r)^2 .
+
+Even a perfectly calibrated mapper shows a positive ECE on finitely many runs; its *chance level* is
+the mean ECE over redraws ``y_r^* \\sim \\text{Bernoulli}(p_r)`` of the outcomes on the same ``p_r``
+(:func:`chance_calibration_errors`, with an explicit ``np.random.Generator``): an ECE well above it is
+miscalibration, not bad luck. An *overconfident failure* is a run whose consistent mass (no scored pair
+wrong) is below :data:`OVERCONFIDENT_MASS`: the posterior all but excludes the truth.
 """
 
 from __future__ import annotations
@@ -81,6 +96,11 @@ from ptm_ros.ptm import Ptm
 
 #: Schema tag of :meth:`Score.as_dict` (the JSON printed by ``ptm-eval``).
 SCORE_SCHEMA = "ptm_ros.eval/1"
+
+#: A run whose consistent mass is below this is an *overconfident failure* (module docstring).
+OVERCONFIDENT_MASS = 0.05
+#: Default number of equal-width probability bins of the calibration figures.
+CALIBRATION_BINS = 10
 
 #: Upper bound on the number of booleans held at once when comparing topologies pairwise.
 _CHUNK_ELEMENTS = 1 << 22
@@ -472,3 +492,207 @@ def absolute_trajectory_error(est_xy: ArrayLike, true_xy: ArrayLike) -> float:
     c, s = math.cos(theta), math.sin(theta)
     moved = e @ np.array([[c, s], [-s, c]]) + t
     return float(np.sqrt(np.mean(np.sum((moved - g) ** 2, axis=1))))
+
+
+# --------------------------------------------------------------------------------------------------
+# Calibration over many runs (module docstring: "Calibration")
+
+
+def map_errors_against_truth(labels: Sequence[int], true_places: Sequence[int]) -> tuple[int, int]:
+    """``(false_merges, missed_merges)`` of one topology against true place ids: visit pairs it puts in
+    one place that are different places, and pairs of one place it keeps apart. ``(0, 0)`` exactly when
+    the topology is the true one."""
+    lab = np.asarray(labels, dtype=np.intp)
+    truth = np.asarray(true_places, dtype=np.intp)
+    if lab.shape != truth.shape or lab.ndim != 1:
+        msg = f"labels {lab.shape} and true place ids {truth.shape} must be equally long 1-D sequences"
+        raise ModelError(msg)
+    i, j = np.triu_indices(lab.size, k=1)
+    pred, same = lab[i] == lab[j], truth[i] == truth[j]
+    return int(np.count_nonzero(pred & ~same)), int(np.count_nonzero(~pred & same))
+
+
+def _calibration_inputs(
+    probabilities: ArrayLike, correct: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    p = np.asarray(probabilities, dtype=float)
+    if p.ndim != 1 or p.size == 0:
+        msg = f"need a non-empty 1-D array of probabilities, got shape {p.shape}"
+        raise ModelError(msg)
+    if not np.all(np.isfinite(p) & (p >= 0.0) & (p <= 1.0)):
+        msg = "probabilities must be finite and in [0, 1]"
+        raise ModelError(msg)
+    if correct is None:
+        return p, np.zeros(0)
+    y = np.asarray(correct)
+    if y.shape != p.shape:
+        msg = f"one outcome per probability: {y.shape} outcomes for {p.shape} probabilities"
+        raise ModelError(msg)
+    if not np.all((y == 0) | (y == 1)):
+        msg = "outcomes must be booleans (or 0/1)"
+        raise ModelError(msg)
+    return p, y.astype(float)
+
+
+def _bin_index(p: NDArray[np.float64], n_bins: int) -> NDArray[np.intp]:
+    if n_bins < 1:
+        msg = f"n_bins must be >= 1, got {n_bins}"
+        raise ConfigError(msg)
+    return np.minimum(np.floor(p * n_bins).astype(np.intp), n_bins - 1)
+
+
+@dataclass(frozen=True)
+class ReliabilityBin:
+    """One bin ``[lo, hi)`` of a reliability diagram: its runs, their mean stated probability and the
+    fraction right (both NaN for an empty bin)."""
+
+    lo: float
+    hi: float
+    count: int
+    mean_probability: float
+    accuracy: float
+
+
+def reliability_bins(
+    probabilities: ArrayLike, correct: ArrayLike, n_bins: int = CALIBRATION_BINS
+) -> tuple[ReliabilityBin, ...]:
+    """The ``n_bins`` equal-width bins of stated probability over [0, 1] (the last one closed at 1)."""
+    p, y = _calibration_inputs(probabilities, correct)
+    b = _bin_index(p, n_bins)
+    count = np.bincount(b, minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_p = np.bincount(b, weights=p, minlength=n_bins) / count
+        acc = np.bincount(b, weights=y, minlength=n_bins) / count
+    return tuple(
+        ReliabilityBin(k / n_bins, (k + 1) / n_bins, int(count[k]), float(mean_p[k]), float(acc[k]))
+        for k in range(n_bins)
+    )
+
+
+def expected_calibration_error(
+    probabilities: ArrayLike, correct: ArrayLike, n_bins: int = CALIBRATION_BINS
+) -> float:
+    """ECE: the run-weighted mean over equal-width bins of |fraction right - mean stated probability|."""
+    p, y = _calibration_inputs(probabilities, correct)
+    return float(_ece_rows(p, y[None, :], n_bins)[0])
+
+
+def _ece_rows(p: NDArray[np.float64], y: NDArray[np.float64], n_bins: int) -> NDArray[np.float64]:
+    """ECE of each outcome row ``y (K, R)`` against the same probabilities ``p (R,)``."""
+    b = _bin_index(p, n_bins)
+    onehot = np.zeros((p.size, n_bins))
+    onehot[np.arange(p.size), b] = 1.0
+    gap = y @ onehot - p @ onehot  # (K, bins): Σ_bin (y - p), so |gap| / R = weight x |mean gap|
+    return np.abs(gap).sum(axis=1) / p.size
+
+
+def brier_score(probabilities: ArrayLike, correct: ArrayLike) -> float:
+    """Mean squared difference between stated probability and outcome (0 best, 1 worst)."""
+    p, y = _calibration_inputs(probabilities, correct)
+    return float(np.mean((p - y) ** 2))
+
+
+def chance_calibration_errors(
+    probabilities: ArrayLike,
+    rng: np.random.Generator,
+    *,
+    n_bins: int = CALIBRATION_BINS,
+    redraws: int = 2000,
+) -> NDArray[np.float64]:
+    """ECEs ``(redraws,)`` of a perfectly calibrated mapper on the same runs: each outcome redrawn as
+    ``Bernoulli(p_r)`` (``rng`` draws them), the ECE computed per redraw. Their mean is the chance level."""
+    p, _ = _calibration_inputs(probabilities)
+    if redraws < 1:
+        msg = f"redraws must be >= 1, got {redraws}"
+        raise ConfigError(msg)
+    out = np.empty(redraws)
+    step = max(1, _CHUNK_ELEMENTS // p.size)
+    for lo in range(0, redraws, step):
+        hi = min(redraws, lo + step)
+        y = (rng.random((hi - lo, p.size)) < p).astype(float)
+        out[lo:hi] = _ece_rows(p, y, n_bins)
+    return out
+
+
+@dataclass(frozen=True)
+class CalibrationSummary:
+    """Calibration of the MAP probability over ``n_runs`` runs (module docstring: "Calibration").
+
+    ``chance_ece`` is the mean and ``chance_ece_p95`` the 95th percentile of a calibrated mapper's ECE on
+    the same probabilities; ``overconfident_failures`` counts runs with consistent mass below
+    :data:`OVERCONFIDENT_MASS` (None when no consistent masses were given).
+    """
+
+    n_runs: int
+    n_bins: int
+    ece: float
+    chance_ece: float
+    chance_ece_p95: float
+    brier: float
+    map_right_rate: float
+    mean_map_probability: float
+    overconfident_failures: int | None
+    mean_true_topology_mass: float | None
+    bins: tuple[ReliabilityBin, ...] = field(repr=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON values (NaN bin means become None)."""
+
+        def num(v: float) -> float | None:
+            return None if math.isnan(v) else v
+
+        doc = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "bins"}
+        doc["bins"] = [
+            {
+                "lo": b.lo,
+                "hi": b.hi,
+                "count": b.count,
+                "mean_probability": num(b.mean_probability),
+                "accuracy": num(b.accuracy),
+            }
+            for b in self.bins
+        ]
+        return doc
+
+
+def calibration_summary(
+    probabilities: ArrayLike,
+    correct: ArrayLike,
+    rng: np.random.Generator,
+    *,
+    consistent_mass: ArrayLike | None = None,
+    true_topology_mass: ArrayLike | None = None,
+    n_bins: int = CALIBRATION_BINS,
+    redraws: int = 2000,
+) -> CalibrationSummary:
+    """ECE, its chance level, Brier score, right-rate vs mean stated probability and, given the runs'
+    consistent masses, the overconfident failures; ``true_topology_mass`` adds its mean."""
+    p, y = _calibration_inputs(probabilities, correct)
+    chance = chance_calibration_errors(p, rng, n_bins=n_bins, redraws=redraws)
+    failures = None
+    if consistent_mass is not None:
+        c = np.asarray(consistent_mass, dtype=float)
+        if c.shape != p.shape:
+            msg = f"one consistent mass per run: got {c.shape} for {p.shape} runs"
+            raise ModelError(msg)
+        failures = int(np.count_nonzero(c < OVERCONFIDENT_MASS))
+    mean_true = None
+    if true_topology_mass is not None:
+        t = np.asarray(true_topology_mass, dtype=float)
+        if t.shape != p.shape:
+            msg = f"one true-topology mass per run: got {t.shape} for {p.shape} runs"
+            raise ModelError(msg)
+        mean_true = float(t.mean())
+    return CalibrationSummary(
+        n_runs=int(p.size),
+        n_bins=n_bins,
+        ece=float(_ece_rows(p, y[None, :], n_bins)[0]),
+        chance_ece=float(chance.mean()),
+        chance_ece_p95=float(np.quantile(chance, 0.95)),
+        brier=float(np.mean((p - y) ** 2)),
+        map_right_rate=float(y.mean()),
+        mean_map_probability=float(p.mean()),
+        overconfident_failures=failures,
+        mean_true_topology_mass=mean_true,
+        bins=reliability_bins(p, y, n_bins),
+    )

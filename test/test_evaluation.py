@@ -468,3 +468,200 @@ def test_ate_errors() -> None:
         evaluation.absolute_trajectory_error(xy, np.zeros((3, 3)))
     with pytest.raises(ModelError, match="est_xy must be finite"):
         evaluation.absolute_trajectory_error(np.where(xy == 0, np.nan, xy), xy)
+
+
+# --------------------------------------------------------------------------------------------------
+# Calibration over many runs (issue #23)
+
+
+def brute_ece(p: np.ndarray, y: np.ndarray, n_bins: int) -> float:
+    """ECE by a plain loop over bins [k/M, (k+1)/M), the last one closed at 1."""
+    total = 0.0
+    for k in range(n_bins):
+        lo, hi = k / n_bins, (k + 1) / n_bins
+        inside = [r for r in range(len(p)) if lo <= p[r] < hi or (k == n_bins - 1 and p[r] == 1.0)]
+        if inside:
+            gap = np.mean([y[r] for r in inside]) - np.mean([p[r] for r in inside])
+            total += len(inside) / len(p) * abs(gap)
+    return total
+
+
+def test_ece_and_brier_by_hand() -> None:
+    p, y = [0.95, 0.95, 0.15, 0.15], [True, False, False, False]
+    # Bin 9: mean p 0.95, half right -> 0.45 x 2/4; bin 1: mean p 0.15, none right -> 0.15 x 2/4.
+    assert evaluation.expected_calibration_error(p, y) == pytest.approx(0.225 + 0.075, abs=1e-12)
+    assert evaluation.brier_score([0.9, 0.2, 0.5], [1, 0, 0]) == pytest.approx((0.01 + 0.04 + 0.25) / 3)
+    # Bin edges: 0 in the first bin, 0.1 in the second, 1 in the last.
+    bins = evaluation.reliability_bins([0.0, 0.1, 1.0, 0.999], [0, 1, 1, 0])
+    assert [b.count for b in bins] == [1, 1, 0, 0, 0, 0, 0, 0, 0, 2]
+    assert (bins[9].mean_probability, bins[9].accuracy) == (pytest.approx(0.9995), 0.5)
+    assert math.isnan(bins[5].accuracy) and math.isnan(bins[5].mean_probability)
+    # One bin: ECE = |right rate - mean p|.
+    assert evaluation.expected_calibration_error([0.2, 0.6], [1, 1], n_bins=1) == pytest.approx(0.6)
+
+
+def test_ece_matches_brute_force_on_random_samples() -> None:
+    rng = np.random.default_rng(4)
+    for n_bins in (1, 5, 10, 15):
+        p = np.concatenate([rng.random(60), [0.0, 1.0, 0.5, 0.3, 0.7]])
+        y = rng.random(p.size) < p**2
+        assert evaluation.expected_calibration_error(p, y, n_bins) == pytest.approx(brute_ece(p, y, n_bins))
+
+
+def test_calibrated_sample_has_small_ece_and_a_shifted_one_a_large_one() -> None:
+    rng = np.random.default_rng(7)
+    p = rng.random(20000)
+    calibrated = rng.random(p.size) < p
+    assert evaluation.expected_calibration_error(p, calibrated) < 0.02
+    overconfident = rng.random(p.size) < np.clip(p - 0.3, 0.0, 1.0)
+    ece = evaluation.expected_calibration_error(p, overconfident)
+    assert ece > 0.2
+    # Brier score E[p^2 - 2 p q + q] with q the true rate: 1/6 when q = p (uniform p); with q = max(p - 0.3,
+    # 0): 1/3 - 2 (1/3 - 0.15 - 0.009 + 0.0135) + 0.245 = 0.20267.
+    assert evaluation.brier_score(p, calibrated) == pytest.approx(1 / 6, abs=0.01)
+    assert evaluation.brier_score(p, overconfident) == pytest.approx(0.20267, abs=0.01)
+
+
+def test_chance_ece_matches_the_binomial_expectation() -> None:
+    # All runs state p = 0.5 (one bin): ECE = |K/n - 1/2| with K ~ Binomial(n, 1/2).
+    n = 20
+    exact = sum(math.comb(n, k) * 0.5**n * abs(k / n - 0.5) for k in range(n + 1))
+    eces = evaluation.chance_calibration_errors(np.full(n, 0.5), np.random.default_rng(0), redraws=20000)
+    assert eces.shape == (20000,)
+    assert eces.mean() == pytest.approx(exact, abs=4 * eces.std() / math.sqrt(eces.size))
+    # Certain forecasts are redrawn as themselves: chance ECE 0. Same seed, same redraws.
+    certain = evaluation.chance_calibration_errors([0.0, 1.0, 1.0], np.random.default_rng(1), redraws=50)
+    assert np.all(certain == 0.0)
+    again = evaluation.chance_calibration_errors(np.full(n, 0.5), np.random.default_rng(0), redraws=20000)
+    assert np.array_equal(eces, again)
+
+
+def test_calibration_summary_counts_overconfident_failures() -> None:
+    p = [0.9, 0.8, 0.6, 0.99]
+    right = [True, False, True, False]
+    summary = evaluation.calibration_summary(
+        p,
+        right,
+        np.random.default_rng(0),
+        consistent_mass=[0.9, 0.01, 0.7, 0.049],
+        true_topology_mass=[0.9, 0, 0.6, 0],
+    )
+    assert summary.overconfident_failures == 2  # consistent mass below 0.05
+    assert summary.n_runs == 4 and summary.map_right_rate == 0.5
+    assert summary.mean_map_probability == pytest.approx(np.mean(p))
+    assert summary.ece == pytest.approx(brute_ece(np.array(p), np.array(right, dtype=float), 10))
+    assert summary.brier == pytest.approx(evaluation.brier_score(p, right))
+    assert summary.mean_true_topology_mass == pytest.approx(0.375)
+    assert 0.0 < summary.chance_ece <= summary.chance_ece_p95
+    doc = json.loads(json.dumps(summary.as_dict()))  # NaN-free JSON
+    assert len(doc["bins"]) == 10 and doc["bins"][0]["accuracy"] is None
+    assert doc["bins"][9]["count"] == 2 and doc["bins"][9]["accuracy"] == 0.5
+
+
+def test_calibration_input_errors() -> None:
+    with pytest.raises(ModelError, match="non-empty"):
+        evaluation.expected_calibration_error([], [])
+    with pytest.raises(ModelError, match=r"in \[0, 1\]"):
+        evaluation.brier_score([1.2], [1])
+    with pytest.raises(ModelError, match="one outcome per probability"):
+        evaluation.brier_score([0.2, 0.3], [1])
+    with pytest.raises(ModelError, match="booleans"):
+        evaluation.brier_score([0.2], [0.5])
+    with pytest.raises(ConfigError, match="n_bins"):
+        evaluation.expected_calibration_error([0.2], [1], n_bins=0)
+    with pytest.raises(ConfigError, match="redraws"):
+        evaluation.chance_calibration_errors([0.2], np.random.default_rng(0), redraws=0)
+
+
+def test_map_errors_against_truth_by_brute_force() -> None:
+    assert evaluation.map_errors_against_truth([0, 1, 0, 2], [5, 6, 5, 7]) == (0, 0)
+    assert evaluation.map_errors_against_truth([0, 0, 1], [0, 1, 1]) == (1, 1)
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        lab, truth = rng.integers(0, 3, 7), rng.integers(0, 3, 7)
+        fm = sum(lab[i] == lab[j] and truth[i] != truth[j] for i, j in itertools.combinations(range(7), 2))
+        mm = sum(lab[i] != lab[j] and truth[i] == truth[j] for i, j in itertools.combinations(range(7), 2))
+        assert evaluation.map_errors_against_truth(lab, truth) == (fm, mm)
+        assert ((fm, mm) == (0, 0)) == (canonical(lab.tolist()) == canonical(truth.tolist()))
+    with pytest.raises(ModelError, match="equally long"):
+        evaluation.map_errors_against_truth([0, 1], [0])
+
+
+SIM_GT = {
+    "schema": "ptm_ros.ground_truth/1",
+    "frame_id": "map",
+    "poses": {"stamp": [0.0, 10.0, 20.0], "x": [0.0, 10.0, 0.0], "y": [0.0, 0.0, 0.0], "yaw": [0.0] * 3},
+    "places": [{"id": "a", "x": 0.0, "y": 0.0, "kind": "junction"}, {"id": "b", "x": 10.0, "y": 0.0}],
+    "passages": [{"stamp": 0.0, "place": "a"}, {"stamp": 10.0, "place": "b"}, {"stamp": 20.0, "place": "a"}],
+}
+
+
+def sim_run_dir(
+    root: Path, tops: dict[tuple[int, ...], float], stamps: tuple[float, ...] = (0.05, 10.0, 19.9)
+) -> Path:
+    """A run directory with a ptm.json over visits at ``stamps`` and the simulator-style ground truth."""
+    root.mkdir(parents=True)
+    (root / "ground_truth.json").write_text(json.dumps(SIM_GT))
+    landmarks = [Landmark(i, t, (0.0, 0.0, 0.0)) for i, t in enumerate(stamps)]
+    save_ptm(make_ptm(landmarks, tops), root / "ptm.json")
+    return root
+
+
+def test_calibration_record_right_and_wrong_maps(tmp_path: Path) -> None:
+    from ptm_ros.tools.evaluate import calibration_record
+
+    right = sim_run_dir(tmp_path / "right", {(0, 1, 0): 0.75, (0, 1, 2): 0.25})
+    rec = calibration_record(load_ptm(right / "ptm.json"), right / "ground_truth.json")
+    assert rec["map_right"] is True and rec["map_probability"] == pytest.approx(0.75)
+    assert (rec["map_false_merges"], rec["map_missed_merges"]) == (0, 0)
+    assert rec["true_topology_mass"] == pytest.approx(0.75) and not rec["overconfident_failure"]
+    # A missed revisit stated at 0.97: wrong, and an overconfident failure (consistent mass 0.03).
+    wrong = sim_run_dir(tmp_path / "wrong", {(0, 1, 2): 0.97, (0, 1, 0): 0.03})
+    rec = calibration_record(load_ptm(wrong / "ptm.json"), wrong / "ground_truth.json")
+    assert rec["map_right"] is False and (rec["map_false_merges"], rec["map_missed_merges"]) == (0, 1)
+    assert rec["consistent_mass"] == pytest.approx(0.03) and rec["overconfident_failure"]
+    # A visit 5 m from every place: no exact truth, the MAP neither right nor wrong.
+    far = sim_run_dir(tmp_path / "far", {(0, 1, 2): 1.0}, stamps=(0.05, 5.0, 19.9))
+    rec = calibration_record(load_ptm(far / "ptm.json"), far / "ground_truth.json")
+    assert rec["map_right"] is None and rec["true_topology_mass"] is None
+
+
+def test_cli_calibration_over_run_directories(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sim_run_dir(tmp_path / "runs" / "a", {(0, 1, 0): 0.75, (0, 1, 2): 0.25})
+    sim_run_dir(tmp_path / "runs" / "b", {(0, 1, 2): 0.97, (0, 1, 0): 0.03})
+    sim_run_dir(tmp_path / "runs" / "c", {(0, 1, 2): 1.0}, stamps=(0.05, 5.0, 19.9))
+    plot = tmp_path / "rel.png"
+    code, doc, err = run_cli(["--calibration", str(tmp_path / "runs"), "--plot", str(plot)], capsys)
+    assert code == 0, err
+    assert doc is not None and doc["schema"] == "ptm_ros.calibration/1"
+    assert (doc["n_runs"], doc["n_runs_without_true_topology"]) == (3, 1)
+    assert [r["map_right"] for r in doc["runs"]] == [True, False, None]
+    cal = doc["calibration"]
+    assert cal["n_runs"] == 2 and cal["overconfident_failures"] == 1
+    assert cal["ece"] == pytest.approx(brute_ece(np.array([0.75, 0.97]), np.array([1.0, 0.0]), 10))
+    assert cal["brier"] == pytest.approx((0.25**2 + 0.97**2) / 2)
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The same runs named one by one (ptm.json files and a run directory) give the same figures.
+    names = [
+        str(tmp_path / "runs" / "a" / "ptm.json"),
+        str(tmp_path / "runs" / "b"),
+        str(tmp_path / "runs" / "c"),
+    ]
+    code, again, err = run_cli(["--calibration", *names], capsys)
+    assert code == 0 and again is not None and again["calibration"] == cal
+
+
+def test_cli_calibration_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run = sim_run_dir(tmp_path / "a", {(0, 1, 0): 1.0})
+    (run / "ground_truth.json").unlink()  # no ground truth beside it, none in its (absent) bag
+    code, _, err = run_cli(["--calibration", str(run)], capsys)
+    assert code == 2 and "no ground truth" in err
+    (tmp_path / "empty").mkdir()
+    code, _, err = run_cli(["--calibration", str(tmp_path / "empty")], capsys)
+    assert code == 2 and "no ptm.json" in err
+    far = sim_run_dir(tmp_path / "far", {(0, 1, 2): 1.0}, stamps=(0.05, 5.0, 19.9))
+    code, _, err = run_cli(["--calibration", str(far)], capsys)
+    assert code == 2 and "no run has an exact true topology" in err
+    with pytest.raises(SystemExit) as exc:  # one ptm.json at a time without --calibration
+        eval_main([str(run / "ptm.json"), str(far / "ptm.json"), "--ground-truth", str(far)])
+    assert exc.value.code == 2

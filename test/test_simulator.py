@@ -183,6 +183,29 @@ def test_odometry_rotation_noise_on_the_spot() -> None:
     assert abs(err[:, 2].var(ddof=1) - var) < 4 * var * math.sqrt(2 / (runs - 1))
 
 
+def test_systematic_odometry_errors_scale_distances_and_drift_heading() -> None:
+    true = straight_line(200, 0.05)
+    base = OdometryNoiseConfig()
+    ref_odom, ref_inc = odometry_from_truth(true, base, np.random.default_rng(3))
+    # Off by default, bit for bit: the explicit zeros give the very same odometry.
+    odom, _ = odometry_from_truth(
+        true, dataclasses.replace(base, scale=0.0, bias_mean=0.0), np.random.default_rng(3)
+    )
+    assert np.array_equal(odom, ref_odom)
+    # A scale error stretches every increment's translation, the headings untouched.
+    _, inc = odometry_from_truth(true, dataclasses.replace(base, scale=0.04), np.random.default_rng(3))
+    np.testing.assert_allclose(inc[:, :2], 1.04 * ref_inc[:, :2], rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(inc[:, 2], ref_inc[:, 2])
+    # A mean drift alone turns the heading by bias_mean per metre: 10 m at 0.01 rad/m = 0.1 rad.
+    drift = OdometryNoiseConfig(trans=0, rot=0, turn=0, bias_init=0, bias_walk=0, bias_mean=0.01)
+    odom, _ = odometry_from_truth(true, drift, np.random.default_rng(0))
+    assert odom[-1, 2] == pytest.approx(0.1, abs=1e-12)
+    with pytest.raises(ConfigError, match="scale must be finite and > -1"):
+        OdometryNoiseConfig(scale=-1.0)
+    with pytest.raises(ConfigError, match="bias_mean must be finite"):
+        OdometryNoiseConfig(bias_mean=math.nan)
+
+
 # ------------------------------------------------------------------------------------------ trajectory
 
 

@@ -9,14 +9,17 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError
-from ptm_ros.io.simulator import CameraConfig, SimConfig, simulate
+from ptm_ros.io.simulator import MAX_ARC_TURN, CameraConfig, SimConfig, plan_trajectory, simulate
 from ptm_ros.io.worlds import (
+    CALIBRATION_FAMILIES,
     MIN_PLACE_SEPARATION,
     WORLDS,
     Place,
     Rect,
+    World,
     build_world,
     get_world,
+    ring_world,
     trace_walls,
 )
 
@@ -120,7 +123,9 @@ def test_default_visits_match_the_brief() -> None:
 
 
 def test_get_world_lists_names_on_error() -> None:
-    with pytest.raises(ConfigError, match=r"unknown world 'nowhere'; known worlds: aliased-loop, multi-loop"):
+    with pytest.raises(
+        ConfigError, match=r"unknown world 'nowhere'; known worlds: aliased-loop, aliased-ring, distinct-loop"
+    ):
         get_world("nowhere")
 
 
@@ -186,3 +191,107 @@ def test_validation_errors() -> None:
         Rect(0.0, 0.0, 1.2, 1.0, 0)
     with pytest.raises(ConfigError, match="x1 > x0"):
         Rect(1.0, 0.0, 1.0, 1.0, 0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Calibration families (issue #23)
+
+
+def rotated_walls(world: World, cx: float, cy: float, quarter_turns: int) -> list[tuple]:
+    """The world's walls ``(x0, y0, x1, y1, texture)`` turned by quarter turns about ``(cx, cy)``, sorted."""
+    seg = world.segments.copy()
+    for _ in range(quarter_turns % 4):
+        seg = np.stack(
+            [cx - (seg[:, 1] - cy), cy + (seg[:, 0] - cx), cx - (seg[:, 3] - cy), cy + (seg[:, 2] - cx)], 1
+        )
+    return sorted(zip(*seg.T.tolist(), world.wall_textures.tolist(), strict=True))
+
+
+def walls_of(world: World) -> list[tuple]:
+    return rotated_walls(world, 0.0, 0.0, 0)
+
+
+def free_cells(world: World) -> set[tuple[int, int]]:
+    """The 0.5 m cells inside the walls (ray parity along +x from each cell centre): the geometry alone."""
+    seg = world.segments
+    lo, hi = seg[:, [0, 2]].min() - 1, seg[:, [0, 2]].max() + 1
+    blo, bhi = seg[:, [1, 3]].min() - 1, seg[:, [1, 3]].max() + 1
+    vertical = seg[seg[:, 0] == seg[:, 2]]
+    ymin, ymax = np.minimum(vertical[:, 1], vertical[:, 3]), np.maximum(vertical[:, 1], vertical[:, 3])
+    cells = set()
+    for x in np.arange(lo, hi, 0.5) + 0.25:
+        for y in np.arange(blo, bhi, 0.5) + 0.25:
+            crossings = np.count_nonzero((vertical[:, 0] > x) & (ymin < y) & (ymax > y))
+            if crossings % 2:
+                cells.add((round(x * 4), round(y * 4)))
+    return cells
+
+
+def test_calibration_families_are_known_worlds_with_same_geometry_controls() -> None:
+    assert set(CALIBRATION_FAMILIES) == {"loop", "ring", "twin-rooms", "room-row"}
+    for aliased, control in CALIBRATION_FAMILIES.values():
+        a, c = get_world(aliased), get_world(control)
+        assert a.places == c.places and a.route == c.route and a.corridors == c.corridors
+        assert a.default_visits == c.default_visits
+        assert free_cells(a) == free_cells(c)  # the same free space ...
+        assert shoelace(a.segments) == pytest.approx(shoelace(c.segments), abs=1e-12)
+        # ... and the control's textures distinguish more walls than the aliased world's.
+        assert len(set(c.wall_textures.tolist())) > len(set(a.wall_textures.tolist()))
+
+
+def test_ring_world_reproduces_the_aliased_loop() -> None:
+    ring = ring_world(
+        "aliased-loop",
+        "",
+        side=12.0,
+        doors_per_side=1,
+        corridor_texture=lambda k: 0,
+        room_texture=lambda k, d: 0,
+        default_visits=10,
+    )
+    reference = get_world("aliased-loop")
+    assert ring.walls == reference.walls and ring.places == reference.places and ring.route == reference.route
+
+
+def test_aliased_worlds_map_onto_themselves_textures_included() -> None:
+    ring = get_world("aliased-ring")
+    assert rotated_walls(ring, 9.0, 9.0, 1) == walls_of(ring)
+    assert len(ring.places) == 12 and len(ring.route) == 12
+    twins = get_world("twin-rooms")
+    assert rotated_walls(twins, 10.0, 0.0, 2) == walls_of(twins)
+    # The control breaks the symmetry through its textures only.
+    control = get_world("twin-rooms-distinct")
+    assert rotated_walls(control, 10.0, 0.0, 2) != walls_of(control)
+    row = get_world("room-row")
+    rooms = [r for r in row.places if r.kind == "room-entrance"]
+    assert len(rooms) == 3
+
+    # Every room (with its door) is the first one translated, textures included.
+    def near(world: World, x: float) -> list[tuple]:
+        return sorted(
+            (round(w.start[0] - x, 6), w.start[1], round(w.end[0] - x, 6), w.end[1], w.texture)
+            for w in world.walls
+            if min(w.start[1], w.end[1]) >= 1.0 and abs((w.start[0] + w.end[0]) / 2 - x) <= 3.0
+        )
+
+    assert near(row, rooms[0].x) == near(row, rooms[1].x) == near(row, rooms[2].x)
+    distinct = get_world("room-row-distinct")
+    assert near(distinct, rooms[0].x) != near(distinct, rooms[1].x)
+
+
+@pytest.mark.parametrize("name", ["twin-rooms", "room-row"])
+def test_room_routes_re_enter_rooms_with_u_turns(name: str) -> None:
+    world = get_world(name)
+    visits = world.visits()
+    rooms = {p.id for p in world.places if p.kind == "room-entrance"}
+    entered = [v for v in visits if v in rooms]
+    assert set(entered) == rooms and len(entered) == len(rooms) + 1  # the first room entered twice
+    assert entered[0] == entered[-1]
+    traj = plan_trajectory(world, NO_CAMERA)
+    spins = np.flatnonzero(traj.kind == 2)
+    # A U-turn on the spot at every visit of a room or a corridor end (and nowhere else).
+    ends = {p.id for p in world.places if p.kind == "corridor-end"}
+    assert len(spins) == len(entered) + sum(v in ends for v in visits)
+    assert np.all(np.abs(traj.turn[spins]) > MAX_ARC_TURN)
+    run = simulate(world, NO_CAMERA, np.random.default_rng(0))
+    assert [p.place for p in run.passages] == list(visits)

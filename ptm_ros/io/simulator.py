@@ -11,13 +11,15 @@ Odometry (at ``odom_rate``) integrates the true body-frame increments ``u_k = x_
 ``δ_k``, rotation ``φ_k``) corrupted as
 
 .. math::
-    δ'_k = δ_k + σ_t \\sqrt{δ_k}\\, ξ_k, \\qquad
+    δ'_k = (1 + s)\\, (δ_k + σ_t \\sqrt{δ_k}\\, ξ_k), \\qquad
     φ'_k = φ_k + \\sqrt{σ_r^2 δ_k + σ_φ^2 |φ_k|}\\, ζ_k + b_k δ_k, \\qquad
-    b_k = b_{k-1} + σ_w \\sqrt{δ_k}\\, η_k, \\quad b_0 \\sim N(0, σ_{b}^2),
+    b_k = b_{k-1} + σ_w \\sqrt{δ_k}\\, η_k, \\quad b_0 \\sim N(\\bar b, σ_{b}^2),
 
 with independent standard normals ξ, ζ, η. Variances grow linearly with the motion, so the error
 statistics do not depend on the odometry rate; ``b`` is a heading drift per metre (a wheel-radius
-mismatch that wanders slowly), the "realistic drift in heading" of a real base. The odometry frame
+mismatch that wanders slowly), the "realistic drift in heading" of a real base. Two systematic errors
+are off by default: a scale error ``s`` of the distances (a wrong wheel radius) and a mean heading drift
+``b̄`` (rad/m, one wheel smaller than the other). The odometry frame
 starts at the origin; ``odometry_frame_offset`` = the true start pose maps it into the world frame.
 
 Laser scans (sensor at the robot centre, beams counter-clockwise from ``angle_min``) and panoramas are
@@ -78,7 +80,9 @@ class OdometryNoiseConfig:
 
     ``trans`` m/√m along the track; ``rot`` rad/√m heading noise from translation; ``turn`` rad/√rad
     heading noise from rotation; ``bias_init`` rad/m initial heading drift; ``bias_walk`` rad/m/√m
-    random walk of the drift.
+    random walk of the drift. Systematic errors (0 by default, which leaves the noise bit-identical to a
+    model without them): ``scale`` the relative error of every distance (0.02 = odometry reads 2 % long),
+    ``bias_mean`` rad/m the mean of the initial heading drift.
     """
 
     trans: float = 0.03
@@ -86,6 +90,8 @@ class OdometryNoiseConfig:
     turn: float = 0.02
     bias_init: float = 5e-4
     bias_walk: float = 1e-4
+    scale: float = 0.0
+    bias_mean: float = 0.0
 
     def __post_init__(self) -> None:
         _non_negative(
@@ -96,6 +102,12 @@ class OdometryNoiseConfig:
             bias_init=self.bias_init,
             bias_walk=self.bias_walk,
         )
+        if not (math.isfinite(self.scale) and self.scale > -1.0):
+            msg = f"OdometryNoiseConfig.scale must be finite and > -1, got {self.scale}"
+            raise ConfigError(msg)
+        if not math.isfinite(self.bias_mean):
+            msg = f"OdometryNoiseConfig.bias_mean must be finite, got {self.bias_mean}"
+            raise ConfigError(msg)
 
 
 @dataclass(frozen=True)
@@ -362,9 +374,11 @@ def odometry_from_truth(
     rot = np.abs(inc[:, 2])
     n = len(inc)
     xi, zeta, eta = rng.standard_normal((3, n))
-    b0 = noise.bias_init * rng.standard_normal()
+    b0 = noise.bias_mean + noise.bias_init * rng.standard_normal()
     bias = b0 + np.cumsum(noise.bias_walk * np.sqrt(dist) * eta)
-    scale = 1.0 + np.divide(noise.trans * np.sqrt(dist) * xi, dist, out=np.zeros(n), where=dist > 0.0)
+    scale = (1.0 + noise.scale) * (
+        1.0 + np.divide(noise.trans * np.sqrt(dist) * xi, dist, out=np.zeros(n), where=dist > 0.0)
+    )
     dyaw = inc[:, 2] + np.sqrt(noise.rot**2 * dist + noise.turn**2 * rot) * zeta + bias * dist
     noisy = np.stack([inc[:, 0] * scale, inc[:, 1] * scale, dyaw], axis=-1)
     theta = np.concatenate([[0.0], np.cumsum(dyaw)])

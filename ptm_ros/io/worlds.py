@@ -18,6 +18,21 @@ consecutive pair (the last to the first included) joined by a corridor. The worl
 * ``multi-loop``: a 4 x 3 grid of corridors (six loops) with a dead end, driven through several loops
   like the simulation of thesis Figs. 39-40 (33 visits by default).
 * ``t-junction``: a tiny T of three 5 m corridors for fast tests (6 visits per cycle, 3 by default).
+
+Calibration families (issue #23): worlds with exact perceptual aliasing, each with a *control* of the same
+geometry whose textures all differ (only the laser's view of the geometry can still alias there). Their
+routes re-enter rooms and turn back (U-turns on the spot, see ``MAX_ARC_TURN`` in the simulator):
+
+* ``distinct-loop``: ``aliased-loop``'s geometry with a texture of its own per side and per room.
+* ``aliased-ring`` / ``distinct-ring``: an 18 m square ring with two doors (and rooms) per side,
+  identical sides (or distinct ones); 14 visits by default (the loop closes twice).
+* ``twin-rooms`` / ``twin-rooms-distinct``: a 20 m corridor with one room north of its west half and one
+  south of its east half; the aliased world is symmetric under a half turn (the rooms, the doors and the
+  corridor ends alias); the route enters both rooms, turns back at both ends and re-enters the first
+  room (13 visits by default).
+* ``room-row`` / ``room-row-distinct``: a 26 m corridor lined on one side with three identical (or
+  distinct) rooms, each entered and left with a U-turn, the corridor driven back to close the loop and
+  the first room re-entered (17 visits by default).
 """
 
 from __future__ import annotations
@@ -459,12 +474,213 @@ def t_junction() -> World:
     )
 
 
+def ring_world(
+    name: str,
+    description: str,
+    *,
+    side: float,
+    doors_per_side: int,
+    corridor_texture: Callable[[int], int],
+    room_texture: Callable[[int, int], int],
+    default_visits: int,
+) -> World:
+    """A square ring of corridors (corner at the origin, ``side`` m) with ``doors_per_side`` evenly spaced
+    doors per side, each a 1 m door opening to a room outside the ring (5 m deep, 6 m wide for one door
+    per side, 5 m wide otherwise); the sides are numbered 0..3 counter-clockwise from the south one.
+
+    ``corridor_texture(k)`` is the texture of side ``k``, ``room_texture(k, d)`` that of door ``d``'s door
+    opening and room on side ``k``; the route drives the ring counter-clockwise. With one door on a 12 m
+    side and every texture 0 this is ``aliased-loop``'s geometry.
+    """
+    step = side / (doors_per_side + 1)
+    width = 6.0 if doors_per_side == 1 else 5.0
+    c = side / 2.0
+    corners = [(0.0, 0.0), (side, 0.0), (side, side), (0.0, side)]
+    directions = [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)]
+    corner_names = ["c-sw", "c-se", "c-ne", "c-nw"]
+    side_names = "senw"
+    places: list[Place] = []
+    corridors: list[tuple[str, str, int]] = []
+    rooms: list[Rect] = []
+    for k in range(4):
+        (x0, y0), (dx, dy) = corners[k], directions[k]
+        ids = [corner_names[k]]
+        places.append(Place(corner_names[k], x0, y0, "corner"))
+        for d in range(doors_per_side):
+            s = step * (d + 1)
+            pid = f"d-{side_names[k]}" if doors_per_side == 1 else f"d-{side_names[k]}{d + 1}"
+            places.append(Place(pid, x0 + s * dx, y0 + s * dy, "doorway"))
+            ids.append(pid)
+            # The door and room of the south side at x = s, rotated onto side k about the centre.
+            tex = room_texture(k, d)
+            door = Rect(s - 0.5, -2.0, s + 0.5, -1.0, tex)
+            room = Rect(s - width / 2.0, -7.0, s + width / 2.0, -2.0, tex)
+            rooms += [_rotate_rect(door, c, c, k), _rotate_rect(room, c, c, k)]
+        nxt = corner_names[(k + 1) % 4]
+        corridors += [(a, b, corridor_texture(k)) for a, b in zip(ids, [*ids[1:], nxt], strict=True)]
+    return build_world(
+        name,
+        description,
+        places,
+        corridors,
+        route=[p.id for p in places],
+        default_visits=default_visits,
+        rooms=rooms,
+    )
+
+
+def distinct_loop() -> World:
+    """``aliased-loop``'s geometry with a texture of its own per side and per room (the control)."""
+    return ring_world(
+        "distinct-loop",
+        "aliased-loop's 12 m square with distinct textures per side and per room: geometry aliases only",
+        side=12.0,
+        doors_per_side=1,
+        corridor_texture=lambda k: 10 + k,
+        room_texture=lambda k, d: 20 + k,
+        default_visits=10,
+    )
+
+
+def aliased_ring() -> World:
+    """An 18 m square ring of identical sides, two identical doors and rooms per side (12 places)."""
+    return ring_world(
+        "aliased-ring",
+        "18 m square ring of identical corridors with two doors to identical rooms per side",
+        side=18.0,
+        doors_per_side=2,
+        corridor_texture=lambda k: 0,
+        room_texture=lambda k, d: 1,
+        default_visits=14,
+    )
+
+
+def distinct_ring() -> World:
+    """``aliased-ring``'s geometry with a texture of its own per side and per door and room."""
+    return ring_world(
+        "distinct-ring",
+        "aliased-ring's 18 m square with distinct textures per side and per room: geometry aliases only",
+        side=18.0,
+        doors_per_side=2,
+        corridor_texture=lambda k: 10 + k,
+        room_texture=lambda k, d: 20 + 2 * k + d,
+        default_visits=14,
+    )
+
+
+def _twin_rooms(name: str, description: str, textures: Sequence[int]) -> World:
+    """The ``twin-rooms`` geometry with ``textures`` = (west, middle and east corridor, stub a, room a,
+    stub b, room b)."""
+    west, middle, east, stub_a, room_a, stub_b, room_b = textures
+    places = [
+        Place("end-w", 0.0, 0.0, "corridor-end"),
+        Place("door-a", 5.0, 0.0, "junction"),
+        Place("room-a", 5.0, 5.0, "room-entrance"),
+        Place("door-b", 15.0, 0.0, "junction"),
+        Place("room-b", 15.0, -5.0, "room-entrance"),
+        Place("end-e", 20.0, 0.0, "corridor-end"),
+    ]
+    corridors = [
+        ("end-w", "door-a", west),
+        ("door-a", "door-b", middle),
+        ("door-b", "end-e", east),
+        ("door-a", "room-a", stub_a),
+        ("door-b", "room-b", stub_b),
+    ]
+    # 6 x 6 m rooms whose place lies 1 m past the door, where a laser detector fires on entering; room b
+    # is room a turned by a half turn about (10, 0).
+    rooms = [Rect(2.0, 4.0, 8.0, 10.0, room_a), Rect(12.0, -10.0, 18.0, -4.0, room_b)]
+    route = [
+        *("end-w", "door-a", "room-a", "door-a", "door-b", "room-b", "door-b", "end-e"),
+        *("door-b", "door-a"),
+    ]
+    return build_world(name, description, places, corridors, route=route, default_visits=13, rooms=rooms)
+
+
+def twin_rooms() -> World:
+    """Two identical rooms off a 20 m corridor, symmetric under a half turn: rooms, doors and ends alias."""
+    return _twin_rooms(
+        "twin-rooms",
+        "two identical rooms off a 20 m corridor (north-west, south-east), symmetric under a half turn; "
+        "both rooms entered with U-turns, U-turns at both ends, the first room re-entered",
+        (1, 1, 1, 2, 3, 2, 3),
+    )
+
+
+def twin_rooms_distinct() -> World:
+    """``twin-rooms``' geometry with distinct textures (the control)."""
+    return _twin_rooms(
+        "twin-rooms-distinct",
+        "twin-rooms' geometry with a texture of its own per corridor and room: geometry aliases only",
+        (1, 4, 7, 2, 3, 5, 6),
+    )
+
+
+def _room_row(name: str, description: str, textures: Sequence[tuple[int, int]], corridor: int) -> World:
+    """The ``room-row`` geometry: ``textures`` = (stub, room) texture per room, ``corridor`` the main one."""
+    doors = (6.0, 13.0, 20.0)
+    places = [Place("end-w", 0.0, 0.0, "corridor-end")]
+    corridors: list[tuple[str, str, int]] = []
+    rooms: list[Rect] = []
+    prev = "end-w"
+    for k, x in enumerate(doors, start=1):
+        places += [Place(f"d{k}", x, 0.0, "junction"), Place(f"r{k}", x, 5.0, "room-entrance")]
+        stub, room = textures[k - 1]
+        corridors += [(prev, f"d{k}", corridor), (f"d{k}", f"r{k}", stub)]
+        # 6 x 6 m, the place 1 m past the door, 1 m of wall between rooms.
+        rooms.append(Rect(x - 3.0, 4.0, x + 3.0, 10.0, room))
+        prev = f"d{k}"
+    places.append(Place("end-e", 26.0, 0.0, "corridor-end"))
+    corridors.append((prev, "end-e", corridor))
+    route = [
+        *("end-w", "d1", "r1", "d1", "d2", "r2", "d2", "d3", "r3", "d3"),
+        *("end-e", "d3", "d2", "d1"),
+    ]
+    return build_world(name, description, places, corridors, route=route, default_visits=17, rooms=rooms)
+
+
+def room_row() -> World:
+    """A 26 m corridor lined with three identical rooms on its north side."""
+    return _room_row(
+        "room-row",
+        "a 26 m corridor lined with three identical 6 x 6 m rooms, each entered with a U-turn; "
+        "the corridor driven back and the first room re-entered",
+        [(2, 3)] * 3,
+        1,
+    )
+
+
+def room_row_distinct() -> World:
+    """``room-row``'s geometry with a texture of its own per room (the control)."""
+    return _room_row(
+        "room-row-distinct",
+        "room-row's geometry with a texture of its own per room and door: geometry aliases only",
+        [(2, 3), (4, 5), (6, 7)],
+        1,
+    )
+
+
 #: The named worlds, built on demand by :func:`get_world`.
 WORLDS: Mapping[str, Callable[[], World]] = {
     "aliased-loop": aliased_loop,
     "two-loop": two_loop,
     "multi-loop": multi_loop,
     "t-junction": t_junction,
+    "distinct-loop": distinct_loop,
+    "aliased-ring": aliased_ring,
+    "distinct-ring": distinct_ring,
+    "twin-rooms": twin_rooms,
+    "twin-rooms-distinct": twin_rooms_distinct,
+    "room-row": room_row,
+    "room-row-distinct": room_row_distinct,
+}
+
+#: Calibration families (issue #23): family -> (aliased world, control world of the same geometry).
+CALIBRATION_FAMILIES: Mapping[str, tuple[str, str]] = {
+    "loop": ("aliased-loop", "distinct-loop"),
+    "ring": ("aliased-ring", "distinct-ring"),
+    "twin-rooms": ("twin-rooms", "twin-rooms-distinct"),
+    "room-row": ("room-row", "room-row-distinct"),
 }
 
 

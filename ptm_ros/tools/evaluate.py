@@ -29,6 +29,17 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
   ``probability``, ``num_places``, ``tp``, ``fp``, ``fn``, ``tn``, ``precision``, ``recall``, ``f1``,
   ``consistent``.
 
+``ptm-eval --calibration RUN [RUN ...] [--plot FILE]`` scores many runs of simulated bags at once (issue
+#23): each RUN is a ``ptm.json``, a run directory holding one, or a directory searched recursively for
+them; each run's ground truth is ``--ground-truth`` when given, else the ``ground_truth.json`` beside
+the ``ptm.json``, else the one in the bag named by the ``ptm.json`` (``bag``). It prints (schema
+``ptm_ros.calibration/1``): ``runs`` (per run: ``ptm``, ``ground_truth``, and :func:`calibration_record`'s
+keys), ``n_runs``, ``n_runs_without_true_topology`` (visits not all within ``--same-radius`` of a place:
+no exact truth, left out of the calibration figures) and ``calibration``
+(:meth:`ptm_ros.evaluation.CalibrationSummary.as_dict`: ``ece``, ``chance_ece``, ``chance_ece_p95``,
+``brier``, ``map_right_rate``, ``mean_map_probability``, ``overconfident_failures``,
+``mean_true_topology_mass``, ``bins``); ``--plot FILE`` writes the reliability diagram (PNG).
+
 Exit status: 0 on success, 2 on bad input (unreadable or invalid ptm.json or ground truth, landmark
 no landmark inside the ground truth's time span, bad thresholds), with the reason on stderr.
 """
@@ -40,17 +51,19 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-    from ptm_ros.evaluation import EvalConfig, Score
+    from ptm_ros.evaluation import CalibrationSummary, EvalConfig, Score
     from ptm_ros.io.groundtruth import GroundTruthTrajectory
     from ptm_ros.ptm import Ptm
 
 PROG = "ptm-eval"
+#: Schema tag of the JSON printed by ``ptm-eval --calibration``.
+CALIBRATION_SCHEMA = "ptm_ros.calibration/1"
 
 
 def true_positions_for(
@@ -93,30 +106,149 @@ def score_against_ground_truth(
     """Score ``ptm`` against a ground-truth file (or a loaded one): the glue used by ``ptm-eval`` and
     ``ptm-run``. True positions by :func:`true_positions_for`; true place ids from the ground truth's
     places when every landmark lies within ``config.same_radius`` of one."""
-    from ptm_ros.errors import ConfigError
-    from ptm_ros.evaluation import EvalConfig, place_ids_from_positions, score_ptm
+    from ptm_ros.evaluation import EvalConfig, score_ptm
     from ptm_ros.io.groundtruth import load_ground_truth
 
     config = config or EvalConfig()
+    truth = load_ground_truth(ground_truth) if isinstance(ground_truth, str | Path) else ground_truth
+    xy, places = true_place_ids(ptm, truth, config=config, max_extrapolation=max_extrapolation)
+    return score_ptm(ptm, xy, true_places=None if places is None else places.tolist(), config=config)
+
+
+def true_place_ids(
+    ptm: Ptm, truth: GroundTruthTrajectory, *, config: EvalConfig, max_extrapolation: float = 0.5
+) -> tuple[NDArray[np.float64], NDArray[np.intp] | None]:
+    """Each landmark's true position (:func:`true_positions_for`) and true place id: the nearest of the
+    ground truth's places within ``config.same_radius``, or None (no exact truth) when one is farther."""
+    from ptm_ros.errors import ConfigError
+    from ptm_ros.evaluation import place_ids_from_positions
+
     if not max_extrapolation >= 0.0:
         msg = f"max_extrapolation must be >= 0 s, got {max_extrapolation}"
         raise ConfigError(msg)
-    truth = load_ground_truth(ground_truth) if isinstance(ground_truth, str | Path) else ground_truth
     xy = true_positions_for(ptm, truth, max_extrapolation=max_extrapolation)
     places = None
     if truth.places:
         places = place_ids_from_positions(xy, [(pl.x, pl.y) for pl in truth.places], config.same_radius)
-    return score_ptm(ptm, xy, true_places=None if places is None else places.tolist(), config=config)
+    return xy, places
+
+
+def calibration_record(
+    ptm: Ptm,
+    ground_truth: str | Path | GroundTruthTrajectory,
+    *,
+    config: EvalConfig | None = None,
+    max_extrapolation: float = 0.5,
+) -> dict[str, Any]:
+    """One run's calibration figures against its ground truth (plain JSON values).
+
+    ``map_probability``; ``map_right`` (the MAP topology is exactly the true one, None without true place
+    ids), ``map_false_merges`` / ``map_missed_merges`` (visit pairs the MAP wrongly joins / keeps apart,
+    None without them); ``consistent_mass``, ``true_topology_mass``, ``overconfident_failure``
+    (consistent mass < :data:`ptm_ros.evaluation.OVERCONFIDENT_MASS`); ``n_visits``, ``n_true_places``,
+    ``map_num_places``, ``listed_mass``, ``posterior_f1``.
+    """
+    from ptm_ros.evaluation import OVERCONFIDENT_MASS, EvalConfig, map_errors_against_truth, score_ptm
+    from ptm_ros.io.groundtruth import load_ground_truth
+
+    config = config or EvalConfig()
+    truth = load_ground_truth(ground_truth) if isinstance(ground_truth, str | Path) else ground_truth
+    xy, places = true_place_ids(ptm, truth, config=config, max_extrapolation=max_extrapolation)
+    score = score_ptm(ptm, xy, true_places=None if places is None else places.tolist(), config=config)
+    merges = None if places is None else map_errors_against_truth(ptm.map_topology.labels, places)
+    return {
+        "n_visits": score.n_visits,
+        "n_true_places": score.n_true_places,
+        "map_num_places": score.map.num_places,
+        "listed_mass": score.listed_mass,
+        "map_probability": score.map.probability,
+        "map_right": None if merges is None else merges == (0, 0),
+        "map_false_merges": None if merges is None else merges[0],
+        "map_missed_merges": None if merges is None else merges[1],
+        "consistent_mass": score.consistent_mass,
+        "true_topology_mass": score.true_topology_mass,
+        "overconfident_failure": score.consistent_mass < OVERCONFIDENT_MASS,
+        "posterior_f1": score.expected.f1,
+    }
+
+
+def summarize_records(
+    records: Sequence[dict[str, Any]], rng: np.random.Generator, *, n_bins: int = 10, redraws: int = 2000
+) -> CalibrationSummary | None:
+    """:func:`ptm_ros.evaluation.calibration_summary` of the records with an exact truth (``map_right`` not
+    None); None when there is none."""
+    from ptm_ros.evaluation import calibration_summary
+
+    scored = [r for r in records if r["map_right"] is not None]
+    if not scored:
+        return None
+    return calibration_summary(
+        [r["map_probability"] for r in scored],
+        [r["map_right"] for r in scored],
+        rng,
+        consistent_mass=[r["consistent_mass"] for r in scored],
+        true_topology_mass=[r["true_topology_mass"] for r in scored],
+        n_bins=n_bins,
+        redraws=redraws,
+    )
+
+
+def find_runs(paths: Sequence[Path]) -> list[Path]:
+    """The ``ptm.json`` files named by ``paths``: files as given, a directory's own ``ptm.json``, else every
+    ``ptm.json`` below it (sorted). Raises :class:`DataError` for a path that names none."""
+    from ptm_ros.errors import DataError
+
+    out: list[Path] = []
+    for path in paths:
+        if path.is_dir():
+            found = [path / "ptm.json"] if (path / "ptm.json").is_file() else sorted(path.rglob("ptm.json"))
+            if not found:
+                msg = f"{path}: no ptm.json in or below this directory"
+                raise DataError(msg)
+            out += found
+        else:
+            out.append(path)
+    return out
+
+
+def ground_truth_of(ptm_path: Path) -> Path:
+    """A run's ground truth: ``ground_truth.json`` beside ``ptm_path``, else the one in the bag named by
+    the ptm.json's ``bag``. Raises :class:`DataError` when neither exists."""
+    from ptm_ros.errors import DataError
+
+    beside = ptm_path.parent / "ground_truth.json"
+    if beside.is_file():
+        return beside
+    try:
+        bag = json.loads(ptm_path.read_text(encoding="utf-8")).get("bag")
+    except (OSError, ValueError, AttributeError):
+        bag = None
+    if isinstance(bag, str) and (Path(bag) / "ground_truth.json").is_file():
+        return Path(bag) / "ground_truth.json"
+    msg = f"{ptm_path}: no ground truth beside it nor in its bag ({bag}); give --ground-truth"
+    raise DataError(msg)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``ptm-eval``."""
-    from ptm_ros.evaluation import EvalConfig
+    from ptm_ros.evaluation import CALIBRATION_BINS, EvalConfig
 
     d = EvalConfig()
     p = argparse.ArgumentParser(prog=PROG, description="Score a PTM (ptm.json) against a ground truth.")
-    p.add_argument("ptm", type=Path, help="the ptm.json to score")
-    p.add_argument("--ground-truth", type=Path, required=True, help="ground-truth file (see io.groundtruth)")
+    p.add_argument(
+        "ptm", type=Path, nargs="+", help="the ptm.json to score (--calibration: runs, see the module doc)"
+    )
+    p.add_argument("--ground-truth", type=Path, default=None, help="ground-truth file (see io.groundtruth)")
+    p.add_argument(
+        "--calibration",
+        action="store_true",
+        help="score many runs and print the calibration of the MAP probability (ECE, Brier, ...)",
+    )
+    p.add_argument(
+        "--plot", type=Path, default=None, help="--calibration: write the reliability diagram here"
+    )
+    p.add_argument("--bins", type=int, default=CALIBRATION_BINS, help="--calibration: probability bins")
+    p.add_argument("--seed", type=int, default=0, help="--calibration: seed of the chance-level redraws")
     p.add_argument("--same-radius", type=float, default=d.same_radius, help="same place below (m)")
     p.add_argument("--different-radius", type=float, default=d.different_radius, help="different above (m)")
     p.add_argument(
@@ -131,9 +263,59 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def calibration_main(args: argparse.Namespace) -> int:
+    """``ptm-eval --calibration``: score every run, print the calibration JSON, write ``--plot``."""
+    import numpy as np
+
+    from ptm_ros.errors import ConfigError, PtmError
+    from ptm_ros.evaluation import EvalConfig
+    from ptm_ros.ptm import load_ptm
+
+    try:
+        if args.bins < 1:
+            msg = f"--bins must be >= 1, got {args.bins}"
+            raise ConfigError(msg)
+        config = EvalConfig(args.same_radius, args.different_radius)
+        runs = []
+        for path in find_runs(args.ptm):
+            gt = args.ground_truth if args.ground_truth is not None else ground_truth_of(path)
+            record = calibration_record(
+                load_ptm(path), gt, config=config, max_extrapolation=args.max_extrapolation
+            )
+            runs.append({"ptm": str(path), "ground_truth": str(gt), **record})
+        summary = summarize_records(runs, np.random.default_rng(args.seed), n_bins=args.bins)
+        if summary is None:
+            msg = "no run has an exact true topology (every visit within --same-radius of a place)"
+            raise ConfigError(msg)
+        if args.plot is not None:
+            from ptm_ros.io.calibration_plot import write_reliability_diagram
+
+            write_reliability_diagram(args.plot, {"all runs": summary})
+    except (PtmError, OSError) as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        return 2
+    doc = {
+        "schema": CALIBRATION_SCHEMA,
+        "n_runs": len(runs),
+        "n_runs_without_true_topology": sum(r["map_right"] is None for r in runs),
+        "calibration": summary.as_dict(),
+        "runs": runs,
+    }
+    print(json.dumps(doc, indent=args.indent))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ptm-eval``; returns the exit status."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.calibration:
+        return calibration_main(args)
+    if len(args.ptm) != 1:
+        parser.error("score one ptm.json at a time (or use --calibration)")
+    if args.ground_truth is None:
+        parser.error("the following arguments are required: --ground-truth (unless --calibration)")
+    args.ptm = args.ptm[0]
 
     from ptm_ros.errors import PtmError
     from ptm_ros.evaluation import EvalConfig
