@@ -457,11 +457,13 @@ class ScanMap:
         correspondence_distance: float | None = None,
         refine: bool = True,
         min_points: int = _MIN_SCAN_POINTS,
+        degenerate_ratio: float = 0.0,
     ) -> FloatArray | None:
         """The world pose of a scan (``points`` in the robot frame) aligned onto the map from ``guess``:
-        kiss-icp point-to-point, then (``refine``) the point-to-plane polish of :func:`register_patches`.
-        None when the scan or the map has fewer than ``min_points`` points after downsampling, or ICP
-        diverged."""
+        kiss-icp point-to-point, then (``refine``) the point-to-plane polish of :func:`register_patches`
+        with the guess kept along the directions the scan hardly constrains (``degenerate_ratio``,
+        :func:`keep_unobserved`). None when the scan or the map has fewer than ``min_points`` points after
+        downsampling, or ICP diverged."""
         cfg = self.config
         if self.n_points < min_points:
             return None
@@ -480,6 +482,7 @@ class ScanMap:
             refine=refine,
             min_points=min_points,
             target=self._target,
+            degenerate_ratio=degenerate_ratio,
         )
 
     def inlier_fraction(self, points: ArrayLike, pose: ArrayLike) -> float:
@@ -523,11 +526,13 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
     refine: bool = True,
     min_points: int = _MIN_SCAN_POINTS,
     target: _Target | None = None,
+    degenerate_ratio: float = 0.0,
 ) -> FloatArray | None:
     """kiss-icp alignment of a scan (downsampled at ``voxel``) onto ``voxel_map`` from ``guess``, then the
     point-to-plane polish against ``map_points`` (or a prepared ``target`` of them) with the prior at the
-    odometry ``guess`` (directions the planes do not see stay at the odometry); None with too few points
-    or when ICP diverged."""
+    odometry ``guess`` (directions the planes do not see stay at the odometry), and the guess's
+    translation kept along directions constrained less than ``degenerate_ratio`` times the best one
+    (:func:`keep_unobserved`); None with too few points or when ICP diverged."""
     src = voxel_downsample(pts, voxel)
     if len(src) < min_points or len(map_points) < min_points:
         return None
@@ -536,8 +541,8 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
         return aligned
     surface = _Target(map_points, 0.5 * voxel) if target is None else target
     overlap = _Overlap(_Target(pts, 0.5 * voxel), surface, cfg.inlier_distance)
-    aligned, _ = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
-    return aligned
+    aligned, _, information = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
+    return keep_unobserved(aligned, guess, information, degenerate_ratio)
 
 
 def passage_patch(
@@ -850,7 +855,7 @@ def _register(
     fits = overlap.fits(poses)
     fits.sort(key=lambda f: (-f.fraction, f.rmse if f.n_inliers else math.inf))
     prior_std = np.array([cfg.patch_radius, cfg.patch_radius, np.pi])
-    refined, cov = _point_to_plane(fits[0].pose, overlap, cfg, prior_std)
+    refined, cov, _ = _point_to_plane(fits[0].pose, overlap, cfg, prior_std)
     fits[0] = best = overlap(refined)
     reason = _invalid_reason(fits, overlap, cfg)
     axis = _slide_axis(fits, overlap, cfg) if slide_axis and reason.startswith(FLAT_OPTIMUM) else None
@@ -1231,9 +1236,9 @@ def _point_to_plane(
     cfg: LaserConfig,
     prior_std: FloatArray,
     prior_mean: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray]:
-    """Gauss–Newton point-to-plane refinement of an ICP ``pose`` (Chen & Medioni, thesis Ch. 3.10.4)
-    and its covariance (before flooring).
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Gauss–Newton point-to-plane refinement of an ICP ``pose`` (Chen & Medioni, thesis Ch. 3.10.4),
+    its covariance (before flooring) and the information of the residuals alone (without the prior).
 
     Each source point ``s_k`` (the fitness sample) within ``inlier_distance`` of its nearest target point
     ``m_k`` with a line-like neighbourhood and unit normal ``n_k`` gives the residual
@@ -1266,7 +1271,7 @@ def _point_to_plane(
         inl = close[flat]
         n = n[flat]
         if len(inl) <= 3:
-            return pose, _spd_inverse(prior)
+            return pose, _spd_inverse(prior), np.zeros((3, 3))
         q = placed[inl]
         e = np.einsum("ij,ij->i", n, q - tgt[idx[inl]])
         arm = q - current[:2]
@@ -1287,7 +1292,28 @@ def _point_to_plane(
     if moved(pose, current, cfg.distinct_xy, cfg.distinct_yaw):
         current = pose
     cov = _spd_inverse(info)
-    return current, 0.5 * (cov + cov.T)
+    return current, 0.5 * (cov + cov.T), info - prior
+
+
+def keep_unobserved(pose: FloatArray, guess: FloatArray, information: FloatArray, ratio: float) -> FloatArray:
+    """``pose`` with its translation away from ``guess`` removed along the directions the scan hardly
+    constrains (solution remapping, Zhang, Kaess & Singh, ICRA 2016): along an eigenvector of the
+    translation block of the residuals' ``information`` whose eigenvalue is below ``ratio`` times the
+    largest, the guess (the wheel odometry) is kept. A corridor's walls fix the cross-track position and
+    the heading, and only noise in the estimated normals "sees" the along-track one: point-to-point ICP
+    and the polish then slide along the corridor by a fraction of every step, erasing the travel.
+    ``ratio`` 0, or no information at all (the polish found no planes: ``pose`` is ICP's), keep ``pose``."""
+    block = 0.5 * (information[:2, :2] + information[:2, :2].T)
+    values, vectors = np.linalg.eigh(block)
+    if ratio <= 0.0 or values[-1] <= 0.0:
+        return pose
+    weak = values < ratio * float(values[-1])
+    if not np.any(weak):
+        return pose
+    shift = pose[:2] - guess[:2]
+    for v in vectors[:, weak].T:
+        shift = shift - float(v @ shift) * v
+    return np.array([guess[0] + shift[0], guess[1] + shift[1], pose[2]])
 
 
 def _spd_inverse(matrix: FloatArray) -> FloatArray:

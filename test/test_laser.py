@@ -590,7 +590,7 @@ def test_point_to_plane_equals_the_plain_iteration(world, seed, spread):
     overlap = _Overlap(
         _Target(source, 0.5 * cfg.voxel), _Target(target, 0.5 * cfg.voxel), cfg.inlier_distance
     )
-    got, got_cov = _point_to_plane(start, overlap, cfg, prior_std)
+    got, got_cov, _ = _point_to_plane(start, overlap, cfg, prior_std)
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got_cov, want_cov)
 

@@ -366,3 +366,49 @@ def test_ptm_calibrate_writes_the_offset_into_the_parameters(tmp_path, capsys):
             w.write_odometry(float(k), (0.1 * k, 0.0, 0.0))
     assert calibrate.main([str(odom_only)]) == 2
     assert "lacks required topic /scan" in capsys.readouterr().err
+
+
+def corridor_travel(degenerate_ratio: float, seed: int) -> tuple[float, float]:
+    """(wheel, corrected) travel of 8 m along a 2 m wide, 60 m long corridor (1 cm range noise, 5 cm of
+    travel per scan): only the walls' normals, estimated from noisy points, see the along-track axis."""
+    from ptm_ros.io.simulator import simulate_scans
+
+    walls = np.array([[-30.0, -1.0, 30.0, -1.0], [30.0, 1.0, -30.0, 1.0]])
+    laser = SimLaserConfig()
+    rng = np.random.default_rng(seed)
+    true = np.column_stack([np.arange(-4.0, 4.0, 0.05), np.zeros(160), np.zeros(160)])
+    ranges = simulate_scans(walls, true, laser, rng)
+    lo = LaserOdometry(LaserOdometryConfig(degenerate_ratio=degenerate_ratio))
+    poses = [
+        lo.on_scan(pose, scan_to_points(r, -laser.fov / 2, laser.fov / (laser.beams - 1), 0.05, 20.0).points)
+        for pose, r in zip(true, ranges, strict=True)  # a perfect wheel odometry: the truth
+    ]
+    return path_length(true), float(poses[-1][0] - poses[0][0])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_correction_keeps_the_wheel_travel_along_a_corridor(seed):
+    """Issue #23: scan matching does not erase travel along a corridor (the direction its walls do not
+    constrain keeps the wheel odometry, :func:`ptm_ros.laser.keep_unobserved`), while it still corrects
+    across it."""
+    wheel, corrected = corridor_travel(0.05, seed)
+    assert corrected == pytest.approx(wheel, rel=0.02)
+    assert corridor_travel(0.0, seed)[1] < 0.95 * wheel  # off (the default): the travel is eroded
+
+
+def test_keep_unobserved_reverts_only_the_weak_directions():
+    from ptm_ros.laser import keep_unobserved
+
+    guess = np.array([1.0, 2.0, 0.3])
+    pose = np.array([1.5, 2.2, 0.35])
+    info = np.diag([2.0, 1000.0, 50.0])  # x hardly seen, y well
+    assert np.allclose(keep_unobserved(pose, guess, info, 0.05), [1.0, 2.2, 0.35])
+    assert np.array_equal(keep_unobserved(pose, guess, info, 0.0), pose)
+    assert np.allclose(keep_unobserved(pose, guess, np.diag([900.0, 1000.0, 5.0]), 0.05), pose)
+    assert np.array_equal(keep_unobserved(pose, guess, np.zeros((3, 3)), 0.05), pose)
+    c, s = math.cos(0.7), math.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    turned = keep_unobserved(pose, guess, rot @ info @ rot.T, 0.05)  # the weak axis turned by 0.7 rad
+    weak = rot[:2, 0]
+    assert abs(weak @ (turned[:2] - guess[:2])) < 1e-12
+    assert np.allclose(rot[:2, 1] @ (turned[:2] - guess[:2]), rot[:2, 1] @ (pose[:2] - guess[:2]))
