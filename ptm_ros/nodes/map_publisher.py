@@ -439,7 +439,10 @@ class MapPublisherNode(Node):
 
     @guarded
     def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        fresh = self.build_map() if self._dirty or self.map is None else None
+        # draw now when the inputs changed since the last map, or while the drawing thread still draws
+        # them (the timer took them: ``self.map`` is then older than what was received)
+        drawing = not self._idle.is_set()
+        fresh = self.build_map() if self._dirty or self.map is None or drawing else None
         if fresh is not None:
             self._dirty = False
         result = fresh or self.map  # the latest map when the current inputs cannot be drawn yet
