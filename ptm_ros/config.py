@@ -7,6 +7,7 @@ field). The configuration actually used is saved beside every result (``DIR/conf
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -83,6 +84,9 @@ class InferenceConfig:
             raise ConfigError(msg)
         if not 1 <= self.max_exact_visits <= 12:
             msg = f"max_exact_visits must be in 1..12, got {self.max_exact_visits}"
+            raise ConfigError(msg)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral) or self.seed < 0:
+            msg = f"inference seed must be an integer >= 0, got {self.seed!r}"
             raise ConfigError(msg)
 
 

@@ -464,8 +464,8 @@ def infer(
     if inf.method == "exact":
         if len(visits) > inf.max_exact_visits:
             msg = (
-                f"exact enumeration over {len(visits)} visits is too large (max_exact_visits = "
-                f"{inf.max_exact_visits}); use --method rbpf"
+                f"exact enumeration over {len(visits)} visits is too large: inference.max_exact_visits is "
+                f"{inf.max_exact_visits} (at most 12); use --method rbpf or --method mcmc"
             )
             raise ConfigError(msg)
         logp = exact_posterior(model, progress=progress)

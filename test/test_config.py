@@ -69,3 +69,20 @@ def test_node_only_parameters_are_known_to_the_loader():
     from ptm_ros.config import ROS_ONLY_PARAMETERS
 
     assert set(common.NODE_PARAMETERS) <= ROS_ONLY_PARAMETERS
+
+
+def test_a_negative_seed_is_refused_before_any_work(tmp_path, capsys):
+    """Issue #25: ``--seed -1`` fails at once with one line and exit 2 (it used to end a whole run in a
+    numpy traceback), in ptm-run (the configuration) and in ptm-sim (its argument parser)."""
+    from ptm_ros.tools import run as run_cli
+    from ptm_ros.tools import sim as sim_cli
+
+    with pytest.raises(ConfigError, match="inference seed must be an integer >= 0, got -1"):
+        load_config(None, {"inference": {"seed": -1}})
+    assert run_cli.main([str(tmp_path / "missing.bag"), "--out", str(tmp_path / "o"), "--seed", "-1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ptm-run: error: ") and "seed" in err and "\n" not in err
+    with pytest.raises(SystemExit) as stop:
+        sim_cli.main([str(tmp_path / "b"), "--seed", "-1"])
+    assert stop.value.code == 2 and "expected an integer >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists() and not (tmp_path / "o").exists()

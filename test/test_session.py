@@ -200,3 +200,11 @@ def test_the_ptm_says_which_visits_the_map_is_unsure_of(sim_visits):
     for d in doc["visits"]:  # the answers of a visit in doubt: a split of its probability
         assert max(a["probability"] for a in d["answers"]) < 0.95
         assert sum(a["probability"] for a in d["answers"]) <= 1.0 + 1e-9
+
+
+def test_exact_enumeration_too_large_names_the_limit_and_the_alternatives(sim_visits):
+    config = load_config(None, {"inference": {"method": "exact", "max_exact_visits": 2}})
+    with pytest.raises(
+        ConfigError, match=r"inference.max_exact_visits is 2 \(at most 12\); use --method rbpf or "
+    ):
+        infer(sim_visits[:3], config)

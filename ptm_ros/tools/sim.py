@@ -27,7 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
         "it as a rosbag2 with OUT_BAG/ground_truth.json.",
     )
     parser.add_argument("out_bag", type=Path, help="rosbag2 directory to create (must not exist)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the sensor noise (default: 0)")
+    parser.add_argument(
+        "--seed", type=_seed, default=0, help="random seed of the sensor noise, an integer >= 0 (default: 0)"
+    )
     parser.add_argument(
         "--world", choices=sorted(WORLDS), default=DEFAULT_WORLD, help=f"default: {DEFAULT_WORLD}"
     )
@@ -41,6 +43,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="default: mcap")
     parser.add_argument("--no-images", action="store_true", help="write no /panorama topic")
     return parser
+
+
+def _seed(text: str) -> int:
+    """An argparse type: an integer >= 0 (numpy's generators take no negative seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        msg = f"expected an integer >= 0, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return value
 
 
 def _size(path: Path) -> int:
