@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,35 +29,12 @@ from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.geometry import wrap_angle
 
 
-class Detector(Protocol):
+class Detector:
     """What the visit extractor (:class:`ptm_ros.landmarks.VisitExtractor`) asks of a landmark detector:
     each ``on_*`` call feeds one message and returns True when a landmark visit is declared; the visit
     then lies at ``last_landmark_stamp`` when set (a detector that localises its landmark at an earlier
     measurement, e.g. the surprise maximum), else at the message's stamp. ``flush`` ends the data (True:
-    one more visit)."""
-
-    last_landmark_stamp: float | None
-
-    def on_odometry(self, stamp: float, pose: NDArray[np.float64]) -> bool: ...
-
-    def on_scan(
-        self,
-        stamp: float,
-        ranges: ArrayLike,
-        *,
-        angle_min: float,
-        angle_increment: float,
-        range_min: float,
-        range_max: float,
-    ) -> bool: ...
-
-    def on_image(self, stamp: float, image: ArrayLike) -> bool: ...
-
-    def flush(self) -> bool: ...
-
-
-class StreamingDetector:
-    """A :class:`Detector` that ignores every input: detectors override the ones they use."""
+    one more visit). This base ignores every input: a detector overrides the ones it uses."""
 
     last_landmark_stamp: float | None = None
 
@@ -221,7 +197,7 @@ def landmark_passages(
     return sorted(out)
 
 
-class ScheduledDetector(StreamingDetector):
+class ScheduledDetector(Detector):
     """Fires at given stamps: the visits of landmarks fixed in the environment (:func:`landmark_passages`).
 
     :meth:`on_odometry` returns True at the first odometry sample at or after each scheduled stamp and
@@ -278,7 +254,7 @@ class OdometryTracker:
         return out
 
 
-class EquidistantDetector(StreamingDetector):
+class EquidistantDetector(Detector):
     """Fires every ``spacing`` metres of odometry travel and/or every ``period`` seconds (Ch. 4.5)."""
 
     def __init__(self, config: EquidistantConfig | None = None) -> None:

@@ -655,6 +655,15 @@ class CalibrationSummary:
         return doc
 
 
+def _per_run(values: ArrayLike, p: NDArray[np.float64], what: str) -> NDArray[np.float64]:
+    """``values`` as floats, one per run of ``p`` (:class:`ModelError` otherwise)."""
+    v = np.asarray(values, dtype=float)
+    if v.shape != p.shape:
+        msg = f"one {what} per run: got {v.shape} for {p.shape} runs"
+        raise ModelError(msg)
+    return v
+
+
 def calibration_summary(
     probabilities: ArrayLike,
     correct: ArrayLike,
@@ -671,18 +680,11 @@ def calibration_summary(
     chance = chance_calibration_errors(p, rng, n_bins=n_bins, redraws=redraws)
     failures = None
     if consistent_mass is not None:
-        c = np.asarray(consistent_mass, dtype=float)
-        if c.shape != p.shape:
-            msg = f"one consistent mass per run: got {c.shape} for {p.shape} runs"
-            raise ModelError(msg)
+        c = _per_run(consistent_mass, p, "consistent mass")
         failures = int(np.count_nonzero(c < OVERCONFIDENT_MASS))
     mean_true = None
     if true_topology_mass is not None:
-        t = np.asarray(true_topology_mass, dtype=float)
-        if t.shape != p.shape:
-            msg = f"one true-topology mass per run: got {t.shape} for {p.shape} runs"
-            raise ModelError(msg)
-        mean_true = float(t.mean())
+        mean_true = float(_per_run(true_topology_mass, p, "true-topology mass").mean())
     return CalibrationSummary(
         n_runs=int(p.size),
         n_bins=n_bins,

@@ -1303,9 +1303,11 @@ def keep_unobserved(pose: FloatArray, guess: FloatArray, information: FloatArray
     the heading, and only noise in the estimated normals "sees" the along-track one: point-to-point ICP
     and the polish then slide along the corridor by a fraction of every step, erasing the travel.
     ``ratio`` 0, or no information at all (the polish found no planes: ``pose`` is ICP's), keep ``pose``."""
+    if ratio <= 0.0:  # off (the default): no eigen-decomposition per scan
+        return pose
     block = 0.5 * (information[:2, :2] + information[:2, :2].T)
     values, vectors = np.linalg.eigh(block)
-    if ratio <= 0.0 or values[-1] <= 0.0:
+    if values[-1] <= 0.0:
         return pose
     weak = values < ratio * float(values[-1])
     if not np.any(weak):

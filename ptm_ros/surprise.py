@@ -70,7 +70,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.special import digamma, gammaln
 
 from ptm_ros.appearance import fourier_signature
-from ptm_ros.detectors import OdometryTracker, StreamingDetector
+from ptm_ros.detectors import Detector, OdometryTracker
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.geometry import wrap_angle
 from ptm_ros.vocabulary import Vocabulary
@@ -747,7 +747,7 @@ class SurpriseTrace:
     landmarks: FloatArray
 
 
-class _SurpriseDetector(StreamingDetector):
+class _SurpriseDetector(Detector):
     """Shared streaming machinery: odometry travel, the band trigger, the trace."""
 
     def __init__(self, band_sigmas: float, warmup: int, min_travel: float) -> None:
