@@ -30,6 +30,7 @@ parameter value.
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import functools
 import inspect
 import io
@@ -842,6 +843,11 @@ def check_params_files(args: Sequence[str]) -> None:
         _check_parameter_tree(doc, value)
 
 
+#: s a node may take to stop (destroy itself, shut rclpy down, exit) before it prints every thread's
+#: stack to stderr: a stop that hangs (ptm-bringup then escalates to SIGTERM and SIGKILL) says where.
+STOP_REPORT_S = 4.0
+
+
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "ptm_ros") -> int:
     """Initialise rclpy, build the node, spin until shutdown; return the process exit code.
 
@@ -850,7 +856,8 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, nam
     SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern). An error raised by
     the spin once the context is shut down is the shutdown racing the executor (a wait or a take on a
     context being invalidated by the signal handler): logged, and still a clean stop; with the context
-    alive it is a bug and propagates (exit code 1).
+    alive it is a bug and propagates (exit code 1). A stop that takes more than :data:`STOP_REPORT_S`
+    prints every thread's stack to stderr (this is a process's entry point: call it last).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
@@ -877,6 +884,9 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, nam
                 raise
             node.get_logger().warning(f"stopped while shutting down: {type(err).__name__}: {err}")
         finally:
+            # armed until the process exits (not cancelled): a hang in the node's teardown, in rclpy's
+            # shutdown or in the interpreter's exit prints the stacks instead of dying silently
+            faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__)
             node.destroy_node()
         return 0
     finally:
