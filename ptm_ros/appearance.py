@@ -344,25 +344,39 @@ def log_predictive_nig(signature: ArrayLike, stats: NigStats, prior: NigPrior) -
     return float(per_k.sum())
 
 
+#: Largest within-place share of a component's variance (keeps ``κ = ρ/(1-ρ)`` finite).
+MAX_WITHIN_FRACTION = 0.99
+
+
 def nig_prior_from_data(
     signatures: ArrayLike,
     *,
     within_fraction: float = 0.1,
     alpha: float = 5.0,
     kappa: float | None = None,
+    spreads: ArrayLike | None = None,
+    prior_visits: float = 2.0,
 ) -> NigPrior:
     """Empirical-Bayes NIG prior from the signatures ``(N, K)`` of all visits of a run.
 
     Rule: ``μ`` = mean signature; ``v_k`` = sample variance of component ``k`` over all visits (floored
-    at 1e-12). A fraction ``ρ = within_fraction`` of it is expected within a place, the rest between
-    places: the inverse gamma is centred on ``E[σ_k²] = β_k/(α-1) = ρ v_k``, so ``β_k = (α-1) ρ v_k``
-    (``α`` sets how peaked it is: for ``α > 2`` its coefficient of variation is ``1/sqrt(α-2)``);
-    ``κ = ρ/(1-ρ)`` by default, so the prior spread of the true appearance ``σ²/κ`` is the between-place
-    part ``(1-ρ) v_k`` and the prior predictive of one visit has the observed variance ``v_k``.
+    at 1e-12). A fraction ``ρ_k`` of it is expected within a place, the rest between places: the inverse
+    gamma is centred on ``E[σ_k²] = β_k/(α-1) = ρ_k v_k``, so ``β_k = (α-1) ρ_k v_k`` (``α`` sets how
+    peaked it is: for ``α > 2`` its coefficient of variation is ``1/sqrt(α-2)``); ``κ = ρ̄/(1-ρ̄)`` (``ρ̄``
+    the mean of the ``ρ_k``) by default, so the prior spread of the true appearance ``σ²/κ`` is the
+    between-place part and the prior predictive of one visit has about the observed variance ``v_k``.
+
+    ``ρ_k``: without ``spreads``, ``within_fraction``. With ``spreads`` ``(n, K)`` (the visits'
+    :attr:`~ptm_ros.visits.Visit.signature_spread`: ``½ (a - a')²`` for a panorama ``a'`` taken one place's
+    width away, whose expectation is the within-place variance ``σ_k²`` of eq. 25), the within-place
+    variance is learned from the run: the mean spread, shrunk towards ``within_fraction · v_k`` with the
+    weight of ``prior_visits`` visits, ``ρ_k = (Σ spreads + n₀ ρ₀ v_k) / ((n + n₀) v_k)`` capped at
+    :data:`MAX_WITHIN_FRACTION`.
 
     Raises:
-        ConfigError: ``within_fraction`` not in (0, 1), ``alpha <= 1`` or ``kappa <= 0``.
-        ModelError: no signature or a non-finite one.
+        ConfigError: ``within_fraction`` not in (0, 1), ``alpha <= 1``, ``kappa <= 0`` or
+            ``prior_visits < 0``.
+        ModelError: no signature or a non-finite one; spreads not ``(n, K)``, finite and >= 0.
     """
     if not 0.0 < within_fraction < 1.0:
         msg = f"within_fraction must be in (0, 1), got {within_fraction}"
@@ -374,12 +388,23 @@ def nig_prior_from_data(
     if a.shape[0] == 0:
         msg = "nig_prior_from_data needs at least one signature"
         raise ModelError(msg)
+    if not (np.isfinite(prior_visits) and prior_visits >= 0.0):
+        msg = f"prior_visits must be finite and >= 0, got {prior_visits}"
+        raise ConfigError(msg)
     var = a.var(axis=0, ddof=1) if a.shape[0] > 1 else np.zeros(a.shape[1])
     var = np.maximum(var, _VAR_FLOOR)
-    kappa_value = within_fraction / (1.0 - within_fraction) if kappa is None else kappa
-    return NigPrior(
-        mu=a.mean(axis=0), kappa=kappa_value, alpha=alpha, beta=(alpha - 1.0) * within_fraction * var
-    )
+    rho = np.full(a.shape[1], within_fraction)
+    if spreads is not None:
+        sp = np.asarray(spreads, dtype=float)
+        if sp.ndim != 2 or sp.shape[1] != a.shape[1] or not np.all(np.isfinite(sp) & (sp >= 0.0)):
+            msg = f"spreads must be finite, >= 0 and (n, {a.shape[1]}), got shape {sp.shape}"
+            raise ModelError(msg)
+        if len(sp) + prior_visits > 0.0:
+            within = (sp.sum(axis=0) + prior_visits * within_fraction * var) / (len(sp) + prior_visits)
+            rho = np.minimum(within / var, MAX_WITHIN_FRACTION)
+    rho_mean = float(rho.mean())
+    kappa_value = rho_mean / (1.0 - rho_mean) if kappa is None else kappa
+    return NigPrior(mu=a.mean(axis=0), kappa=kappa_value, alpha=alpha, beta=(alpha - 1.0) * rho * var)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -569,10 +594,11 @@ class AppearanceConfig:
         include_dc: keep the mean brightness as the first coefficient of each band.
         gain_invariant: divide each band's magnitudes by its mean brightness.
         within_fraction: empirical Bayes, share of each component's variance over all visits expected
-            within a place (see :func:`nig_prior_from_data`). Measured on the simulated panoramas (mean
-            squared signature difference of visits < 1.5 m apart over that of visits > 4 m apart):
-            0.29 on the two-loop world (0.81 on the deliberately aliased loop); 0.1 made appearance
-            veto true loop closures there.
+            within a place (see :func:`nig_prior_from_data`): the prior guess, used alone when
+            ``within_learned`` is off or no visit carries a signature spread.
+        within_learned: learn the within-place variance from the run (the visits' signature spreads,
+            panoramas one place's width apart) instead of fixing it at ``within_fraction``.
+        within_prior_visits: weight of ``within_fraction`` against the learned spreads, in visits.
         nig_alpha: inverse-gamma shape (> 1; larger = the within-place variance is known more surely).
         nig_kappa: prior pseudo-count of the true appearance; None = ``ρ/(1-ρ)`` (empirical Bayes).
         dcm_alpha: symmetric Dirichlet parameter per word; None = Minka's ML estimate from all visits.
@@ -587,6 +613,8 @@ class AppearanceConfig:
     include_dc: bool = False
     gain_invariant: bool = False
     within_fraction: float = 0.3
+    within_learned: bool = True
+    within_prior_visits: float = 2.0
     nig_alpha: float = 5.0
     nig_kappa: float | None = None
     dcm_alpha: float | None = None
@@ -606,6 +634,9 @@ class AppearanceConfig:
             raise ConfigError(msg)
         if not 0.0 < self.within_fraction < 1.0:
             msg = f"within_fraction must be in (0, 1), got {self.within_fraction}"
+            raise ConfigError(msg)
+        if not (np.isfinite(self.within_prior_visits) and self.within_prior_visits >= 0.0):
+            msg = f"within_prior_visits must be finite and >= 0, got {self.within_prior_visits}"
             raise ConfigError(msg)
         if not (np.isfinite(self.nig_alpha) and self.nig_alpha > 1.0):
             msg = f"nig_alpha must be finite and > 1, got {self.nig_alpha}"
@@ -674,11 +705,20 @@ def fit_appearance_model(visits: Sequence[Visit], config: AppearanceConfig) -> A
         if len(signatures) < _MIN_FIT_VISITS:
             msg = f"only {len(signatures)} visits carry a Fourier signature; the appearance prior needs 2"
             raise ModelError(msg)
+        spreads = [
+            v.signature_spread
+            for v in visits
+            if v.signature is not None
+            and v.signature_spread is not None
+            and len(v.signature) == signatures.shape[1]
+        ]
         nig = nig_prior_from_data(
             signatures,
             within_fraction=config.within_fraction,
             alpha=config.nig_alpha,
             kappa=config.nig_kappa,
+            spreads=np.array(spreads) if config.within_learned and spreads else None,
+            prior_visits=config.within_prior_visits,
         )
     if "words" in config.models:
         counts = _stack_words(visits, range(len(visits)), None)

@@ -7,6 +7,7 @@ reaches the filter by one code path whether it comes from a bag or from live top
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, MutableMapping, Sequence
 from typing import Any
 
@@ -84,6 +85,8 @@ def make_extractor(
         use_images=use_images,
         image_max_dt=config.detector.image_max_dt,
         record_corrections=record_corrections,
+        # the mean distance between two visits of one place under the metric model (offsets N(0, 2σ_T² I))
+        spread_distance=config.model.odometry.sigma_topology * math.sqrt(math.pi),
     )
     return VisitExtractor(
         make_detector(kind, config, schedule),

@@ -66,6 +66,9 @@ class ExtractorConfig:
     stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
     record_corrections: bool = False  # keep (stamp, correction) of every scan (offline smoothing; grows)
     stream_poses: bool = False  # keep each odometry sample and scan used, with its pose, until taken
+    spread_distance: float = (
+        0.0  # m: a visit's signature spread is taken against a panorama this far away (0: none)
+    )
 
 
 @dataclass
@@ -419,12 +422,13 @@ class VisitExtractor:
                 self.diagnostics.skip("patch-failed")
             if patch is not None and len(patch) < self.laser.min_points:
                 patch = None
-        signature = None
+        signature = spread = None
         if self.config.use_images and self._images:
             stamps = np.array([s for s, _ in self._images])
             j = int(np.argmin(np.abs(stamps - v.stamp)))
             if abs(stamps[j] - v.stamp) <= self.config.image_max_dt:
                 signature = self._images[j][1]
+                spread = self._signature_spread(stamps, j)
         self.diagnostics.visits_without_patch += int(self.config.use_scans and patch is None)
         self.diagnostics.visits_without_panorama += int(self.config.use_images and signature is None)
         visit = Visit(
@@ -436,10 +440,29 @@ class VisitExtractor:
             signature=signature,
             patch=patch,
             odom_pose=None if v.wheel is None else (float(v.wheel[0]), float(v.wheel[1]), float(v.wheel[2])),
+            signature_spread=spread,
         )
         self._count += 1
         self.diagnostics.visits += 1
         return visit
+
+    def _signature_spread(self, stamps: NDArray[np.float64], j: int) -> NDArray[np.float64] | None:
+        """``½ (s_j - s_k)²`` per component, ``k`` the buffered panorama whose odometry position lies
+        nearest to ``spread_distance`` from panorama ``j``'s (within a factor 2 of it); None without one."""
+        target = self.config.spread_distance
+        sig_j = self._images[j][1]
+        if target <= 0.0 or sig_j is None or len(stamps) < 2 or len(self._odom_t) < 2:
+            return None
+        xy = interpolate_poses(self._odom_t, self._odom_p, stamps)[:, :2]
+        dist = np.hypot(*(xy - xy[j]).T)
+        ok = (dist >= 0.5 * target) & (dist <= 2.0 * target)
+        ok &= np.array([sig is not None and sig.shape == sig_j.shape for _, sig in self._images])
+        if not ok.any():
+            return None
+        k = int(np.argmin(np.where(ok, np.abs(dist - target), np.inf)))
+        sig_k = self._images[k][1]
+        assert sig_k is not None  # selected above
+        return 0.5 * (sig_j - sig_k) ** 2
 
     def _prune(self) -> None:
         """Drop data no pending or future visit can need (bounded memory on long runs)."""
@@ -507,6 +530,7 @@ def visit_to_json(visit: Visit) -> str:
             "signature": _encode(visit.signature),
             "words": _encode(visit.words),
             "patch": _encode(visit.patch),
+            "signature_spread": _encode(visit.signature_spread),
         }
     )
 
@@ -532,6 +556,7 @@ def visit_from_json(text: str) -> Visit:
             signature=_decode(d.get("signature")),
             words=_decode(d.get("words")),
             patch=_decode(d.get("patch")),
+            signature_spread=_decode(d.get("signature_spread")),
         )
     except (KeyError, TypeError, ValueError, PtmError) as err:
         msg = f"malformed visit message: {err}"

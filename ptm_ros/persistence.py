@@ -384,6 +384,8 @@ def visit_fingerprint(visit: Visit) -> str:
     _hash_array(h, "signature", visit.signature, np.float64)
     _hash_array(h, "words", visit.words, np.int64)
     _hash_array(h, "patch", visit.patch, np.float64)
+    if visit.signature_spread is not None:  # visits without one hash as before the field existed
+        _hash_array(h, "signature_spread", visit.signature_spread, np.float64)
     return h.hexdigest()
 
 

@@ -1428,11 +1428,13 @@ def visit_dict(v: Visit) -> dict[str, Any]:
         "signature": None if v.signature is None else np.asarray(v.signature).copy(),
         "words": None if v.words is None else np.asarray(v.words).copy(),
         "patch": None if v.patch is None else np.asarray(v.patch).copy(),
+        "signature_spread": None if v.signature_spread is None else np.asarray(v.signature_spread).copy(),
     }
 
 
 def visit_from_dict(d: dict[str, Any]) -> Visit:
-    """Inverse of :func:`visit_dict` (dicts saved before ``odom_pose`` existed are read too)."""
+    """Inverse of :func:`visit_dict` (dicts saved before ``odom_pose`` or ``signature_spread`` existed are
+    read too)."""
     odom_pose = d.get("odom_pose")
     return Visit(
         index=int(d["index"]),
@@ -1444,6 +1446,9 @@ def visit_from_dict(d: dict[str, Any]) -> Visit:
         signature=None if d["signature"] is None else np.asarray(d["signature"], dtype=float),
         words=None if d["words"] is None else np.asarray(d["words"], dtype=np.int64),
         patch=None if d["patch"] is None else np.asarray(d["patch"], dtype=float),
+        signature_spread=None
+        if d.get("signature_spread") is None
+        else np.asarray(d["signature_spread"], dtype=float),
     )
 
 

@@ -44,6 +44,9 @@ class Visit:
         patch: local laser map around the visit, shape ``(P, 2)`` points in the visit's frame, or None.
         odom_pose: the input odometry pose at the visit when ``pose`` was corrected by scan matching
             (ptm.json reports it as the landmark pose); None when ``pose`` is the input odometry.
+        signature_spread: ``(K,)`` half the squared difference, per component, between ``signature`` and
+            the signature of a panorama taken about one place's width away: one sample of the
+            within-place appearance variance (:func:`ptm_ros.appearance.fit_appearance_model`), or None.
     """
 
     index: int
@@ -55,6 +58,7 @@ class Visit:
     words: NDArray[np.int64] | None = field(default=None, compare=False, repr=False)
     patch: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
     odom_pose: tuple[float, float, float] | None = field(default=None, compare=False, repr=False)
+    signature_spread: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
 
     @property
     def input_pose(self) -> tuple[float, float, float]:
@@ -79,6 +83,15 @@ class Visit:
         if not (np.isfinite(self.rotation) and 0.0 <= self.rotation <= MAX_TRAVEL):
             msg = f"visit {self.index}: rotation must be in [0, {MAX_TRAVEL:g}] rad, got {self.rotation}"
             raise ModelError(msg)
+        if self.signature_spread is not None:
+            spread = np.asarray(self.signature_spread)
+            expected = None if self.signature is None else np.shape(self.signature)
+            if spread.shape != expected or not np.all(np.isfinite(spread) & (spread >= 0.0)):
+                msg = (
+                    f"visit {self.index}: signature_spread must be finite, >= 0 and shaped like the "
+                    f"signature {expected}, got shape {spread.shape}"
+                )
+                raise ModelError(msg)
 
 
 def poses_array(visits: Sequence[Visit]) -> NDArray[np.float64]:

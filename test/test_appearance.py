@@ -11,6 +11,7 @@ from scipy import integrate, optimize, stats
 from scipy.special import beta as beta_fn
 
 from ptm_ros.appearance import (
+    MAX_WITHIN_FRACTION,
     AppearanceConfig,
     AppearanceModel,
     NigPrior,
@@ -227,6 +228,59 @@ def test_nig_predictive_is_a_density():
         lambda x: np.exp(log_predictive_nig(np.array([x]), stats_, PRIOR_1D)), -np.inf, np.inf, epsabs=1e-13
     )
     assert total == pytest.approx(1.0, abs=1e-9)
+
+
+def test_within_place_variance_is_learned_from_the_spreads():
+    # visits drawn from the model of eq. 25 with a known within-place variance; each visit's spread is
+    # ½ (a - a')² against a second draw of its place: E[spread] = σ², so the learned share is σ²/v
+    rng = np.random.default_rng(11)
+    sigma2 = np.array([0.01, 0.09])
+    places = rng.normal([1.0, 2.0], [0.5, 0.2], size=(400, 2))
+    a = places + rng.normal(size=(400, 2)) * np.sqrt(sigma2)
+    twin = places + rng.normal(size=(400, 2)) * np.sqrt(sigma2)
+    spreads = 0.5 * (a - twin) ** 2
+    v = a.var(axis=0, ddof=1)
+    prior = nig_prior_from_data(a, within_fraction=0.3, alpha=5.0, spreads=spreads, prior_visits=0.0)
+    learned = prior.beta / (prior.alpha - 1.0)
+    np.testing.assert_allclose(learned, spreads.mean(axis=0), rtol=1e-12)  # the rule, exactly
+    np.testing.assert_allclose(learned, sigma2, rtol=0.15)  # … which recovers the truth
+    rho = learned / v
+    assert prior.kappa == pytest.approx(rho.mean() / (1.0 - rho.mean()))
+    # shrinkage: n0 visits at the prior guess ρ0 v
+    shrunk = nig_prior_from_data(a, within_fraction=0.3, alpha=5.0, spreads=spreads[:2], prior_visits=2.0)
+    np.testing.assert_allclose(shrunk.beta / 4.0, (spreads[:2].sum(axis=0) + 2.0 * 0.3 * v) / 4.0, rtol=1e-12)
+    # an all-alike run: the share is capped below 1 (κ finite)
+    capped = nig_prior_from_data(a, spreads=10.0 * spreads, prior_visits=0.0)
+    assert np.all(capped.beta / (capped.alpha - 1.0) <= MAX_WITHIN_FRACTION * v * (1 + 1e-12))
+    assert np.isfinite(capped.kappa)
+    with pytest.raises(ModelError, match="spreads"):
+        nig_prior_from_data(a, spreads=-spreads)
+    with pytest.raises(ModelError, match="spreads"):
+        nig_prior_from_data(a, spreads=spreads[:, :1])
+    with pytest.raises(ConfigError, match="prior_visits"):
+        nig_prior_from_data(a, spreads=spreads, prior_visits=-1.0)
+
+
+def test_fit_uses_the_visits_spreads_unless_told_not_to():
+    rng = np.random.default_rng(12)
+    sig = np.abs(rng.normal(1.0, 0.3, size=(6, 3)))
+    spread = np.full(3, 0.5 * 0.3**2)
+    visits = [
+        Visit(i, float(i), (float(i), 0.0, 0.0), signature=sig[i], signature_spread=spread) for i in range(6)
+    ]
+    v = sig.var(axis=0, ddof=1)
+    cfg = AppearanceConfig(within_fraction=0.3, within_prior_visits=2.0)
+    learned = fit_appearance_model(visits, cfg).nig
+    expect = np.minimum((6 * spread + 2.0 * 0.3 * v) / 8.0 / v, MAX_WITHIN_FRACTION) * v
+    np.testing.assert_allclose(learned.beta / (cfg.nig_alpha - 1.0), expect, rtol=1e-12)
+    fixed = fit_appearance_model(visits, AppearanceConfig(within_fraction=0.3, within_learned=False)).nig
+    np.testing.assert_allclose(fixed.beta / (cfg.nig_alpha - 1.0), 0.3 * v, rtol=1e-12)
+    plain = [Visit(i, float(i), (float(i), 0.0, 0.0), signature=sig[i]) for i in range(6)]
+    np.testing.assert_allclose(fit_appearance_model(plain, cfg).nig.beta, fixed.beta, rtol=1e-12)
+    with pytest.raises(ModelError, match="signature_spread"):
+        Visit(0, 0.0, (0.0, 0.0, 0.0), signature=sig[0], signature_spread=spread[:2])
+    with pytest.raises(ModelError, match="signature_spread"):
+        Visit(0, 0.0, (0.0, 0.0, 0.0), signature_spread=spread)
 
 
 def test_empirical_bayes_prior_reproduces_observed_variance():

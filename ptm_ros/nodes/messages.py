@@ -56,7 +56,12 @@ def scan_payload(msg: Any) -> tuple[ScanPayload | None, Rejection | None]:
     return (ranges, amin, ainc, rmin, rmax), None
 
 
-_ARRAYS = {"signature": ("f", 1), "words": ("iu", 1), "patch": ("f", 2)}  # dtype kinds, dimensions
+_ARRAYS = {
+    "signature": ("f", 1),
+    "signature_spread": ("f", 1),
+    "words": ("iu", 1),
+    "patch": ("f", 2),
+}  # dtype kinds, dimensions
 
 
 def check_visit(visit: Visit) -> None:
