@@ -13,10 +13,20 @@ log odds are clamped to ``[-clamp, clamp]`` after every scan:
     l_t(c) = \\operatorname{clip}\\bigl(l_{t-1}(c) + l_\\text{occ}\\,[c \\in H_t]
              + l_\\text{free}\\,[c \\in F_t \\setminus H_t],\\; -\\text{clamp}, \\text{clamp}\\bigr)
 
+Hits weigh more than misses, as in the mature mappers (Cartographer's ``hit_probability`` 0.55 /
+``miss_probability`` 0.49, a hit worth 5 misses; GMapping's counting model with ``occ_thresh`` 0.25, a
+hit worth 3): ``l_occ = logit(0.7) ≈ 0.85`` and ``l_free = logit(0.45) ≈ -0.2``, so a cell that holds
+returns stays occupied until beams pass through it more than about 4 times as often as they end there;
+the beams that graze a wall at a shallow angle, crossing its cells on their way to a farther part of it,
+no longer erase it. The clamp bounds how long a cell remembers (a door opened later can still clear).
+
 A beam of range ``r`` is used up to ``min(r, max_range)``; it has a return (a hit) only when
-``r < range_max`` and ``r <= max_range``. A beam at or beyond ``range_max`` is "no return": free space
-up to ``min(max_range, range_max)``, no hit. NaN, ±inf, non-positive and below-``range_min`` ranges are
-skipped and counted (:attr:`OccupancyGrid.skipped`). Ray casting is the exact traversal of the cells a
+``r < range_max`` and ``r <= max_range``: a return beyond ``max_range`` is clipped there, clearing
+without a hit. A beam at or beyond ``range_max`` is "no return" (a CARMEN log's 81.9 m readings): it says
+nothing about where the next obstacle is, only that the sensor saw none close by, so it clears
+``min(missing_ray_length, max_range, range_max)`` (Cartographer's ``missing_data_ray_length``), no hit.
+NaN, ±inf, non-positive and below-``range_min`` ranges are skipped and counted
+(:attr:`OccupancyGrid.skipped`). Ray casting is the exact traversal of the cells a
 segment's interior meets (the cells Amanatides–Woo visits), vectorised over the beams of a scan
 (:func:`grid_traversal`).
 
@@ -65,8 +75,11 @@ class OccupancyConfig:
     Attributes:
         resolution: cell size (m).
         max_range: usable beam length (m); longer returns are truncated to free space without a hit.
-        l_occ: log-odds increment of a cell holding a return (> 0).
-        l_free: log-odds increment of a cell a beam passes through (< 0).
+        missing_ray_length: a no-return beam (range at or beyond the scan's ``range_max``) clears this
+            far (m; 0: not at all), as Cartographer's ``missing_data_ray_length``.
+        l_occ: log-odds increment of a cell holding a return (> 0; logit(0.7)).
+        l_free: log-odds increment of a cell a beam passes through (< 0; logit(0.45): a hit outweighs
+            about 4 passes, module docstring).
         clamp: log odds are kept in ``[-clamp, clamp]`` (> 0).
         margin: unknown border around the data (m).
         occupied_thresh: map_server threshold: occupancy above it is occupied.
@@ -76,8 +89,9 @@ class OccupancyConfig:
 
     resolution: float = 0.05
     max_range: float = 20.0
+    missing_ray_length: float = 2.0
     l_occ: float = 0.85
-    l_free: float = -0.4
+    l_free: float = -0.2
     clamp: float = 5.0
     margin: float = 1.0
     occupied_thresh: float = 0.65
@@ -95,6 +109,9 @@ class OccupancyConfig:
             raise ConfigError(msg)
         if not (math.isfinite(self.l_free) and self.l_free < 0):
             msg = f"OccupancyConfig.l_free must be < 0 (evidence for free), got {self.l_free}"
+            raise ConfigError(msg)
+        if not (math.isfinite(self.missing_ray_length) and self.missing_ray_length >= 0):
+            msg = f"OccupancyConfig.missing_ray_length must be >= 0, got {self.missing_ray_length}"
             raise ConfigError(msg)
         if not (math.isfinite(self.margin) and self.margin >= 0):
             msg = f"OccupancyConfig.margin must be >= 0, got {self.margin}"
@@ -232,18 +249,21 @@ def _scan_beams(
     range_min: float,
     range_max: float,
     max_range: float,
+    missing_ray_length: float,
 ) -> tuple[_Beams, int]:
-    """Beam end points of one scan (truncated at ``max_range``) and the number of skipped ranges."""
+    """Beam end points of one scan (module docstring: returns truncated at ``max_range``, no-return beams
+    at ``missing_ray_length``; zero-length beams dropped) and the number of skipped ranges."""
     angles = angle_min + angle_increment * np.arange(len(ranges))
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(ranges) & (ranges > 0.0) & (ranges >= range_min)
     r = ranges[valid]
     no_return = r >= range_max
-    length = np.where(no_return, min(max_range, range_max), np.minimum(r, max_range))
+    length = np.where(no_return, min(missing_ray_length, max_range, range_max), np.minimum(r, max_range))
     hit = ~no_return & (r <= max_range)
-    heading = pose[2] + angles[valid]
-    ends = pose[:2] + length[:, None] * np.column_stack([np.cos(heading), np.sin(heading)])
-    return _Beams(pose[:2].copy(), ends, hit), int(len(ranges) - valid.sum())
+    used = length > 0.0
+    heading = pose[2] + angles[valid][used]
+    ends = pose[:2] + length[used, None] * np.column_stack([np.cos(heading), np.sin(heading)])
+    return _Beams(pose[:2].copy(), ends, hit[used]), int(len(ranges) - valid.sum())
 
 
 def build_grid(
@@ -298,6 +318,7 @@ def build_grid(
             range_min=rmin[t],
             range_max=rmax[t],
             max_range=cfg.max_range,
+            missing_ray_length=cfg.missing_ray_length,
         )
 
     # Two passes over the scans (the extent first, then the rays), so that memory stays that of the grid
@@ -375,12 +396,11 @@ def probabilities(grid: OccupancyGrid) -> FloatArray:
     return np.asarray(expit(grid.log_odds), dtype=float)
 
 
-def to_ros_data(grid: OccupancyGrid) -> NDArray[np.int8]:
-    """``nav_msgs/OccupancyGrid.data``: ``(H*W,)`` int8, row-major from row 0 = lowest y; -1 for never
-    observed cells, else the occupancy probability in percent (0..100)."""
-    pct = np.clip(np.rint(100.0 * probabilities(grid)), 0, 100).astype(np.int8)
-    pct[~grid.observed] = UNKNOWN
-    return pct.reshape(-1)
+def to_ros_data(grid: OccupancyGrid, config: OccupancyConfig | None = None) -> NDArray[np.int8]:
+    """``nav_msgs/OccupancyGrid.data`` as map_server publishes the files of :func:`save_map` (trinary
+    mode): ``(H*W,)`` int8, row-major from row 0 = lowest y, only 100 / 0 / -1 (:func:`trinary` with the
+    thresholds of the saved YAML), so a subscriber of ``/map`` sees the cells ``map.pgm`` holds."""
+    return trinary(grid, config).reshape(-1)
 
 
 def trinary(grid: OccupancyGrid, config: OccupancyConfig | None = None) -> NDArray[np.int8]:

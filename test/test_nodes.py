@@ -625,13 +625,13 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         assert info["input"]["keyframes"] == info["scans"] > 0 and info["input"]["resets"] == 0
         late = Inbox(probe, GridMsg, "map", common.LATCHED_QOS)  # subscribes after the map was drawn
         trajectory = Inbox(probe, PathMsg, "ptm_trajectory", common.LATCHED_QOS)
-        expected = to_ros_data(mp.map.grid)
+        expected = to_ros_data(mp.map.grid, mp.config.occupancy)
         grid = wait_for(
             lambda: late.last() is not None and np.array_equal(late.last().data, expected) and late.last()
         )
         assert (grid.info.width, grid.info.height) == (mp.map.grid.width, mp.map.grid.height)
         assert grid.info.resolution == pytest.approx(0.05) and grid.header.frame_id == ptm.frame_id
-        assert np.sum(expected > 65) > 100 and np.sum((expected >= 0) & (expected < 25)) > 1000  # walls, free
+        assert np.sum(expected == 100) > 100 and np.sum(expected == 0) > 1000  # walls, free
         saved = load_map(tmp_path / "map.yaml")  # the map_server files: the map's trinary classes
         assert np.array_equal(saved.data, trinary(mp.map.grid))
         wait_for(lambda: trajectory.last() is not None and len(trajectory.last().poses) == info["scans"])
@@ -643,6 +643,93 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         reply = ros.call(probe, Trigger, "/topology_filter/reset")
         assert reply.success and "forgot" in reply.message
         assert not flt.session.visits
+
+
+#: nav2_costmap_2d's costs (cost_values.hpp) and its static layer's reading of a map cell
+#: (StaticLayer::interpretValue) with the documented defaults ``trinary_costmap: true``,
+#: ``lethal_cost_threshold: 100``, ``unknown_cost_value: -1`` and ``track_unknown_space: true``.
+NAV2_FREE, NAV2_LETHAL, NAV2_NO_INFORMATION = 0, 254, 255
+
+
+def nav2_static_layer_costs(data: np.ndarray) -> np.ndarray:
+    value = np.asarray(data, dtype=np.int16)
+    return np.where(value == -1, NAV2_NO_INFORMATION, np.where(value >= 100, NAV2_LETHAL, NAV2_FREE))
+
+
+def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
+    sim_bag, sim_visits, tmp_path, monkeypatch
+):
+    """A subscriber with nav2's static-layer QoS (reliable, transient local, depth 1) joining after the
+    map was drawn reads walls as lethal, unseen cells as no-information, and exactly map.pgm's classes."""
+    from nav_msgs.msg import OccupancyGrid as GridMsg
+    from nav_msgs.msg import Odometry
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import LaserScan
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    from ptm_ros.nodes.map_publisher import MapPublisherNode
+    from ptm_ros.nodes.topology_filter import TopologyFilterNode
+
+    nav2_qos = QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=30)]
+    with ros_context(monkeypatch) as ros:
+        flt = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
+        mp = ros.add(
+            MapPublisherNode(
+                context=ros.context, parameter_overrides=[Parameter("out_dir", value=str(tmp_path))]
+            )
+        )
+        probe = ros.node("probe")
+        visits = probe.create_publisher(String, "landmark_visits", common.STREAM_QOS)
+        odom_pub = probe.create_publisher(Odometry, "landmark_odom", common.MAP_STREAM_QOS)
+        scan_pub = probe.create_publisher(LaserScan, "landmark_scans", common.MAP_STREAM_QOS)
+        ros.spin(flt, mp, probe)
+        wait_for(lambda: min(p.get_subscription_count() for p in (visits, odom_pub, scan_pub)) > 0)
+        for v in sim_visits:
+            visits.publish(String(data=visit_to_json(v)))
+        run = read_run(sim_bag)
+        extractor = run_extractor(run, load_config(None, {"detector": {"kind": "equidistant"}}))
+        detect_visits(run, no_laser(), extractor=extractor)
+        for t, pose in zip(run.odometry.stamps, corrected_odometry(run, extractor), strict=True):
+            odom_pub.publish(odometry_msg(t, pose))
+        sc = run.scans
+        for k, t in enumerate(sc.stamps):
+            msg = LaserScan()
+            msg.header.stamp = common.time_msg(t)
+            msg.angle_min, msg.angle_increment = float(sc.angle_min[k]), float(sc.angle_increment[k])
+            msg.angle_max = msg.angle_min + (len(sc.ranges[k]) - 1) * msg.angle_increment
+            msg.range_min, msg.range_max = float(sc.range_min[k]), float(sc.range_max[k])
+            msg.ranges = [float(r) for r in sc.ranges[k]]
+            scan_pub.publish(msg)
+        wait_for(lambda: mp.online.counters.scans == len(sc.stamps), timeout=30.0)
+        wait_for(lambda: mp.ptm is not None and len(mp.ptm.landmarks) == len(sim_visits), timeout=60.0)
+        assert ros.call(probe, Trigger, "/map_publisher/save_map").success  # draws and publishes everything
+        saved = load_map(tmp_path / "map.yaml")
+        static_layer = Inbox(probe, GridMsg, "map", nav2_qos)  # joins late, as a costmap started later does
+
+        def the_saved_map():
+            msg = static_layer.last()
+            return msg is not None and (msg.info.width, msg.info.height) == saved.data.shape[::-1] and msg
+
+        grid = wait_for(the_saved_map)
+        data = np.asarray(grid.data, dtype=np.int8).reshape(grid.info.height, grid.info.width)
+        assert set(np.unique(data).tolist()) <= {-1, 0, 100}  # map_server's trinary values only
+        costs = nav2_static_layer_costs(data)
+        expected = np.select(
+            [saved.data == 100, saved.data == 0], [NAV2_LETHAL, NAV2_FREE], NAV2_NO_INFORMATION
+        )
+        np.testing.assert_array_equal(costs, expected)  # the same occupied, free and unknown cells
+        assert np.sum(costs == NAV2_LETHAL) > 100 and np.sum(costs == NAV2_FREE) > 1000
+        assert np.sum(costs == NAV2_NO_INFORMATION) > 0  # the margin and the unseen outside
+        assert (grid.info.origin.position.x, grid.info.origin.position.y) == pytest.approx(saved.origin[:2])
+        assert grid.info.resolution == pytest.approx(saved.resolution)
 
 
 def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_visits, monkeypatch):

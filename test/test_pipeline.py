@@ -25,6 +25,7 @@ from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, to_js
 from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
 from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
+from ptm_ros.tools.evaluate import main as eval_main
 from ptm_ros.tools.pipeline import detect_visits, inference_notes, run_offline
 
 
@@ -124,7 +125,7 @@ def test_visits_follow_the_odometry(tjunction_bag):
     )
 
 
-def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path):
+def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     config = small_config()
     result = run_offline(tjunction_bag, tmp_path, config)
     ptm = load_ptm(tmp_path / "ptm.json")
@@ -182,6 +183,16 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path):
     assert doc["timing"]["map_s"] > 0.0 and doc["timing"]["smoothing_s"] > 0.0
     md = (tmp_path / "report.md").read_text()
     assert "(map.png)" in md and "absolute trajectory error" in md
+    # The map against the same scans at the true poses (ptm_ros.map_quality); ptm-eval scores it again.
+    quality = doc["map_quality"]
+    assert quality["leak"] < 0.02 and 0.8 < quality["free_area_ratio"] < 1.25, quality
+    assert quality["wall_precision"] > 0.9 and quality["wall_recall"] > 0.9, quality
+    assert "free-space leak" in md
+    assert (
+        eval_main([str(tmp_path / "ptm.json"), "--ground-truth", str(tjunction_bag / "ground_truth.json")])
+        == 0
+    )
+    assert json.loads(capsys.readouterr().out)["map_quality"] == quality
 
 
 def test_cli_warns_about_skipped_input(monkeypatch, tmp_path, capsys):

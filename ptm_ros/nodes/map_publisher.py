@@ -97,7 +97,7 @@ from ptm_ros.nodes.common import (
     valid_stamp,
 )
 from ptm_ros.nodes.messages import parse_visit_envelope, scan_payload
-from ptm_ros.occupancy import OccupancyGrid, save_map, save_png, to_ros_data
+from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map, save_png, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
 from ptm_ros.visits import Visit
 
@@ -107,8 +107,9 @@ CLOSE_WAIT_S = 3.0  # s the node waits for a drawing in progress when it is dest
 BUILD_SHARE = 4.0  # a map that took d seconds to draw waits 4 d before the next: at most 1/5 of a core
 
 
-def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float) -> GridMsg:
-    """The ``nav_msgs/OccupancyGrid`` of a grid (:func:`ptm_ros.occupancy.to_ros_data`)."""
+def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float, config: OccupancyConfig) -> GridMsg:
+    """The ``nav_msgs/OccupancyGrid`` of a grid as map_server would publish its saved ``map.yaml``
+    (:func:`ptm_ros.occupancy.to_ros_data`: 100 / 0 / -1 with ``config``'s thresholds)."""
     msg = GridMsg()
     msg.header.frame_id = frame_id
     msg.header.stamp = time_msg(stamp)
@@ -116,7 +117,7 @@ def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float) -> GridMsg:
     msg.info.resolution = float(grid.resolution)
     msg.info.width, msg.info.height = grid.width, grid.height
     msg.info.origin = pose_msg(grid.origin[0], grid.origin[1], grid.origin[2])
-    msg.data = array.array("b", to_ros_data(grid).tobytes())
+    msg.data = array.array("b", to_ros_data(grid, config).tobytes())
     return msg
 
 
@@ -388,7 +389,9 @@ class MapPublisherNode(Node):
         if self._closing:
             return result
         if result.grid is not None:
-            self._map_pub.publish(grid_msg(result.grid, frame, float(result.stamps[-1])))
+            self._map_pub.publish(
+                grid_msg(result.grid, frame, float(result.stamps[-1]), self.config.occupancy)
+            )
         self._trajectory_pub.publish(trajectory_msg(result, frame))
         return result
 

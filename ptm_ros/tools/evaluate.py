@@ -27,7 +27,11 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
   listed topologies with no wrong scored pair outside them;
 * ``topologies`` (unless ``--no-topologies``) — per listed topology: ``rank`` (0 = MAP),
   ``probability``, ``num_places``, ``tp``, ``fp``, ``fn``, ``tn``, ``precision``, ``recall``, ``f1``,
-  ``consistent``.
+  ``consistent``;
+* ``map_quality`` — the occupancy map (``--map``, default the ``map.yaml`` beside the ``ptm.json``)
+  against the bag's scans placed at the ground truth's poses (:func:`map_quality_of_run`:
+  :mod:`ptm_ros.map_quality`'s ``leak``, ``wall_precision``, ``wall_recall``, ``free_area_ratio`` and
+  their counts), ``null`` when the run has no map, no scans or no recorded alignment.
 
 ``ptm-eval --calibration RUN [RUN ...] [--plot FILE]`` scores many runs of simulated bags at once (issue
 #23): each RUN is a ``ptm.json``, a run directory holding one, or a directory searched recursively for
@@ -211,6 +215,34 @@ def find_runs(paths: Sequence[Path]) -> list[Path]:
     return out
 
 
+def map_quality_of_run(
+    ptm_path: Path, ptm: Ptm, truth: GroundTruthTrajectory, *, map_yaml: Path | None = None
+) -> dict[str, Any] | None:
+    """The quality of a run's occupancy map (``map_yaml``, default ``map.yaml`` beside ``ptm_path``)
+    against the scans of the run's bag (``ptm.json``'s ``bag``) at the ground truth's poses, carried by
+    the alignment ``ptm-run`` recorded (``trajectory_error.alignment``: the map's trajectory onto the
+    ground truth), with the run's ``config.yaml`` (:func:`ptm_ros.tools.pipeline.map_quality_against`).
+    None when the map, the bag, its scans or the alignment is missing."""
+    from ptm_ros.config import load_config
+    from ptm_ros.io.bag import read_run
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.occupancy import load_map
+    from ptm_ros.tools.pipeline import TRAJECTORY_ERROR_KEY, map_quality_against
+
+    yml = map_yaml if map_yaml is not None else ptm_path.parent / "map.yaml"
+    alignment = (ptm.extra.get(TRAJECTORY_ERROR_KEY) or {}).get("alignment")
+    bag = ptm.extra.get("bag")
+    if alignment is None or not yml.is_file() or not isinstance(bag, str) or not Path(bag).exists():
+        return None
+    saved = ptm_path.parent / "config.yaml"
+    config = load_config(saved if saved.is_file() else None)
+    run = read_run(bag, odom_topic=config.topics.odom, scan_topic=config.topics.scan, image_topic=None)
+    if run.scans is None or len(run.scans.stamps) == 0:
+        return None
+    m = load_map(yml)
+    return map_quality_against(run, ClassGrid(m.data, m.origin, m.resolution), truth, alignment, config)
+
+
 def ground_truth_of(ptm_path: Path) -> Path:
     """A run's ground truth: ``ground_truth.json`` beside ``ptm_path``, else the one in the bag named by
     the ptm.json's ``bag``. Raises :class:`DataError` when neither exists."""
@@ -258,6 +290,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="how far (s) a landmark stamp may lie outside the ground-truth span",
     )
     p.add_argument("--no-topologies", action="store_true", help="leave out the per-topology list")
+    p.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        help="map_server YAML to score as the run's map (default: map.yaml beside the ptm.json)",
+    )
     p.add_argument("--report", type=Path, default=None, help="also write the report with the score here")
     p.add_argument("--indent", type=int, default=2, help="JSON indentation (default 2)")
     return p
@@ -328,6 +366,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         truth = load_ground_truth(args.ground_truth)
         extrapolation = args.max_extrapolation
         score = score_against_ground_truth(ptm, truth, config=config, max_extrapolation=extrapolation)
+        quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
             from ptm_ros.report import write_report
 
@@ -341,7 +380,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
-    print(json.dumps(score.as_dict(per_topology=not args.no_topologies), indent=args.indent))
+    doc = {**score.as_dict(per_topology=not args.no_topologies), "map_quality": quality}
+    print(json.dumps(doc, indent=args.indent))
     return 0
 
 

@@ -27,8 +27,11 @@ With a ground truth, ``ptm.json`` carries ``extra["trajectory_error"]`` (:func:`
 ``ate_smoothed_m`` and ``ate_odometry_m``, the absolute trajectory errors
 (:func:`ptm_ros.evaluation.absolute_trajectory_error`, RMSE after the best rigid 2-D alignment) of the
 smoothed MAP trajectory and of the bag's raw odometry, both at the odometry stamps inside the ground
-truth's time span (``poses`` of them), and the ground-truth file. ``timing`` adds ``smoothing_s`` and
-``map_s`` to ``wall_s`` (bag reading, detection and inference).
+truth's time span (``poses`` of them), the rigid alignment of the former onto the ground truth
+(``alignment``: ``theta``, ``x``, ``y``) and the ground-truth file; with a map, ``extra["map_quality"]``
+(:func:`map_quality_against`): the map against the same scans placed at the true poses
+(:mod:`ptm_ros.map_quality`: free-space leak, wall precision and recall, free-area ratio). ``timing``
+adds ``smoothing_s`` and ``map_s`` to ``wall_s`` (bag reading, detection and inference).
 """
 
 from __future__ import annotations
@@ -86,6 +89,8 @@ OUTPUT_FILES = {
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
 TRAJECTORY_ERROR_KEY = "trajectory_error"
+#: Key of ``Ptm.extra`` holding the map's quality against the ground truth (module docstring).
+MAP_QUALITY_KEY = "map_quality"
 
 
 def run_sensors(run: RunData) -> dict[str, bool]:
@@ -453,8 +458,14 @@ def run_offline(
     files: dict[str, Path] = {}
     if want_map and traj is not None:
         t1 = time.perf_counter()
-        files |= write_occupancy_map(run, traj, out, config)
+        grid = occupancy_grid(run, traj, config)
+        files |= write_occupancy_map(run, traj, out, config, grid=grid)
         timing["map_s"] = time.perf_counter() - t1
+        ate = extra.get(TRAJECTORY_ERROR_KEY)
+        if grid is not None and truth is not None and ate is not None:
+            quality = map_quality_against(run, class_grid(grid, config), truth, ate["alignment"], config)
+            if quality is not None:
+                extra[MAP_QUALITY_KEY] = quality
     if session is not None:  # the laser registrations' counters, after the smoothing's registrations
         extra["diagnostics"] = {**diag, **session.registrations}
     ptm = replace(ptm, timing=timing, extra=extra)
@@ -480,6 +491,7 @@ def run_offline(
             occupancy_map=files.get("map_png"),
             notes=doubt_lines(find_doubts(ptm))
             + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
+            + map_quality_notes(extra.get(MAP_QUALITY_KEY))
             + inference_notes(ptm.inference),
             title=f"PTM of {bag.name}",
         )
@@ -536,10 +548,27 @@ def trajectory_errors(
     """Absolute trajectory errors (m) of ``trajectory (T, 3)`` (at the run's odometry stamps) and of the
     raw odometry against a ground truth, at the odometry stamps inside the ground truth's time span
     (its corrected poses interpolated there); None when fewer than two lie inside."""
-    from ptm_ros.evaluation import absolute_trajectory_error
+    from ptm_ros.evaluation import absolute_trajectory_error, rigid_alignment
 
-    odom = run.odometry
-    stamps = np.asarray(odom.stamps, dtype=float)
+    paired = _paired_with_truth(run, trajectory, truth)
+    if paired is None:
+        return None
+    inside, est_xy, true_xy = paired
+    theta, t = rigid_alignment(est_xy, true_xy)
+    return {
+        "ate_smoothed_m": absolute_trajectory_error(est_xy, true_xy),
+        "ate_odometry_m": absolute_trajectory_error(np.asarray(run.odometry.poses)[inside, :2], true_xy),
+        "poses": int(np.count_nonzero(inside)),
+        "alignment": {"theta": theta, "x": float(t[0]), "y": float(t[1])},
+    }
+
+
+def _paired_with_truth(
+    run: RunData, trajectory: np.ndarray, truth: GroundTruthTrajectory
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The odometry stamps inside the ground truth's span (a mask), the trajectory's and the ground
+    truth's positions there; None when fewer than two lie inside."""
+    stamps = np.asarray(run.odometry.stamps, dtype=float)
     traj = np.asarray(trajectory, dtype=float)
     if traj.shape != (len(stamps), 3):
         msg = f"the trajectory has shape {traj.shape}, the run {len(stamps)} odometry poses"
@@ -547,12 +576,51 @@ def trajectory_errors(
     inside = (stamps >= np.min(truth.stamps)) & (stamps <= np.max(truth.stamps))
     if np.count_nonzero(inside) < 2:
         return None
-    true_xy = interpolate_pose(truth, stamps[inside])[:, :2]
-    return {
-        "ate_smoothed_m": absolute_trajectory_error(traj[inside, :2], true_xy),
-        "ate_odometry_m": absolute_trajectory_error(np.asarray(odom.poses)[inside, :2], true_xy),
-        "poses": int(np.count_nonzero(inside)),
-    }
+    return inside, traj[inside, :2], interpolate_pose(truth, stamps[inside])[:, :2]
+
+
+def reference_grid(run: RunData, truth: GroundTruthTrajectory, config: PtmConfig) -> Any | None:
+    """The map-quality reference (:mod:`ptm_ros.map_quality`): the run's scans inside the ground truth's
+    span placed at its poses, with ``config.occupancy`` but the beams without a return left out; None
+    without a scan there."""
+    from ptm_ros.mapping import grid_along
+
+    sc = run.scans
+    if sc is None or len(sc.stamps) == 0:
+        return None
+    order = np.argsort(truth.stamps, kind="stable")
+    cfg = replace(config.occupancy, missing_ray_length=0.0)
+    return grid_along(truth.stamps[order], truth.poses_corrected[order], sc, cfg)
+
+
+def map_quality_against(
+    run: RunData,
+    product: Any,
+    truth: GroundTruthTrajectory,
+    alignment: Mapping[str, float],
+    config: PtmConfig,
+) -> dict[str, Any] | None:
+    """:func:`ptm_ros.map_quality.map_quality` of a map (a :class:`~ptm_ros.map_quality.ClassGrid` in the
+    odometry frame) against :func:`reference_grid`, carried into the ground truth's frame by
+    ``alignment`` (``theta``, ``x``, ``y``: :func:`trajectory_errors`' ATE alignment); None without a
+    reference."""
+    from ptm_ros.map_quality import map_quality
+
+    ref = reference_grid(run, truth, config)
+    if ref is None:
+        return None
+    reference = replace(class_grid(ref, config), seen=ref.observed)
+    quality = map_quality(product, reference, theta=alignment["theta"], t=(alignment["x"], alignment["y"]))
+    return quality.as_dict()
+
+
+def class_grid(grid: Any, config: PtmConfig) -> Any:
+    """The map_server classes of an occupancy grid (:func:`ptm_ros.occupancy.trinary`) as a
+    :class:`~ptm_ros.map_quality.ClassGrid`."""
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.occupancy import trinary
+
+    return ClassGrid(trinary(grid, config.occupancy), grid.origin, grid.resolution)
 
 
 def inference_notes(inference: Mapping[str, Any]) -> list[str]:
@@ -600,6 +668,22 @@ def versus_notes(versus: Mapping[str, Any] | None) -> list[str]:
     ]
 
 
+def map_quality_notes(quality: Mapping[str, Any] | None) -> list[str]:
+    """A report line for :func:`map_quality_against`'s figures (none without them)."""
+    if not quality:
+        return []
+
+    def fig(key: str) -> str:
+        v = quality.get(key)
+        return "–" if v is None else f"{v:.3f}"
+
+    return [
+        f"occupancy map against the same scans at the true poses (aligned as for the ATE): free-space leak "
+        f"{fig('leak')}, free-area ratio {fig('free_area_ratio')}, wall precision {fig('wall_precision')}, "
+        f"wall recall {fig('wall_recall')}"
+    ]
+
+
 def ate_notes(ate: Mapping[str, Any] | None) -> list[str]:
     """Report lines for the trajectory errors of :func:`trajectory_errors` (none without them)."""
     if not ate:
@@ -623,13 +707,15 @@ def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> A
 
 
 def write_occupancy_map(
-    run: RunData, trajectory: np.ndarray, out: Path, config: PtmConfig
+    run: RunData, trajectory: np.ndarray, out: Path, config: PtmConfig, *, grid: Any | None = None
 ) -> dict[str, Path]:
     """``map.pgm`` + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory`` over
-    it) of :func:`occupancy_grid` in ``out``; nothing when the run has no usable scan."""
+    it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
+    run has no usable scan."""
     from ptm_ros.occupancy import save_map, save_png
 
-    grid = occupancy_grid(run, trajectory, config)
+    if grid is None:
+        grid = occupancy_grid(run, trajectory, config)
     if grid is None:
         return {}
     pgm, yml = save_map(grid, out / Path(OUTPUT_FILES["map_pgm"]).stem, config.occupancy)

@@ -6,7 +6,8 @@ Writes ``DIR/ptm.json`` (CONTRACT.md schema), ``DIR/config.yaml`` (the parameter
 ``DIR/report.{md,html}`` with figures (unless ``--no-report``); see :mod:`ptm_ros.tools.pipeline`.
 Prints the most probable topologies and, when the bag carries a ground truth (``BAG/ground_truth.json``)
 or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
-trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``).
+trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``), and the map's
+quality against the same scans at the true poses (``map_quality``, :mod:`ptm_ros.map_quality`).
 
 Persistence (``--method rbpf``, issue #8): ``--autosave N`` writes the filter's state every N visits and
 after the last one to ``DIR/filter_state.npz`` (``--state-file`` elsewhere; atomic writes, checksummed);
@@ -136,7 +137,7 @@ def format_summary(result, top: int) -> str:
     """Human-readable lines: visits, the most probable topologies, and the score if any."""
     from ptm_ros.doubts import doubt_lines, find_doubts
     from ptm_ros.report import label_string
-    from ptm_ros.tools.pipeline import inference_notes
+    from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, inference_notes, map_quality_notes
 
     ptm = result.ptm
     lines = [
@@ -162,6 +163,7 @@ def format_summary(result, top: int) -> str:
             f"trajectory error (ATE, {ate['poses']} poses): smoothed MAP {ate['ate_smoothed_m']:.3f} m, "
             f"odometry {ate['ate_odometry_m']:.3f} m"
         )
+    lines.extend(map_quality_notes(ptm.extra.get(MAP_QUALITY_KEY)))
     lines.extend(doubt_lines(find_doubts(ptm), most=5))
     lines.extend(inference_notes(ptm.inference))
     written = [str(p) for p in result.files.values()] or [str(result.ptm_path)]
