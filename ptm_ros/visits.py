@@ -84,12 +84,15 @@ class Visit:
             msg = f"visit {self.index}: rotation must be in [0, {MAX_TRAVEL:g}] rad, got {self.rotation}"
             raise ModelError(msg)
         if self.signature_spread is not None:
+            # a visit without its signature keeps the spread, unused (a missing measurement)
             spread = np.asarray(self.signature_spread)
-            expected = None if self.signature is None else np.shape(self.signature)
-            if spread.shape != expected or not np.all(np.isfinite(spread) & (spread >= 0.0)):
+            shape_ok = spread.ndim == 1 and (
+                self.signature is None or spread.shape == np.shape(self.signature)
+            )
+            if not (shape_ok and np.all(np.isfinite(spread) & (spread >= 0.0))):
                 msg = (
                     f"visit {self.index}: signature_spread must be finite, >= 0 and shaped like the "
-                    f"signature {expected}, got shape {spread.shape}"
+                    f"signature, got shape {spread.shape}"
                 )
                 raise ModelError(msg)
 

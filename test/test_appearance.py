@@ -280,7 +280,7 @@ def test_fit_uses_the_visits_spreads_unless_told_not_to():
     with pytest.raises(ModelError, match="signature_spread"):
         Visit(0, 0.0, (0.0, 0.0, 0.0), signature=sig[0], signature_spread=spread[:2])
     with pytest.raises(ModelError, match="signature_spread"):
-        Visit(0, 0.0, (0.0, 0.0, 0.0), signature_spread=spread)
+        Visit(0, 0.0, (0.0, 0.0, 0.0), signature=sig[0], signature_spread=-spread)
 
 
 def test_empirical_bayes_prior_reproduces_observed_variance():
