@@ -20,10 +20,11 @@ from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
+from ptm_ros.io.validation import scan_payload
 from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
-from ptm_ros.nodes.messages import parse_visit_message, scan_payload
+from ptm_ros.nodes.messages import parse_visit_message
 from ptm_ros.nodes.topology_filter import (
     BENIGN,
     COUNTERS,

@@ -73,6 +73,7 @@ from ptm_ros.io.bag import (
     stamp_to_ns,
     yaw_to_quaternion,
 )
+from ptm_ros.io.validation import header_stamp_ns
 
 if typing.TYPE_CHECKING:
     from rclpy.node import Node
@@ -555,11 +556,10 @@ class OnceLogger:
 
 
 def valid_stamp(header: Any) -> float | None:
-    """:func:`header_stamp`, or None when the stamp is no ROS time (``sec < 0`` or ``nanosec >= 10⁹``)."""
-    sec, nanosec = int(header.stamp.sec), int(header.stamp.nanosec)
-    if sec < 0 or not 0 <= nanosec < NS_PER_S:
-        return None
-    return ns_to_stamp(sec * NS_PER_S + nanosec)
+    """:func:`header_stamp`, or None when the stamp is no ROS time (``sec < 0`` or ``nanosec >= 10⁹``:
+    :func:`ptm_ros.io.validation.header_stamp_ns`, as the bag reader checks it)."""
+    ns = header_stamp_ns(header)
+    return None if ns is None else ns_to_stamp(ns)
 
 
 #: Odometry steps up to this long are never a teleport (absorbs stamp jitter: a CARMEN log's logger
