@@ -322,7 +322,7 @@ def test_missing_bag_and_missing_metadata(tmp_path: Path) -> None:
     with pytest.raises(BagError, match="does not exist"):
         read_run(tmp_path / "nope")
     (tmp_path / "empty_dir").mkdir()
-    with pytest.raises(BagError, match="is not a rosbag2"):
+    with pytest.raises(BagError, match=r"empty_dir is not a rosbag2 directory: it has no metadata.yaml$"):
         read_run(tmp_path / "empty_dir")
     (tmp_path / "x.txt").write_text("hello")
     with pytest.raises(BagError, match="cannot open bag"):

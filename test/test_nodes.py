@@ -329,7 +329,10 @@ def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
     good.write_text("/**:\n  ros__parameters:\n    inference:\n      particles: 3\n")
     common.check_params_files(["prog", "--ros-args", "--params-file", str(good)])
     cases = {
-        "broken.yaml": ("/**:\n  ros__parameters: {inference: [1, 2\n", "cannot read parameter file"),
+        "broken.yaml": (
+            "/**:\n  ros__parameters: {inference: [1, 2\n",
+            r"^malformed YAML in \S+broken.yaml, line \d+, column \d+: [^\n]+$",
+        ),
         "string.yaml": ("just a string\n", "expected a mapping of node names"),
         "empty.yaml": ("", "expected a mapping of node names"),
         "section.yaml": ("/**:\n  ros__parameters: 5\n", "'ros__parameters' must be a mapping"),

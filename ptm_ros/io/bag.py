@@ -478,6 +478,11 @@ def _open_reader(path: Path) -> Any:
     if not path.exists():
         msg = f"bag {path} does not exist"
         raise BagError(msg)
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        found = sorted(p.name for p in path.glob("*") if p.suffix in {".mcap", ".db3"})
+        hint = f" (it holds {', '.join(found[:3])}: pass that file)" if found else ""
+        msg = f"{path} is not a rosbag2 directory: it has no metadata.yaml{hint}"
+        raise BagError(msg)
     try:
         reader = Reader(path)
         reader.open()

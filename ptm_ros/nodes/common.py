@@ -63,7 +63,7 @@ from rclpy.qos import (
 )
 
 from ptm_ros.config import ROS_ONLY_PARAMETERS, PtmConfig
-from ptm_ros.configio import from_dict
+from ptm_ros.configio import from_dict, yaml_problem
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.io.bag import (
     NS_PER_S,
@@ -836,8 +836,11 @@ def check_params_files(args: Sequence[str]) -> None:
             continue
         try:
             doc = yaml.safe_load(Path(value).read_text())
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        except (OSError, UnicodeDecodeError) as err:
             msg = f"cannot read parameter file {value}: {err}"
+            raise ConfigError(msg) from err
+        except yaml.YAMLError as err:
+            msg = f"malformed YAML in {value}, {yaml_problem(err)}"
             raise ConfigError(msg) from err
         _check_parameter_tree(doc, value)
 
