@@ -490,7 +490,10 @@ def _open_reader(path: Path) -> Any:
         msg = f"{path} is not a rosbag2 (a directory with metadata.yaml, or a .mcap / .db3 file): {err}"
         raise BagError(msg) from err
     except _reader_errors() as err:
-        msg = f"cannot open bag {path}: {type(err).__name__}: {err}"
+        hint = ""
+        if "end magic" in str(err):
+            hint = " (the .mcap file ends early: an interrupted recording? `mcap recover` rebuilds it)"
+        msg = f"cannot open bag {path}: {type(err).__name__}: {err}{hint}"
         raise BagError(msg) from err
     return reader
 
