@@ -6,7 +6,8 @@
    memory over DDS (``bench_nodes.py``), the map publisher's online occupancy map against ``ptm-run``'s
    (``bench_online_map.py``) and the calibration of the MAP probability over simulated aliased worlds and
    their controls (``bench_calibration.py``: ``calibration.{json,md,png}``, about an hour on one core,
-   resumable), when present.
+   resumable) and corrupted bags through ``ptm-run``/``ptm-eval`` with a larger budget than the test's
+   (``bench_fuzz.py``: ``fuzz.json``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -58,6 +59,7 @@ COMPONENTS = (
     "bench_nodes.py",
     "bench_online_map.py",
     "bench_calibration.py",
+    "bench_fuzz.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -112,6 +112,16 @@ def to_dict(config: Any) -> dict[str, Any]:
     return plain(dataclasses.asdict(config))
 
 
+def yaml_problem(err: Exception) -> str:
+    """One line for a PyYAML error (its own text spans several, with a caret drawing): ``line L, column
+    C: problem`` when it knows where, else its text joined on one line."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None)
+    if mark is not None and problem:
+        return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    return " ".join(str(err).split())
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping (empty file → {}); malformed YAML or a non-mapping raises ConfigError."""
     import yaml
@@ -119,11 +129,11 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
-    except OSError as err:
+    except (OSError, UnicodeDecodeError) as err:
         msg = f"cannot read parameter file {path}: {err}"
         raise ConfigError(msg) from err
     except yaml.YAMLError as err:
-        msg = f"malformed YAML in {path}: {err}"
+        msg = f"malformed YAML in {path}, {yaml_problem(err)}"
         raise ConfigError(msg) from err
     if doc is None:
         return {}

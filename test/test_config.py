@@ -33,7 +33,11 @@ def write(tmp_path, text):
         ("model: {prior: {kind: uniform}}\n", r"prior kind must be one of"),
         ("model: {use_laser: 1}\n", r"model.use_laser: expected true/false"),
         ("inference: [1, 2]\n", r"inference: expected a mapping"),
-        ("inference: {method: rbpf\n", r"malformed YAML"),
+        ("inference: {method: rbpf\n", r"^malformed YAML in \S+, line 2, column 1: [^\n]+$"),
+        (
+            "inference:\n  method: rbpf\n   particles: 3\n",
+            r"^malformed YAML in \S+, line 3, column 13: [^\n]+$",
+        ),
         ("- 1\n", r"top level must be a mapping"),
     ],
 )

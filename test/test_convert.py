@@ -122,7 +122,7 @@ def test_max_range_option_and_laser_offset(tmp_path: Path, capsys) -> None:
 def test_strict_fails_without_creating_the_bag(tmp_path: Path, capsys) -> None:
     log_path = write_log(tmp_path / "t.clf")
     bag = tmp_path / "bag"
-    assert main([str(log_path), str(bag), "--strict"]) == 1
+    assert main([str(log_path), str(bag), "--strict"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("ptm-convert: error: ")
     assert "t.clf:10: malformed FLASER" in err
@@ -133,19 +133,19 @@ def test_cli_errors(tmp_path: Path, capsys) -> None:
     log_path = write_log(tmp_path / "t.clf")
     existing = tmp_path / "existing"
     existing.mkdir()
-    assert main([str(log_path), str(existing)]) == 1
+    assert main([str(log_path), str(existing)]) == 2
     assert "exists already" in capsys.readouterr().err
     assert list(existing.iterdir()) == []
-    assert main([str(tmp_path / "missing.clf"), str(tmp_path / "b1")]) == 1
+    assert main([str(tmp_path / "missing.clf"), str(tmp_path / "b1")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "b1").exists()
     empty = write_log(tmp_path / "empty.clf", ["# nothing", "PARAM a b c d"])
-    assert main([str(empty), str(tmp_path / "b2")]) == 1
+    assert main([str(empty), str(tmp_path / "b2")]) == 2
     assert "no FLASER, ROBOTLASER1 or ODOM records" in capsys.readouterr().err
-    assert main([str(log_path), str(tmp_path / "b3"), "--max-range", "-1"]) == 1
+    assert main([str(log_path), str(tmp_path / "b3"), "--max-range", "-1"]) == 2
     assert "max_range must be a positive finite number" in capsys.readouterr().err
     negative = write_log(tmp_path / "neg.clf", ["ODOM 0 0 0 0 0 0 1 h -5.0"])
-    assert main([str(negative), str(tmp_path / "b4")]) == 1
+    assert main([str(negative), str(tmp_path / "b4")]) == 2
     assert "outside [0, 2^31) s" in capsys.readouterr().err
     assert not (tmp_path / "b4").exists()
     with pytest.raises(SystemExit) as info:

@@ -20,10 +20,11 @@ from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
+from ptm_ros.io.validation import scan_payload
 from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
-from ptm_ros.nodes.messages import parse_visit_message, scan_payload
+from ptm_ros.nodes.messages import parse_visit_message
 from ptm_ros.nodes.topology_filter import (
     BENIGN,
     COUNTERS,
@@ -328,7 +329,10 @@ def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
     good.write_text("/**:\n  ros__parameters:\n    inference:\n      particles: 3\n")
     common.check_params_files(["prog", "--ros-args", "--params-file", str(good)])
     cases = {
-        "broken.yaml": ("/**:\n  ros__parameters: {inference: [1, 2\n", "cannot read parameter file"),
+        "broken.yaml": (
+            "/**:\n  ros__parameters: {inference: [1, 2\n",
+            r"^malformed YAML in \S+broken.yaml, line \d+, column \d+: [^\n]+$",
+        ),
         "string.yaml": ("just a string\n", "expected a mapping of node names"),
         "empty.yaml": ("", "expected a mapping of node names"),
         "section.yaml": ("/**:\n  ros__parameters: 5\n", "'ros__parameters' must be a mapping"),

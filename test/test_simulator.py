@@ -354,8 +354,8 @@ def test_ptm_sim_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert data.images is None and data.odometry is not None and data.scans is not None
     gt = json.loads((out / "ground_truth.json").read_text())
     assert gt["seed"] == 3 and [p["place"] for p in gt["passages"]] == ["w", "j", "s", "j"]
-    assert main([str(out), "--world", "t-junction"]) == 1
-    assert "already exists" in capsys.readouterr().err
+    assert main([str(out), "--world", "t-junction"]) == 2
+    assert "exists already" in capsys.readouterr().err
 
 
 def test_a_thirty_three_visit_bag_with_panoramas_stays_small(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
 from functools import cache
@@ -44,12 +44,16 @@ if TYPE_CHECKING:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys.store import Typestore
 
+    from ptm_ros.appearance import AppearanceConfig
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+#: The extractor's name of each stream (the prefix of its skip reasons).
+STREAM_NAMES = {ODOMETRY_TYPE: "odometry", SCAN_TYPE: "scan", IMAGE_TYPE: "image"}
 HEADER_TYPE = "std_msgs/msg/Header"
 STORAGES = ("mcap", "sqlite3")
 NS_PER_S = 1_000_000_000
@@ -447,13 +451,15 @@ class ImageData:
 
 @dataclass(frozen=True)
 class RunData:
-    """A recorded run; a stream is ``None`` when its topic is absent (or its topic name was ``None``)."""
+    """A recorded run; a stream is ``None`` when its topic is absent (or its topic name was ``None``);
+    ``skipped`` counts the messages :func:`read_run` skipped, by reason."""
 
     path: Path
     topics: dict[str, str]
     odometry: OdometryData | None
     scans: ScanData | None
     images: ImageData | None
+    skipped: dict[str, int] = field(default_factory=dict)  # messages skipped by reason (read_run)
 
 
 class RawMessage(NamedTuple):
@@ -472,6 +478,11 @@ def _open_reader(path: Path) -> Any:
     if not path.exists():
         msg = f"bag {path} does not exist"
         raise BagError(msg)
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        found = sorted(p.name for p in path.glob("*") if p.suffix in {".mcap", ".db3"})
+        hint = f" (it holds {', '.join(found[:3])}: pass that file)" if found else ""
+        msg = f"{path} is not a rosbag2 directory: it has no metadata.yaml{hint}"
+        raise BagError(msg)
     try:
         reader = Reader(path)
         reader.open()
@@ -479,7 +490,10 @@ def _open_reader(path: Path) -> Any:
         msg = f"{path} is not a rosbag2 (a directory with metadata.yaml, or a .mcap / .db3 file): {err}"
         raise BagError(msg) from err
     except _reader_errors() as err:
-        msg = f"cannot open bag {path}: {type(err).__name__}: {err}"
+        hint = ""
+        if "end magic" in str(err):
+            hint = " (the .mcap file ends early: an interrupted recording? `mcap recover` rebuilds it)"
+        msg = f"cannot open bag {path}: {type(err).__name__}: {err}{hint}"
         raise BagError(msg) from err
     return reader
 
@@ -565,12 +579,19 @@ def read_run(
     scan_topic: str | None = "/scan",
     image_topic: str | None = "/panorama",
     require: Sequence[str] = (),
+    appearance: AppearanceConfig | None = None,
 ) -> RunData:
     """Load odometry, scans and images of a rosbag2 into arrays (stamps from the message headers).
 
     A topic absent from the bag gives ``None`` unless it is listed in ``require`` (then :class:`BagError`);
-    a topic of the wrong message type is a :class:`BagError`. Images with an encoding outside
-    :data:`IMAGE_ENCODINGS` are counted in ``ImageData.skipped``.
+    a topic of the wrong message type is a :class:`BagError`, and so is a storage file that cannot be read.
+    Bad messages are skipped and counted in ``RunData.skipped`` by reason, as the nodes count them
+    (:mod:`ptm_ros.io.validation`): undecodable bytes (``<stream>-undecodable``), a header stamp that is
+    no ROS time, unusable content (non-finite odometry, empty or non-finite scans, unsupported image
+    encodings, panoramas too small for ``appearance``), and stamps out of order on their topic (only the
+    longest strictly increasing run is kept: :func:`ptm_ros.io.validation.stamp_order`). Every stream of
+    the result therefore has strictly increasing stamps. Images with an encoding outside
+    :data:`IMAGE_ENCODINGS` are also counted by encoding in ``ImageData.skipped``.
     """
     bag = Path(path)
     wanted = {odom_topic: ODOMETRY_TYPE, scan_topic: SCAN_TYPE, image_topic: IMAGE_TYPE}
@@ -588,11 +609,16 @@ def read_run(
                 raise BagError(msg)
         conns = [c for c in reader.connections if c.topic in wanted]
         rows: dict[str, list[Any]] = {t: [] for t in wanted}
+        skipped: dict[str, int] = {}
         if conns:
             store = typestore()
             try:
                 for conn, _, raw in reader.messages(connections=conns):
-                    rows[conn.topic].append(store.deserialize_cdr(raw, conn.msgtype))
+                    try:
+                        rows[conn.topic].append(store.deserialize_cdr(raw, conn.msgtype))
+                    except _reader_errors():
+                        reason = f"{STREAM_NAMES[conn.msgtype]}-undecodable"
+                        skipped[reason] = skipped.get(reason, 0) + 1
             except _reader_errors() as err:
                 msg = f"corrupt bag {bag}: {type(err).__name__}: {err}"
                 raise BagError(msg) from err
@@ -605,70 +631,102 @@ def read_run(
     return RunData(
         path=bag,
         topics=topics,
-        odometry=_odometry(msgs) if (msgs := present(odom_topic)) is not None else None,
-        scans=_scans(msgs) if (msgs := present(scan_topic)) is not None else None,
-        images=_images(msgs) if (msgs := present(image_topic)) is not None else None,
+        odometry=_odometry(msgs, skipped) if (msgs := present(odom_topic)) is not None else None,
+        scans=_scans(msgs, skipped) if (msgs := present(scan_topic)) is not None else None,
+        images=_images(msgs, skipped, appearance) if (msgs := present(image_topic)) is not None else None,
+        skipped=skipped,
     )
 
 
-def _stamps(msgs: list[Any]) -> tuple[FloatArray, IntArray]:
-    ns = [_stamp_ns(m.header) for m in msgs]
-    return np.array([ns_to_stamp(n) for n in ns], dtype=float), np.array(ns, dtype=np.int64)
+def _usable(
+    name: str,
+    msgs: list[Any],
+    check: Callable[[Any], tuple[Any, tuple[str, str] | None]],
+    skipped: dict[str, int],
+) -> tuple[list[Any], list[Any], list[int]]:
+    """The messages of one stream that pass ``check`` (content) and the stamp rules of
+    :mod:`ptm_ros.io.validation`, with their checked content and stamps (ns); the others counted in
+    ``skipped``."""
+    from ptm_ros.io.validation import header_stamp_ns, stamp_order
+
+    def count(reason: str) -> None:
+        skipped[reason] = skipped.get(reason, 0) + 1
+
+    good: list[tuple[Any, Any, int]] = []
+    for m in msgs:
+        ns = header_stamp_ns(m.header)
+        if ns is None:
+            count(f"{name}-bad-stamp")
+            continue
+        content, rejected = check(m)
+        if rejected is not None:
+            count(rejected[0])
+            continue
+        good.append((m, content, ns))
+    kept, reasons = stamp_order([ns for _, _, ns in good])
+    for reason in reasons:
+        count(f"{name}-{reason}")
+    chosen = [good[i] for i in kept]
+    return [m for m, _, _ in chosen], [c for _, c, _ in chosen], [ns for _, _, ns in chosen]
 
 
-def _odometry(msgs: list[Any]) -> OdometryData:
-    stamps, stamps_ns = _stamps(msgs)
-    poses = np.empty((len(msgs), 3))
-    twists = np.empty((len(msgs), 2))
-    for i, m in enumerate(msgs):
-        p, q = m.pose.pose.position, m.pose.pose.orientation
-        poses[i] = p.x, p.y, quaternion_to_yaw(q.x, q.y, q.z, q.w)
+def _stamps(stamps_ns: list[int]) -> tuple[FloatArray, IntArray]:
+    return np.array([ns_to_stamp(n) for n in stamps_ns], dtype=float), np.array(stamps_ns, dtype=np.int64)
+
+
+def _odometry(msgs: list[Any], skipped: dict[str, int]) -> OdometryData:
+    from ptm_ros.io.validation import odometry_pose
+
+    kept, poses, ns = _usable("odometry", msgs, lambda m: odometry_pose(m)[:2], skipped)
+    stamps, stamps_ns = _stamps(ns)
+    twists = np.empty((len(kept), 2))
+    for i, m in enumerate(kept):
         twists[i] = m.twist.twist.linear.x, m.twist.twist.angular.z
     return OdometryData(
         stamps=stamps,
         stamps_ns=stamps_ns,
-        poses=poses,
+        poses=np.array(poses, dtype=float).reshape(-1, 3),
         twists=twists,
-        frame_id=msgs[0].header.frame_id if msgs else "",
-        child_frame_id=msgs[0].child_frame_id if msgs else "",
+        frame_id=kept[0].header.frame_id if kept else "",
+        child_frame_id=kept[0].child_frame_id if kept else "",
     )
 
 
-def _scans(msgs: list[Any]) -> ScanData:
-    stamps, stamps_ns = _stamps(msgs)
+def _scans(msgs: list[Any], skipped: dict[str, int]) -> ScanData:
+    from ptm_ros.io.validation import scan_payload
 
-    def column(name: str) -> FloatArray:
-        return np.array([float(getattr(m, name)) for m in msgs], dtype=float)
+    kept, payloads, ns = _usable("scan", msgs, scan_payload, skipped)
+    stamps, stamps_ns = _stamps(ns)
+
+    def column(k: int) -> FloatArray:
+        return np.array([float(p[k]) for p in payloads], dtype=float)
 
     return ScanData(
         stamps=stamps,
         stamps_ns=stamps_ns,
-        ranges=_as_ranges([np.asarray(m.ranges, dtype=np.float32) for m in msgs]),
-        angle_min=column("angle_min"),
-        angle_increment=column("angle_increment"),
-        range_min=column("range_min"),
-        range_max=column("range_max"),
-        frame_id=msgs[0].header.frame_id if msgs else "",
+        ranges=_as_ranges([p[0] for p in payloads]),
+        angle_min=column(1),
+        angle_increment=column(2),
+        range_min=column(3),
+        range_max=column(4),
+        frame_id=kept[0].header.frame_id if kept else "",
     )
 
 
-def _images(msgs: list[Any]) -> ImageData:
-    kept: list[Any] = []
-    images: list[NDArray[Any]] = []
-    skipped: dict[str, int] = {}
+def _images(msgs: list[Any], skipped: dict[str, int], appearance: AppearanceConfig | None) -> ImageData:
+    from ptm_ros.io.validation import image_payload
+
+    by_encoding: dict[str, int] = {}
     for m in msgs:
-        img = decode_image(m)
-        if img is None:
-            skipped[m.encoding] = skipped.get(m.encoding, 0) + 1
-            continue
-        kept.append(m)
-        images.append(img)
-    stamps, stamps_ns = _stamps(kept)
+        if m.encoding not in IMAGE_ENCODINGS:
+            by_encoding[m.encoding] = by_encoding.get(m.encoding, 0) + 1
+    kept, images, ns = _usable("image", msgs, lambda m: image_payload(m, appearance), skipped)
+    stamps, stamps_ns = _stamps(ns)
     return ImageData(
         stamps=stamps,
         stamps_ns=stamps_ns,
         images=images,
         encodings=[m.encoding for m in kept],
-        frame_id=msgs[0].header.frame_id if msgs else "",
-        skipped=skipped,
+        frame_id=kept[0].header.frame_id if kept else "",
+        skipped=by_encoding,
     )

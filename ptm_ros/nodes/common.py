@@ -64,7 +64,7 @@ from rclpy.qos import (
 )
 
 from ptm_ros.config import ROS_ONLY_PARAMETERS, PtmConfig
-from ptm_ros.configio import from_dict
+from ptm_ros.configio import from_dict, yaml_problem
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.io.bag import (
     NS_PER_S,
@@ -74,6 +74,7 @@ from ptm_ros.io.bag import (
     stamp_to_ns,
     yaw_to_quaternion,
 )
+from ptm_ros.io.validation import header_stamp_ns
 
 if typing.TYPE_CHECKING:
     from rclpy.node import Node
@@ -556,11 +557,10 @@ class OnceLogger:
 
 
 def valid_stamp(header: Any) -> float | None:
-    """:func:`header_stamp`, or None when the stamp is no ROS time (``sec < 0`` or ``nanosec >= 10⁹``)."""
-    sec, nanosec = int(header.stamp.sec), int(header.stamp.nanosec)
-    if sec < 0 or not 0 <= nanosec < NS_PER_S:
-        return None
-    return ns_to_stamp(sec * NS_PER_S + nanosec)
+    """:func:`header_stamp`, or None when the stamp is no ROS time (``sec < 0`` or ``nanosec >= 10⁹``:
+    :func:`ptm_ros.io.validation.header_stamp_ns`, as the bag reader checks it)."""
+    ns = header_stamp_ns(header)
+    return None if ns is None else ns_to_stamp(ns)
 
 
 #: Odometry steps up to this long are never a teleport (absorbs stamp jitter: a CARMEN log's logger
@@ -837,8 +837,11 @@ def check_params_files(args: Sequence[str]) -> None:
             continue
         try:
             doc = yaml.safe_load(Path(value).read_text())
-        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        except (OSError, UnicodeDecodeError) as err:
             msg = f"cannot read parameter file {value}: {err}"
+            raise ConfigError(msg) from err
+        except yaml.YAMLError as err:
+            msg = f"malformed YAML in {value}, {yaml_problem(err)}"
             raise ConfigError(msg) from err
         _check_parameter_tree(doc, value)
 

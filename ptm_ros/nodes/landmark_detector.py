@@ -34,8 +34,9 @@ each of its topics (or ``end_timeout`` s without progress), completes the pendin
 session; K: the keyframe scans sent on ``landmark_scans`` since the node started). Service
 ``~/flush`` (std_srvs/Trigger) does the same on request.
 
-Bad input (issue #9). No message stops the node or reaches the extractor unchecked; each kind of problem
-is logged once (a warning; later ones at debug level) and counted in ``/diagnostics`` under its name:
+Bad input (issue #9). No message stops the node or reaches the extractor unchecked (the checks of
+:mod:`ptm_ros.io.validation`, which ``ptm-run``'s bag reader applies too); each kind of problem is
+logged once (a warning; later ones at debug level) and counted in ``/diagnostics`` under its name:
 
 ==============================  ===================================================================
 ``odometry-bad-stamp`` etc.     header stamp with ``sec < 0`` or ``nanosec >= 10⁹`` (any topic): skipped
@@ -45,6 +46,7 @@ is logged once (a warning; later ones at debug level) and counted in ``/diagnost
 ``odometry-quaternion-          a quaternion whose norm is off 1 by more than 10⁻³ is normalised
 normalized`` (not a skip)       before its yaw is decoded (a unit one is decoded unchanged, bit-exact)
 ``scan-empty``                  no ranges: skipped
+``scan-non-finite``             not one finite range (NaN- or inf-filled): skipped
 ``scan-malformed``              non-finite angles, ``angle_increment`` 0 with several beams, not
                                 ``0 <= range_min < range_max``: skipped (NaN/inf/negative/too long
                                 ranges are single beams: the extractor drops them, ``scan_beams_dropped``)
@@ -110,11 +112,10 @@ from sensor_msgs.msg import Image, LaserScan
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ptm_ros.appearance import AppearanceConfig
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
 from ptm_ros.factories import detector_kind, make_extractor
-from ptm_ros.io.bag import quaternion_to_yaw
+from ptm_ros.io.validation import ScanPayload, image_payload, odometry_pose, scan_payload
 from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, diagnostics_dict, visit_to_json
 from ptm_ros.mapping import KeyframeStream
 from ptm_ros.nodes.common import (
@@ -136,7 +137,6 @@ from ptm_ros.nodes.common import (
     declare_config,
     declare_node_parameter,
     guarded,
-    image_array,
     pose_msg,
     publish_diagnostics,
     run_node,
@@ -145,14 +145,11 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
-from ptm_ros.nodes.messages import Rejection, ScanPayload, scan_payload
 from ptm_ros.visits import Visit
 
 NODE_NAME = "landmark_detector"
 STREAMS = ("odometry", "scan", "image")  # the extractor's names of the three inputs
 SUBSCRIPTIONS = {"odom": "odometry", "scan": "scan", "panorama": "image"}
-MAX_POSITION = 1e7  # m: odometry farther from its origin is not a position
-QUATERNION_TOLERANCE = 1e-3  # |‖q‖ − 1| above this: normalised before decoding the yaw
 MAX_WAITING = 200  # scans/panoramas of a newer clock kept until the odometry's clock resets too
 RESYNC_AFTER = 100  # consecutive messages on another clock than the odometry's before adopting its clock
 TRACE_ROWS = 1000  # latest surprise measurements the detector keeps (unread by the node: memory bound)
@@ -166,6 +163,7 @@ SKIP_REASONS = (
     "odometry-outlier",
     "scan-bad-stamp",
     "scan-empty",
+    "scan-non-finite",
     "scan-malformed",
     "scan-length-mismatch",
     "scan-duplicate",
@@ -195,45 +193,6 @@ EVENTS = (
 
 
 # ------------------------------------------------------------------------------------------ validation
-
-
-def odometry_pose(msg: Any) -> tuple[NDArray[np.float64] | None, Rejection | None, bool]:
-    """``(pose, None, normalised)`` of a valid Odometry message, else ``(None, (reason, detail), False)``.
-
-    The yaw is :func:`ptm_ros.io.bag.quaternion_to_yaw` of the orientation, bit for bit as ``read_run``
-    decodes it; an orientation whose norm is off 1 by more than :data:`QUATERNION_TOLERANCE` is
-    normalised first (``normalised`` True).
-    """
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    x, y = float(p.x), float(p.y)
-    if not (math.isfinite(x) and math.isfinite(y)):
-        return None, ("odometry-non-finite", f"position ({x}, {y})"), False
-    if abs(x) > MAX_POSITION or abs(y) > MAX_POSITION:
-        detail = f"position ({x:.6g}, {y:.6g}) beyond {MAX_POSITION:g} m"
-        return None, ("odometry-out-of-range", detail), False
-    quat = (float(q.x), float(q.y), float(q.z), float(q.w))
-    norm = math.sqrt(math.fsum(c * c for c in quat)) if all(map(math.isfinite, quat)) else math.nan
-    if not (math.isfinite(norm) and norm > 1e-9):
-        return None, ("odometry-bad-quaternion", f"orientation {quat} (norm {norm})"), False
-    normalised = abs(norm - 1.0) > QUATERNION_TOLERANCE
-    if normalised:
-        quat = (quat[0] / norm, quat[1] / norm, quat[2] / norm, quat[3] / norm)
-    return np.array([x, y, quaternion_to_yaw(*quat)]), None, normalised
-
-
-def image_payload(msg: Any, appearance: AppearanceConfig) -> tuple[NDArray[Any] | None, Rejection | None]:
-    """``(pixels, None)`` of a usable panorama, else ``(None, (reason, detail))``."""
-    try:
-        image = image_array(msg)
-    except PtmError as err:
-        return None, ("image-malformed", str(err))
-    if image is None:
-        return None, ("image-unsupported-encoding", f"encoding {msg.encoding!r}")
-    h, w = image.shape[:2]
-    if w < 2 * appearance.n_coeffs or h < appearance.bands:
-        need = f"{appearance.bands} x {2 * appearance.n_coeffs}"
-        return None, ("image-too-small", f"panorama {h} x {w} (need at least {need})")
-    return image, None
 
 
 def keyframe_scan(stamp: float, scan: ScanPayload, frame_id: str) -> LaserScan:

@@ -78,6 +78,7 @@ from ptm_ros.config import PtmConfig
 from ptm_ros.errors import DataError, PtmError
 from ptm_ros.factories import cached
 from ptm_ros.geometry import Registrar
+from ptm_ros.io.validation import scan_payload
 from ptm_ros.laser import patch_registrar
 from ptm_ros.mapping import MapInputs, MapResult, OnlineMap, draw_map
 from ptm_ros.nodes.common import (
@@ -96,7 +97,7 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
-from ptm_ros.nodes.messages import parse_visit_envelope, scan_payload
+from ptm_ros.nodes.messages import parse_visit_envelope
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map, save_png, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
 from ptm_ros.visits import Visit

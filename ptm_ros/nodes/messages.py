@@ -1,20 +1,18 @@
-"""The wire format the ptm_ros nodes read, checked: LaserScan payloads and ``landmark_visits`` messages.
+"""The wire format the ptm_ros nodes exchange, checked: ``landmark_visits`` messages.
 
-The landmark detector and the map publisher both read ``/scan`` (:func:`scan_payload`); the topology
-filter and the map publisher both read the detector's visit messages (:func:`parse_visit_envelope`).
-One check each, so a message one node accepts the other accepts too. Bad input never raises past these
-functions except as :class:`~ptm_ros.errors.DataError` (visits) or a ``(reason, detail)`` rejection
-(scans), which the nodes count as skips (issue #9).
+The topology filter and the map publisher both read the detector's visit messages
+(:func:`parse_visit_envelope`): one check, so a message one node accepts the other accepts too (the
+sensor messages' checks, shared with the bag reader, are :mod:`ptm_ros.io.validation`). Bad input never
+raises past these functions except as :class:`~ptm_ros.errors.DataError`, which the nodes count as skips
+(issue #9).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ptm_ros.errors import DataError, PtmError
 from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json
@@ -24,37 +22,6 @@ from ptm_ros.visits import Visit
 #: What a JSON parser may raise on hostile text besides JSONDecodeError (a ValueError): numbers with
 #: more than 4300 digits (ValueError), nesting deeper than the recursion limit, values beyond float range.
 JSON_ERRORS = (ValueError, TypeError, KeyError, OverflowError, RecursionError)
-
-Rejection = tuple[str, str]  # (reason, detail)
-
-
-ScanPayload = tuple[NDArray[np.float32], float, float, float, float]
-
-
-def scan_payload(msg: Any) -> tuple[ScanPayload | None, Rejection | None]:
-    """``((ranges, angle_min, angle_increment, range_min, range_max), None)`` of a usable LaserScan, else
-    ``(None, (reason, detail))``: ``scan-empty`` (no ranges), ``scan-malformed`` (non-finite angles, a zero
-    increment with several beams, not ``0 <= range_min < range_max``) or ``scan-length-mismatch`` (the
-    angles imply a beam count more than one off the ranges'; the landmark detector's module docstring
-    lists every skip)."""
-    ranges = np.asarray(msg.ranges, dtype=np.float32).reshape(-1)
-    n = ranges.size
-    if n == 0:
-        return None, ("scan-empty", "a scan without ranges")
-    amin, amax, ainc = float(msg.angle_min), float(msg.angle_max), float(msg.angle_increment)
-    rmin, rmax = float(msg.range_min), float(msg.range_max)
-    if not (math.isfinite(amin) and math.isfinite(amax) and math.isfinite(ainc)):
-        return None, ("scan-malformed", f"angles min {amin}, max {amax}, increment {ainc}")
-    if ainc == 0.0 and n > 1:
-        return None, ("scan-malformed", f"angle_increment 0 with {n} beams")
-    if not (math.isfinite(rmin) and rmin >= 0.0 and rmax > rmin):
-        return None, ("scan-malformed", f"need 0 <= range_min < range_max, got {rmin}, {rmax}")
-    if n > 1:
-        beams = (amax - amin) / ainc + 1.0
-        if not abs(beams - n) <= 1.0 + 1e-6:
-            return None, ("scan-length-mismatch", f"angles imply {beams:.6g} beams, ranges has {n}")
-    return (ranges, amin, ainc, rmin, rmax), None
-
 
 _ARRAYS = {
     "signature": ("f", 1),

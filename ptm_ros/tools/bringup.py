@@ -258,6 +258,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     from ptm_ros.config import ros_parameters_yaml, save_config
     from ptm_ros.errors import BagError
     from ptm_ros.nodes.bag_player import bag_topics
+    from ptm_ros.tools.paths import output_dir
 
     config, params_is_ros = load_parameters(args.params)
     t = config.topics
@@ -266,8 +267,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         msg = f"bag {args.bag} has no odometry topic {t.odom} (topics: {sorted(topics)})"
         raise BagError(msg)
     frame = odometry_frame(args.bag, t.odom) if args.bag is not None else "odom"
-    out: Path = args.out.resolve()
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = output_dir(args.out.resolve())
     params_file = out / "params.yaml"
     params_file.write_text(ros_parameters_yaml(config))
     save_config(config, out / "config.yaml")

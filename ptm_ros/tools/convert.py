@@ -173,17 +173,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point; returns the exit status (0 ok, 1 error, 2 usage)."""
+    """Console entry point; returns the exit status (0 ok, 2 usage or bad input)."""
     args = build_parser().parse_args(argv)
     from ptm_ros.errors import PtmError
+    from ptm_ros.tools.paths import new_output
 
     try:
+        new_output(args.out_bag)
         summary = convert(
             args.log, args.out_bag, storage=args.storage, max_range=args.max_range, strict=args.strict
         )
-    except PtmError as err:
+    except (PtmError, OSError) as err:
         print(f"ptm-convert: error: {err}", file=sys.stderr)
-        return 1
+        return 2
     print(summary_text(summary))
     return 0
 

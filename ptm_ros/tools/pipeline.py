@@ -211,10 +211,21 @@ def detect_visits(
             visits += extractor.on_image(run.images.stamps[k], run.images.images[k])
     visits += extractor.flush()
     if diagnostics is not None:
-        diagnostics.update(diagnostics_dict(extractor.diagnostics))
-        if run.images is not None:
-            diagnostics["images_skipped_by_reader"] = dict(run.images.skipped)
+        diagnostics.update(run_diagnostics(run, extractor))
     return visits
+
+
+def run_diagnostics(run: RunData, extractor: VisitExtractor) -> dict[str, Any]:
+    """The input counters of a recorded run (ptm.json's ``diagnostics``): the extractor's, with the
+    messages the bag reader skipped added to ``skipped`` under the same reasons as the nodes'
+    (:func:`ptm_ros.io.bag.read_run`), and ``read_skipped`` the reader's share of them."""
+    diag = diagnostics_dict(extractor.diagnostics)
+    skipped = dict(diag["skipped"])
+    for reason, n in run.skipped.items():
+        skipped[reason] = skipped.get(reason, 0) + n
+    diag["skipped"] = skipped
+    diag["read_skipped"] = dict(run.skipped)
+    return diag
 
 
 @dataclass(frozen=True)
@@ -401,6 +412,7 @@ def run_offline(
         scan_topic=topics.scan,
         image_topic=topics.panorama,
         require=(topics.odom,),
+        appearance=config.model.appearance,
     )
     gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part

@@ -177,11 +177,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from ptm_ros.config import load_config
     from ptm_ros.errors import PtmError
+    from ptm_ros.tools.paths import output_dir
     from ptm_ros.tools.pipeline import run_offline
 
     try:
         config = load_config(args.params, _overrides(args))
         checkpoint = checkpoint_of(args)
+        output_dir(args.out)  # fails now, not after the inference
         result = run_offline(
             args.bag,
             args.out,

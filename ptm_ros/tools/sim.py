@@ -62,7 +62,7 @@ def _size(path: Path) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point; returns the exit status (0 ok, 1 error, 2 usage)."""
+    """Console entry point; returns the exit status (0 ok, 2 usage or bad input)."""
     args = build_parser().parse_args(argv)
     import dataclasses
 
@@ -71,15 +71,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ptm_ros.errors import PtmError
     from ptm_ros.io.simulator import CameraConfig, SimConfig, simulate, write_run
     from ptm_ros.io.worlds import get_world
+    from ptm_ros.tools.paths import new_output
 
     try:
+        new_output(args.out_bag)
         world = get_world(args.world)
         config = SimConfig(camera=dataclasses.replace(CameraConfig(), enabled=not args.no_images))
         run = simulate(world, config, np.random.default_rng(args.seed), visits=args.landmarks)
         out = write_run(run, args.out_bag, storage=args.storage)
-    except PtmError as err:
+    except (PtmError, OSError) as err:
         print(f"ptm-sim: error: {err}", file=sys.stderr)
-        return 1
+        return 2
     drift = float(np.hypot(*run.odometry_error()[-1, :2]))
     shape = (
         f" ({run.images.shape[1]}x{run.images.shape[2]} {config.camera.encoding})" if len(run.images) else ""

@@ -1,0 +1,63 @@
+"""Output paths checked before the work (issue #25): a tool that would fail on its first write after
+minutes of inference fails at once instead, with one line naming the fix (exit code 2)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+from ptm_ros.errors import ConfigError
+
+
+def _probe(directory: Path, what: str) -> None:
+    """Create and remove a file in ``directory`` (permissions, read-only file systems, root or not)."""
+    try:
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as err:
+        reason = err.strerror or type(err).__name__
+        msg = f"cannot write into {directory} ({reason}): choose a writable {what}"
+        raise ConfigError(msg) from err
+
+
+def output_dir(path: Path, flag: str = "--out") -> Path:
+    """Create the output directory ``path`` (and its parents) and check that files can be written in it.
+
+    Raises:
+        ConfigError: ``path`` is an existing file, cannot be created, or is not writable.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        msg = f"{flag} {path} is an existing file, not a directory: choose a directory (new or existing)"
+        raise ConfigError(msg)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        reason = err.strerror or type(err).__name__
+        msg = f"cannot create {flag} directory {path} ({reason}): choose a writable {flag}"
+        raise ConfigError(msg) from err
+    _probe(path, flag)
+    return path
+
+
+def new_output(path: Path, what: str = "OUT_BAG") -> Path:
+    """Check that ``path`` (a bag directory to create) does not exist and that its nearest existing
+    ancestor is a writable directory; nothing is created.
+
+    Raises:
+        ConfigError: ``path`` exists, or cannot be created there.
+    """
+    path = Path(path)
+    if os.path.lexists(path):
+        kind = "directory" if path.is_dir() else "file"
+        msg = f"{what} {path} exists already (a {kind}); choose a new path (rosbag2 never overwrites)"
+        raise ConfigError(msg)
+    ancestor = path.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        msg = f"cannot create {what} {path}: {ancestor} is a file, not a directory"
+        raise ConfigError(msg)
+    _probe(ancestor, what)
+    return path

@@ -1,0 +1,172 @@
+"""Issue #25: whole corrupted bags through ``ptm-run`` and ``ptm-eval`` (property-based, hypothesis).
+
+A small simulated bag is corrupted by a generated :class:`bag_corruption.Plan`: backwards and jumping
+stamps on any topic, duplicates, NaN / inf / empty / over-long scans, wrong image encodings, header
+stamps that are no ROS time, a topic that stops midway, a storage file cut short or overwritten. Each
+run must either end with a PTM from the good messages, every bad message counted, or exit 2 with one
+line on stderr (no traceback). Then ``ptm-eval`` must score that PTM against the bag's ground truth.
+
+Seeded (``derandomize=True``) and small: ``PTM_FUZZ_EXAMPLES`` examples (default 6);
+``bench/bench_fuzz.py`` runs a larger budget.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bag_corruption import INSERTED, REPLACED, TOPIC_STREAMS, Insert, Plan, Replace, Stretch, corrupt
+from cli_helpers import call, one_error_line
+from hypothesis import HealthCheck, currently_in_test_context, event, given, settings
+from hypothesis import strategies as st
+
+from ptm_ros.io.simulator import SimConfig, simulate, write_run
+from ptm_ros.io.worlds import get_world
+from ptm_ros.tools import evaluate as eval_tool
+from ptm_ros.tools import run as run_tool
+
+EXAMPLES = int(os.environ.get("PTM_FUZZ_EXAMPLES", "6"))
+RUN_ARGS = ("--quiet", "--no-report", "--particles", "10", "--seed", "0")
+TOPICS = tuple(TOPIC_STREAMS)
+
+
+def assert_one_line_or_ok(code: int, err: str, prog: str) -> None:
+    assert "Traceback" not in err
+    assert code in (0, 2), f"{prog} exited {code}: {err}"
+    if code == 2:
+        one_error_line(err, prog)
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory) -> tuple[Path, dict]:
+    """A tiny simulated bag (t-junction, four visits) and its ptm.json."""
+    root = tmp_path_factory.mktemp("fuzz_clean")
+    bag = write_run(
+        simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(0), visits=4), root / "bag"
+    )
+    code, _, err = call(run_tool.main, [bag, "--out", root / "out", *RUN_ARGS])
+    assert code == 0, err
+    return bag, json.loads((root / "out" / "ptm.json").read_text())
+
+
+def stream_skips(skipped: dict[str, int], stream: str) -> int:
+    return sum(n for reason, n in skipped.items() if reason.startswith(f"{stream}-"))
+
+
+def check_run(bag: Path, out: Path, plan: Plan, written, clean_ptm: dict) -> dict | None:
+    """ptm-run on a corrupted bag, then ptm-eval on its PTM; the ptm.json (None after an exit 2)."""
+    code, _, err = call(run_tool.main, [bag, "--out", out, *RUN_ARGS])
+    if currently_in_test_context():  # --hypothesis-show-statistics: how the runs ended
+        event(f"ptm-run exit {code}" + (f": {err.split(':')[2].strip()[:40]}" if code else ""))
+    assert_one_line_or_ok(code, err, "ptm-run")
+    if code == 2:
+        # only a bag that cannot be read, or one left without the odometry visits need
+        assert plan.truncate is not None or plan.smash is not None or plan.missing_from, err
+        return None
+    doc = json.loads((out / "ptm.json").read_text())
+    diag = doc["diagnostics"]
+    for reason, n in written.at_least.items():
+        assert diag["skipped"].get(reason, 0) >= n, (reason, diag["skipped"])
+    for stream in TOPIC_STREAMS.values():
+        accounted = diag["received"][stream] + stream_skips(diag["read_skipped"], stream)
+        if plan.truncate is None and plan.smash is None:  # every message written is used or counted
+            assert accounted == written.messages[stream], (stream, diag)
+        else:
+            assert accounted <= written.messages[stream]
+    n = len(doc["landmarks"])
+    assert all(len(t["labels"]) == n for t in doc["topologies"])
+    assert sum(t["probability"] for t in doc["topologies"]) <= 1.0 + 1e-9
+    stamps = [lm["stamp"] for lm in doc["landmarks"]]
+    assert stamps == sorted(stamps)
+    if plan.neutral:  # only inserted bad messages: exactly the clean bag's PTM
+        assert doc["landmarks"] == clean_ptm["landmarks"]
+        assert doc["topologies"] == clean_ptm["topologies"]
+    code, text, err = call(eval_tool.main, [out / "ptm.json", "--ground-truth", bag / "ground_truth.json"])
+    assert_one_line_or_ok(code, err, "ptm-eval")
+    if code == 0:
+        assert 0.0 <= json.loads(text)["consistent_mass"] <= 1.0 + 1e-9
+    return doc
+
+
+# ------------------------------------------------------------------------------------------ strategies
+
+fractions = st.floats(0.0, 1.0, allow_nan=False)
+
+
+@st.composite
+def inserts(draw) -> Insert:
+    kind = draw(st.sampled_from(sorted(INSERTED)))
+    topic = INSERTED[kind][0] or draw(st.sampled_from(TOPICS))
+    shift = {"back-copy": st.sampled_from([0.01, 0.3, 5.0, 100.0]), "far-copy": st.sampled_from([30.0, 1e4])}
+    return Insert(kind, topic, draw(fractions), draw(shift.get(kind, st.just(1.0))))
+
+
+stretches = st.builds(
+    Stretch,
+    topic=st.sampled_from(TOPICS),
+    at=fractions,
+    length=st.integers(1, 12),
+    shift_s=st.sampled_from([-100.0, -5.0, -0.5, 0.5, 5.0, 100.0]),
+)
+replaces = st.builds(Replace, kind=st.sampled_from(sorted(REPLACED)), at=fractions)
+neutral_plans = st.builds(
+    Plan,
+    inserts=st.lists(inserts(), min_size=1, max_size=8).map(tuple),
+    duplicate_every=st.none() | st.integers(20, 200),
+)
+damaging_plans = st.builds(
+    Plan,
+    inserts=st.lists(inserts(), max_size=4).map(tuple),
+    stretches=st.lists(stretches, max_size=3).map(tuple),
+    replaces=st.lists(replaces, max_size=3).map(tuple),
+    missing_from=st.lists(st.tuples(st.sampled_from(TOPICS), st.floats(0.3, 1.0)), max_size=1).map(tuple),
+    truncate=st.none() | st.floats(0.2, 0.95),
+    duplicate_every=st.none() | st.integers(20, 200),
+    storage=st.sampled_from(["mcap", "sqlite3"]),
+    smash=st.none() | st.floats(0.0, 0.99),
+)
+FUZZ = settings(
+    max_examples=EXAMPLES,
+    derandomize=True,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+
+
+@FUZZ
+@given(plan=neutral_plans)
+def test_inserted_bad_messages_are_counted_and_change_nothing(clean, plan, tmp_path_factory):
+    work = tmp_path_factory.mktemp("neutral")
+    written = corrupt(clean[0], work / "bag", plan)
+    assert check_run(written.path, work / "out", plan, written, clean[1]) is not None
+
+
+@FUZZ
+@given(plan=damaging_plans)
+def test_damaged_bags_give_a_ptm_of_the_good_messages_or_one_line(clean, plan, tmp_path_factory):
+    work = tmp_path_factory.mktemp("damaged")
+    written = corrupt(clean[0], work / "bag", plan)
+    check_run(written.path, work / "out", plan, written, clean[1])
+
+
+def test_the_issue_corruption_gives_a_ptm_with_every_bad_message_counted(clean, tmp_path):
+    """Issue #25's bag: ten odometry messages stamped 5 s back, every 97th message duplicated, NaN-,
+    inf-filled and empty scans. It used to fail after the inference ("visit stamps must be increasing
+    odometry stamps") and write no ptm.json."""
+    plan = Plan(
+        stretches=(Stretch("/odom", 0.5, 10, -5.0),),
+        replaces=(Replace("nan", 0.2), Replace("inf", 0.4), Replace("empty", 0.6), Replace("nan", 0.8)),
+        duplicate_every=97,
+    )
+    written = corrupt(clean[0], tmp_path / "bag", plan)
+    doc = check_run(written.path, tmp_path / "out", plan, written, clean[1])
+    assert doc is not None and len(doc["landmarks"]) == len(clean[1]["landmarks"])
+    skipped = doc["diagnostics"]["read_skipped"]
+    duplicates = sum(written.messages.values()) - sum(clean[1]["diagnostics"]["received"].values())
+    assert skipped["odometry-stamp-backwards"] == 10
+    assert skipped["scan-non-finite"] + skipped["scan-empty"] >= 4
+    assert sum(skipped.values()) == 10 + 4 + duplicates
