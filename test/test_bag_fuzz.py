@@ -108,8 +108,8 @@ stretches = st.builds(
     Stretch,
     topic=st.sampled_from(TOPICS),
     at=fractions,
-    length=st.integers(1, 12),
-    shift_s=st.sampled_from([-100.0, -5.0, -0.5, 0.5, 5.0, 100.0]),
+    length=st.integers(1, 12) | st.integers(100, 1000),
+    shift_s=st.sampled_from([-1000.0, -100.0, -5.0, -0.5, 0.5, 5.0, 100.0, 1e6]),
 )
 replaces = st.builds(Replace, kind=st.sampled_from(sorted(REPLACED)), at=fractions)
 neutral_plans = st.builds(
@@ -122,7 +122,7 @@ damaging_plans = st.builds(
     inserts=st.lists(inserts(), max_size=4).map(tuple),
     stretches=st.lists(stretches, max_size=3).map(tuple),
     replaces=st.lists(replaces, max_size=3).map(tuple),
-    missing_from=st.lists(st.tuples(st.sampled_from(TOPICS), st.floats(0.3, 1.0)), max_size=1).map(tuple),
+    missing_from=st.lists(st.tuples(st.sampled_from(TOPICS), fractions), max_size=1).map(tuple),
     truncate=st.none() | st.floats(0.2, 0.95),
     duplicate_every=st.none() | st.integers(20, 200),
     storage=st.sampled_from(["mcap", "sqlite3"]),

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from cli_helpers import call, one_error_line
 
+from ptm_ros.errors import ConfigError
 from ptm_ros.tools import bringup, convert, run, sim
 from ptm_ros.tools.paths import new_output, output_dir
 
@@ -133,8 +134,11 @@ def test_broken_yaml_is_one_line(tmp_path, bag):
     assert f"malformed YAML in {params}, line 3, column 13: " in line
 
 
-def test_output_checks_accept_new_and_existing_directories(tmp_path):
-    assert output_dir(tmp_path / "a" / "b").is_dir()
-    assert output_dir(tmp_path / "a" / "b").is_dir()  # existing: fine
+def test_output_checks_accept_new_and_existing_directories_and_create_nothing(tmp_path, a_file):
+    assert output_dir(tmp_path / "a" / "b") == tmp_path / "a" / "b"
     assert new_output(tmp_path / "x" / "bag") == tmp_path / "x" / "bag"
-    assert not (tmp_path / "x").exists()  # nothing created
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]  # nothing created
+    assert output_dir(tmp_path) == tmp_path  # existing: fine
+    for check in (output_dir, new_output):
+        with pytest.raises(ConfigError, match=f"{a_file} is a file, not a directory"):
+            check(a_file / "sub")

@@ -268,6 +268,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
         raise BagError(msg)
     frame = odometry_frame(args.bag, t.odom) if args.bag is not None else "odom"
     out: Path = output_dir(args.out.resolve())
+    out.mkdir(parents=True, exist_ok=True)
     params_file = out / "params.yaml"
     params_file.write_text(ros_parameters_yaml(config))
     save_config(config, out / "config.yaml")

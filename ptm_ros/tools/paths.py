@@ -21,23 +21,29 @@ def _probe(directory: Path, what: str) -> None:
         raise ConfigError(msg) from err
 
 
+def _nearest_existing(path: Path, what: str) -> Path:
+    """The nearest existing ancestor of ``path`` (which does not exist), checked to be a directory."""
+    ancestor = path.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        msg = f"cannot create {what} {path}: {ancestor} is a file, not a directory"
+        raise ConfigError(msg)
+    return ancestor
+
+
 def output_dir(path: Path, flag: str = "--out") -> Path:
-    """Create the output directory ``path`` (and its parents) and check that files can be written in it.
+    """Check that the output directory ``path`` can be written: an existing directory files can be
+    created in, or a new one whose nearest existing ancestor is such a directory (nothing is created).
 
     Raises:
-        ConfigError: ``path`` is an existing file, cannot be created, or is not writable.
+        ConfigError: ``path`` is an existing file, or it cannot be created or written in.
     """
     path = Path(path)
     if path.exists() and not path.is_dir():
         msg = f"{flag} {path} is an existing file, not a directory: choose a directory (new or existing)"
         raise ConfigError(msg)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        reason = err.strerror or type(err).__name__
-        msg = f"cannot create {flag} directory {path} ({reason}): choose a writable {flag}"
-        raise ConfigError(msg) from err
-    _probe(path, flag)
+    _probe(path if path.exists() else _nearest_existing(path, f"{flag} directory"), flag)
     return path
 
 
@@ -53,11 +59,5 @@ def new_output(path: Path, what: str = "OUT_BAG") -> Path:
         kind = "directory" if path.is_dir() else "file"
         msg = f"{what} {path} exists already (a {kind}); choose a new path (rosbag2 never overwrites)"
         raise ConfigError(msg)
-    ancestor = path.absolute().parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        msg = f"cannot create {what} {path}: {ancestor} is a file, not a directory"
-        raise ConfigError(msg)
-    _probe(ancestor, what)
+    _probe(_nearest_existing(path, what), what)
     return path
