@@ -757,7 +757,7 @@ def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_
         node._on_visit(msg(v[1]))  # a duplicate
         node._on_visit(msg(v[0]))  # visit 0 delivered again: a duplicate too, not a restart
         assert any(u.signature is not None for u in node.session.visits)
-        node._on_visit(msg(replace(v[4], signature=np.zeros(3))))  # shaped unlike the map's signatures
+        node._on_visit(msg(replace(v[4], signature=np.zeros(3), signature_spread=None)))  # unlike the map's
         real_add = node.session.add
 
         def add(visit):
