@@ -123,7 +123,8 @@ class OdometryConfig:
         b_th: heading variance floor per odometry segment [rad²].
         c_th: heading variance per metre travelled [rad²/m].
         sigma_topology: σ_T, how far a visit passes from its place [m].
-        area_m2: A, area of the mapped environment over which places are uniform [m²].
+        area_m2: A, area of the mapped environment over which places are uniform [m²]; 0 (the default):
+            learned from the visits (:func:`mapped_area`, floored at ``penalty_radius`` per axis).
         penalty_radius: D, distance below which distinct places are penalised (eq. 15) [m].
         penalty_max: c_max, the penalty (negative log prior) at distance 0 [nats]; 0 disables the prior.
         registration_volume: V_reg, volume of registration outcomes when two visits are different
@@ -153,7 +154,7 @@ class OdometryConfig:
     b_th: float = 0.01**2
     c_th: float = 0.02**2
     sigma_topology: float = 0.5
-    area_m2: float = 1000.0
+    area_m2: float = 0.0
     penalty_radius: float = 3.0
     penalty_max: float = 5.0
     registration_volume: float = 25.0
@@ -172,7 +173,7 @@ class OdometryConfig:
             "b_th": (self.b_th, True),
             "c_th": (self.c_th, False),
             "sigma_topology": (self.sigma_topology, True),
-            "area_m2": (self.area_m2, True),
+            "area_m2": (self.area_m2, False),
             "penalty_radius": (self.penalty_radius, True),
             "penalty_max": (self.penalty_max, False),
             "registration_volume": (self.registration_volume, True),
@@ -222,6 +223,29 @@ class MetricResult:
     poses: FloatArray
     place_positions: FloatArray
     iterations: int
+
+
+def mapped_area(xy: ArrayLike, floor: float) -> float:
+    """``A``, the area over which places are uniform, learned from the ``(N, 2)`` visit positions: the
+    rectangle aligned with their principal axes whose extents are the positions' ranges times
+    ``(N+1)/(N-1)`` (the unbiased range of N uniform samples), each at least ``floor`` m (a corridor is
+    at least a place wide); ``floor²`` for fewer than two visits."""
+    p = np.asarray(xy, dtype=float).reshape(-1, 2)
+    n = len(p)
+    if n < 2:
+        return floor * floor
+    centred = p - p.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)
+    proj = centred @ axes
+    extent = np.maximum((proj.max(axis=0) - proj.min(axis=0)) * (n + 1) / (n - 1), floor)
+    return float(extent[0] * extent[1])
+
+
+def place_area(visits: Sequence[Visit], config: OdometryConfig) -> float:
+    """``config.area_m2``, or (0) :func:`mapped_area` of the visits' positions with ``penalty_radius``."""
+    if config.area_m2 > 0.0:
+        return config.area_m2
+    return mapped_area([v.pose[:2] for v in visits], config.penalty_radius)
 
 
 def relative_odometry(visits: Sequence[Visit]) -> FloatArray:
@@ -322,7 +346,7 @@ def _build_problem(
     sizes = np.bincount(lab_arr, minlength=m)
     sig2 = config.sigma_topology**2
     log_const += float(
-        -m * math.log(config.area_m2)
+        -m * math.log(place_area(visits, config))
         - np.sum(np.log(sizes))
         - np.sum(sizes - 1) * math.log(2.0 * math.pi * sig2)
     )

@@ -157,7 +157,7 @@ from scipy.special import gammaln
 from ptm_ros.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import NoMatch, Registrar, RelativePose, between, compose, wrap_angle
-from ptm_ros.odometry import OdometryConfig, odometry_covariances
+from ptm_ros.odometry import OdometryConfig, odometry_covariances, place_area
 from ptm_ros.partitions import Labels
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
 from ptm_ros.ptm import Landmark, Ptm, make_ptm
@@ -924,7 +924,7 @@ class TopologyFilter:
         counts = np.zeros((1, cap), dtype=np.intp)
         last = np.full((1, cap), -1, dtype=np.intp)
         counts[0, 0], last[0, 0] = 1, 0
-        increment = float(self.prior.log_predictive([])[0]) - math.log(self.odometry.area_m2)
+        increment = float(self.prior.log_predictive([])[0]) - math.log(place_area(visits[:1], self.odometry))
         if self.appearance is not None:
             increment += appearance_log_predictive(0, (), visits, self.appearance)
         if not math.isfinite(increment):
@@ -985,14 +985,18 @@ class TopologyFilter:
         y = _solve_chol2(a_, b_, d_, d[..., None])[..., 0]  # L^{-1} d
         ll_rev = -_LOG_2PI - np.log(a_ * d_) - 0.5 * np.sum(y * y, axis=-1)
         valid = np.arange(cap)[None, :] < st.n_places[:, None]
-        ll_new = np.full(n_part, -math.log(cfg.area_m2))
+        # a learned area A (config 0) grows with the visits: every particle's weight moves to the new A
+        # exactly, (A_old / A_new)^{places} (eq. 17's 1/A per place), before the new visit is scored
+        area_old, area = place_area(visits[:-1], cfg), place_area(visits, cfg)
+        log_w = st.log_w + st.n_places * (math.log(area_old) - math.log(area))
+        ll_new = np.full(n_part, -math.log(area))
         proxy_rev = np.zeros((n_part, cap))  # separation penalty of the new pairs (i, n), for selection
         proxy_new = np.zeros(n_part)
         lp_rev, lp_new = self._discrete_terms(st, visits)
         if cfg.penalty_max > 0.0:
             # children that selection can keep (the others' proxy would not matter: the weight is corrected)
-            base_rev = np.where(valid, st.log_w[:, None] + lp_rev + ll_rev, -np.inf)
-            base_new = st.log_w + lp_new + ll_new
+            base_rev = np.where(valid, log_w[:, None] + lp_rev + ll_rev, -np.inf)
+            base_new = log_w + lp_new + ll_new
             top = max(float(np.max(base_rev)), float(np.max(base_new)))
             proxy_rev, proxy_new = _separation_proxy(
                 st.cov,
@@ -1010,8 +1014,8 @@ class TopologyFilter:
             )
             ll_rev -= proxy_rev
             ll_new -= proxy_new
-        lw_rev = np.where(valid, st.log_w[:, None] + lp_rev + ll_rev, -np.inf)
-        lw_new = st.log_w + lp_new + ll_new
+        lw_rev = np.where(valid, log_w[:, None] + lp_rev + ll_rev, -np.inf)
+        lw_new = log_w + lp_new + ll_new
         par_rev, k_rev = np.nonzero(valid)
         cand_par = np.concatenate([par_rev, np.arange(n_part)])
         cand_k = np.concatenate([k_rev, st.n_places])

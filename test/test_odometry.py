@@ -15,10 +15,12 @@ from ptm_ros.odometry import (
     MetricResult,
     OdometryConfig,
     log_integrand,
+    mapped_area,
     metric_log_likelihood,
     metric_residuals,
     odometry_covariances,
     optimize_poses,
+    place_area,
     relative_odometry,
 )
 from ptm_ros.partitions import blocks
@@ -65,7 +67,10 @@ def brute_log_f(
         m = len(block)
         spread = np.sum((pts - pts.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2))
         total += (
-            -math.log(cfg.area_m2) - math.log(m) - (m - 1) * math.log(2 * math.pi * s2) - spread / (2 * s2)
+            -math.log(place_area(visits, cfg))
+            - math.log(m)
+            - (m - 1) * math.log(2 * math.pi * s2)
+            - spread / (2 * s2)
         )
     for lp in loops:
         if labels[lp.i] == labels[lp.j]:
@@ -220,7 +225,9 @@ def test_place_factor_matches_integral_over_the_place_position() -> None:
     for x, y in X[:, :2]:
         dens *= np.exp(-((px - x) ** 2 + (py - y) ** 2) / (2 * s * s)) / (2 * math.pi * s * s)
     val = integrate.trapezoid(integrate.trapezoid(dens, grid), grid)
-    odo = log_integrand(X[None], (0, 1, 2), visits, cfg)[0] + 3 * math.log(cfg.area_m2)  # odometry only
+    odo = log_integrand(X[None], (0, 1, 2), visits, cfg)[0] + 3 * math.log(
+        place_area(visits, cfg)
+    )  # odometry only
     merged = log_integrand(X[None], (0, 0, 0), visits, cfg)[0]
     assert merged - odo == pytest.approx(math.log(val / cfg.area_m2), abs=1e-8)
 
@@ -236,7 +243,7 @@ def test_no_merges_integrates_to_the_area_factors() -> None:
     n = len(visits)
     for cfg in (OdometryConfig(n_samples=4000), OdometryConfig(n_samples=4000, penalty_max=0.0)):
         res = metric_log_likelihood(tuple(range(n)), visits, cfg, rng=np.random.default_rng(0))
-        expected = -n * math.log(cfg.area_m2)
+        expected = -n * math.log(place_area(visits, cfg))
         assert res.log_laplace == pytest.approx(expected, abs=1e-9)  # linear-Gaussian at the mode: exact
         assert res.log_likelihood == pytest.approx(expected, abs=5e-3)  # heading nonlinearity only
         np.testing.assert_allclose(res.poses, np.array(u), atol=1e-9)
@@ -252,7 +259,9 @@ def test_two_visits_merged_matches_closed_form_and_grid() -> None:
     # closed form: (1/A) N(o_xy; 0, (s_xy² + 2σ_T²) I), the heading integrates to 1
     o = relative_odometry(visits)[0]
     var = cfg.a_xy * visits[1].travel + cfg.b_xy + 2 * cfg.sigma_topology**2
-    exact = -math.log(cfg.area_m2) + stats.multivariate_normal(np.zeros(2), var * np.eye(2)).logpdf(o[:2])
+    exact = -math.log(place_area(visits, cfg)) + stats.multivariate_normal(
+        np.zeros(2), var * np.eye(2)
+    ).logpdf(o[:2])
     assert res.log_laplace == pytest.approx(exact, abs=1e-9)
     assert res.log_likelihood == pytest.approx(exact, abs=1e-9)
     assert res.ess == pytest.approx(cfg.n_samples, rel=1e-9)
@@ -389,7 +398,7 @@ def test_cubic_prior_lowers_the_likelihood_and_is_weights_account_for_it() -> No
     off = OdometryConfig(a_xy=0.08, n_samples=20000, penalty_max=0.0)
     on_res = metric_log_likelihood((0, 1), visits, cfg, rng=np.random.default_rng(2))
     off_res = metric_log_likelihood((0, 1), visits, off, rng=np.random.default_rng(2))
-    two_areas = -2 * math.log(cfg.area_m2)
+    two_areas = -2 * math.log(place_area(visits, cfg))
     assert off_res.log_likelihood == pytest.approx(two_areas, abs=1e-9)
     assert on_res.log_likelihood < off_res.log_likelihood - 1.0
 
@@ -507,10 +516,34 @@ def test_deterministic_given_the_generator_and_warm_start() -> None:
     assert warm.log_laplace == pytest.approx(a.log_laplace, abs=1e-5)
 
 
+def test_the_area_is_learned_from_the_visits_extent() -> None:
+    """``A`` of the topology coincidence (0 = learned): N positions uniform over a rectangle span about
+    (N-1)/(N+1) of each side, whatever its orientation; a line of visits is a floor wide."""
+    rng = np.random.default_rng(3)
+    c, s = math.cos(0.6), math.sin(0.6)
+    for n in (5, 50, 2000):
+        areas = []
+        for _ in range(400 if n < 2000 else 3):
+            local = rng.uniform([0.0, 0.0], [10.0, 4.0], size=(n, 2))
+            areas.append(mapped_area(local @ np.array([[c, s], [-s, c]]) + [5.0, -2.0], floor=1.0))
+        # each side's scaled range is unbiased; the principal axes, estimated from the same points,
+        # wobble at small N and bias the area a little
+        assert np.mean(areas) == pytest.approx(40.0, rel={5: 0.15, 50: 0.05}.get(n, 0.02)), (
+            n
+        )  # the axes wobble at small N
+    line = np.column_stack([np.linspace(0.0, 20.0, 11), np.zeros(11)])
+    assert mapped_area(line, floor=3.0) == pytest.approx(20.0 * 12 / 10 * 3.0)
+    assert mapped_area(np.zeros((1, 2)), floor=3.0) == 9.0
+    visits = square_loop()
+    assert place_area(visits, OdometryConfig(area_m2=123.0)) == 123.0
+    learned = place_area(visits, OdometryConfig())
+    assert learned == mapped_area([v.pose[:2] for v in visits], OdometryConfig().penalty_radius)
+
+
 def test_single_visit_and_non_canonical_labels() -> None:
     one = make_visits([(1, 2, 3)])
     res = metric_log_likelihood((0,), one, OdometryConfig())
-    assert res.log_likelihood == pytest.approx(-math.log(1000.0))
+    assert res.log_likelihood == pytest.approx(-2.0 * math.log(OdometryConfig().penalty_radius))  # A = floor²
     visits = square_loop()
     cfg = OdometryConfig(n_samples=0)
     a = metric_log_likelihood((0, 1, 2, 3, 0), visits, cfg)

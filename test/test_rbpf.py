@@ -281,7 +281,7 @@ def test_block_log_predictives_equal_the_appearance_module():
 
 # ------------------------------------------------------------------------- exactness against enumeration
 
-ODO = OdometryConfig(n_samples=0, a_xy=0.15**2)  # 15 cm/√m: the loop closures stay uncertain
+ODO = OdometryConfig(n_samples=0, a_xy=0.15**2, area_m2=1000.0)  # 15 cm/√m: the loop closures stay uncertain
 ROUTE6 = [0, 1, 2, 3, 0, 1]
 
 
@@ -378,7 +378,7 @@ def test_place_positions_match_the_batch_optimum(odometry_case):
 
 # --------------------------------------------------------------------------------------- few particles
 
-ODO8 = OdometryConfig(n_samples=0, a_xy=0.3**2)  # 30 cm/√m on a 4 m square: a spread posterior
+ODO8 = OdometryConfig(n_samples=0, a_xy=0.3**2, area_m2=1000.0)  # 30 cm/√m on a 4 m square: spread
 ROUTE8 = [0, 1, 2, 3, 0, 1, 2, 3]
 
 
