@@ -44,6 +44,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -419,12 +420,20 @@ def refine_scan_poses(
             aligned = _polished_alignment(
                 icp, pts, voxel_map, map_points, guess, cfg, cfg.voxel, cfg.correspondence_distance
             )
-            if aligned is not None and not moved(guess, aligned, *_MAX_STEP_CORRECTION):
-                refined[k] = aligned
+            if aligned is not None and not moved(guess, aligned.pose, *_MAX_STEP_CORRECTION):
+                refined[k] = aligned.pose
         world = transform_points(refined[k], pts)
         voxel_map.add_points(_lift(voxel_downsample(world, 0.5 * cfg.voxel)))
         map_points = voxel_downsample(np.vstack([map_points, world]), cfg.patch_voxel)
     return compose(refined, inverse(offset))
+
+
+class Alignment(NamedTuple):
+    """A scan's aligned world pose, and how many translation directions kept the guess there
+    (:func:`weak_directions`; 0 without the polish or with ``degenerate_ratio`` 0)."""
+
+    pose: FloatArray
+    weak: int
 
 
 class ScanMap:
@@ -458,7 +467,7 @@ class ScanMap:
         refine: bool = True,
         min_points: int = _MIN_SCAN_POINTS,
         degenerate_ratio: float = 0.0,
-    ) -> FloatArray | None:
+    ) -> Alignment | None:
         """The world pose of a scan (``points`` in the robot frame) aligned onto the map from ``guess``:
         kiss-icp point-to-point, then (``refine``) the point-to-plane polish of :func:`register_patches`
         with the guess kept along the directions the scan hardly constrains (``degenerate_ratio``,
@@ -508,9 +517,10 @@ def align_scan_to_map(
 ) -> FloatArray | None:
     """:meth:`ScanMap.align` of one scan onto a map built for it (``voxel`` >= 0.25 and
     ``correspondence_distance`` default to the config's)."""
-    return ScanMap(map_points, config, voxel=voxel).align(
+    aligned = ScanMap(map_points, config, voxel=voxel).align(
         points, guess, correspondence_distance=correspondence_distance, refine=refine, min_points=min_points
     )
+    return None if aligned is None else aligned.pose
 
 
 def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two callers
@@ -527,7 +537,7 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
     min_points: int = _MIN_SCAN_POINTS,
     target: _Target | None = None,
     degenerate_ratio: float = 0.0,
-) -> FloatArray | None:
+) -> Alignment | None:
     """kiss-icp alignment of a scan (downsampled at ``voxel``) onto ``voxel_map`` from ``guess``, then the
     point-to-plane polish against ``map_points`` (or a prepared ``target`` of them) with the prior at the
     odometry ``guess`` (directions the planes do not see stay at the odometry), and the guess's
@@ -538,11 +548,12 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
         return None
     aligned = _align(icp, src, voxel_map, guess, distance)
     if aligned is None or not refine:
-        return aligned
+        return None if aligned is None else Alignment(aligned, 0)
     surface = _Target(map_points, 0.5 * voxel) if target is None else target
     overlap = _Overlap(_Target(pts, 0.5 * voxel), surface, cfg.inlier_distance)
     aligned, _, information = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
-    return keep_unobserved(aligned, guess, information, degenerate_ratio)
+    weak = weak_directions(information, degenerate_ratio)
+    return Alignment(keep_unobserved(aligned, guess, information, degenerate_ratio), len(weak))
 
 
 def passage_patch(
@@ -1295,25 +1306,31 @@ def _point_to_plane(
     return current, 0.5 * (cov + cov.T), info - prior
 
 
-def keep_unobserved(pose: FloatArray, guess: FloatArray, information: FloatArray, ratio: float) -> FloatArray:
-    """``pose`` with its translation away from ``guess`` removed along the directions the scan hardly
-    constrains (solution remapping, Zhang, Kaess & Singh, ICRA 2016): along an eigenvector of the
-    translation block of the residuals' ``information`` whose eigenvalue is below ``ratio`` times the
-    largest, the guess (the wheel odometry) is kept. A corridor's walls fix the cross-track position and
-    the heading, and only noise in the estimated normals "sees" the along-track one: point-to-point ICP
-    and the polish then slide along the corridor by a fraction of every step, erasing the travel.
-    ``ratio`` 0, or no information at all (the polish found no planes: ``pose`` is ICP's), keep ``pose``."""
-    if ratio <= 0.0:  # off (the default): no eigen-decomposition per scan
-        return pose
+def weak_directions(information: FloatArray, ratio: float) -> FloatArray:
+    """Unit translation directions ``(k, 2)`` that a scan constrains less than ``ratio`` times its
+    best-constrained one: eigenvectors of the translation block of the residuals' ``information`` whose
+    eigenvalue is below ``ratio`` times the largest (none for ``ratio`` 0 or no information at all)."""
+    if ratio <= 0.0:  # off: no eigen-decomposition per scan
+        return np.zeros((0, 2))
     block = 0.5 * (information[:2, :2] + information[:2, :2].T)
     values, vectors = np.linalg.eigh(block)
     if values[-1] <= 0.0:
-        return pose
-    weak = values < ratio * float(values[-1])
-    if not np.any(weak):
+        return np.zeros((0, 2))
+    return np.asarray(vectors[:, values < ratio * float(values[-1])].T, dtype=float)
+
+
+def keep_unobserved(pose: FloatArray, guess: FloatArray, information: FloatArray, ratio: float) -> FloatArray:
+    """``pose`` with its translation away from ``guess`` removed along the :func:`weak_directions` (solution
+    remapping, Zhang, Kaess & Singh, ICRA 2016): there the guess (the wheel odometry) is kept. A
+    corridor's walls fix the cross-track position and the heading, and only noise in the estimated normals
+    "sees" the along-track one: point-to-point ICP and the polish then slide along the corridor by a
+    fraction of every step, erasing the travel. ``ratio`` 0, or no information at all (the polish found no
+    planes: ``pose`` is ICP's), keep ``pose``."""
+    weak = weak_directions(information, ratio)
+    if not len(weak):
         return pose
     shift = pose[:2] - guess[:2]
-    for v in vectors[:, weak].T:
+    for v in weak:
         shift = shift - float(v @ shift) * v
     return np.array([guess[0] + shift[0], guess[1] + shift[1], pose[2]])
 

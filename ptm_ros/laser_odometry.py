@@ -91,6 +91,10 @@ class LaserOdometryConfig:
             default): off. 0.05 removes the 2–5 m of travel erased in the simulated corridor worlds, but
             on MIT-CSAIL, whose wheel odometry the scans correct along its corridors, it turned MAP F1
             0.87 into 0.50 (issue #23's closing note): not a default until it is decided per run.
+        scale_prior_m: with ``degenerate_ratio``, the wheel odometry kept along weak directions is scaled
+            by the wheel scale learned from the run (:attr:`LaserOdometry.wheel_scale`): the path length of
+            consecutive fully constrained matches over the wheel odometry's over the same steps, each sum
+            starting at this many metres (the prior: scale 1 until the run has shown otherwise).
     """
 
     enabled: bool = True
@@ -109,6 +113,7 @@ class LaserOdometryConfig:
     match_interval: float = 0.09
     time_offset: float = 0.0
     degenerate_ratio: float = 0.0
+    scale_prior_m: float = 5.0
 
     def __post_init__(self) -> None:
         dr = self.degenerate_ratio
@@ -147,6 +152,9 @@ class LaserOdometryConfig:
         if isinstance(to, bool) or not (isinstance(to, int | float) and -1.0 <= to <= 0.0):
             msg = f"LaserOdometryConfig.time_offset must be a number of seconds in [-1, 0], got {to!r}"
             raise ConfigError(msg)
+        if not (math.isfinite(self.scale_prior_m) and self.scale_prior_m > 0.0):
+            msg = f"LaserOdometryConfig.scale_prior_m must be a finite length > 0, got {self.scale_prior_m!r}"
+            raise ConfigError(msg)
         mi = self.match_interval
         if isinstance(mi, bool) or not (isinstance(mi, int | float) and math.isfinite(mi) and mi >= 0.0):
             msg = f"LaserOdometryConfig.match_interval must be a finite number >= 0 (s), got {mi!r}"
@@ -160,6 +168,10 @@ class LaserOdometryConfig:
                     f"(keyframes are taken from matched scans), got {value!r}"
                 )
                 raise ConfigError(msg)
+
+
+#: Shortest wheel step (m) that counts towards the learned wheel scale (turns on the spot do not).
+_MIN_SCALE_STEP = 0.01
 
 
 @dataclass
@@ -193,6 +205,17 @@ class LaserOdometry:
         self._last_match: FloatArray | None = None  # pose of the last scan past the motion gate
         self._last_match_stamp: float | None = None  # and its stamp (when given)
         self._map: ScanMap | None = None  # the window's keyframes, prepared for alignment
+        self._last_wheel: FloatArray | None = None  # wheel pose of the last scan past the motion gate
+        self._last_constrained = False  # whether that scan's match constrained every direction
+        self._path = np.zeros(2)  # (laser, wheel) path length of consecutive constrained matches (m)
+
+    @property
+    def wheel_scale(self) -> float:
+        """Travel per metre of wheel odometry, learned from the run: ``(L_laser + L₀) / (L_wheel + L₀)``
+        over the steps between consecutive matches that constrained every direction (``L₀`` =
+        ``scale_prior_m``), within [1/2, 2]. Only learned with ``degenerate_ratio`` (else 1)."""
+        prior = self.config.scale_prior_m
+        return float(np.clip((self._path[0] + prior) / (self._path[1] + prior), 0.5, 2.0))
 
     @property
     def correction(self) -> FloatArray:
@@ -226,34 +249,58 @@ class LaserOdometry:
         if len(src) < cfg.min_points:
             self.counters.too_few_points += 1
             return pose
+        constrained = False
         if self._map is not None:
+            ratio = cfg.degenerate_ratio if cfg.refine else 0.0
+            prior = self._scaled_guess(wheel) if ratio > 0.0 else guess
             aligned = self._map.align(
                 pts,
-                guess,
+                prior,
                 correspondence_distance=cfg.correspondence_distance,
                 refine=cfg.refine,
                 min_points=cfg.min_points,
-                degenerate_ratio=cfg.degenerate_ratio if cfg.refine else 0.0,
+                degenerate_ratio=ratio,
             )
-            step = None if aligned is None else between(guess, aligned)
+            step = None if aligned is None else between(guess, aligned.pose)
             if (
-                step is None
+                aligned is None
+                or step is None
                 or math.hypot(step[0], step[1]) > cfg.max_correction_xy
                 or abs(step[2]) > cfg.max_correction_yaw
-                or self._map.inlier_fraction(pts, aligned) < cfg.min_inlier_fraction
+                or self._map.inlier_fraction(pts, aligned.pose) < cfg.min_inlier_fraction
             ):
                 self.counters.rejected += 1
             else:
-                pose = aligned
+                pose = aligned.pose
                 self._correction = compose(pose, inverse(wheel))
                 self.counters.matched += 1
+                constrained = ratio > 0.0 and aligned.weak == 0
+                if constrained and self._last_constrained:
+                    self._learn_scale(pose, wheel)
         self._last_match, self._last_match_stamp = pose, stamp
+        self._last_wheel, self._last_constrained = wheel, constrained
         if self._last_key is None or moved(self._last_key, pose, cfg.keyframe_xy, cfg.keyframe_yaw):
             self._window.append(transform_points(pose, pts))
             self._map = ScanMap(np.vstack(tuple(self._window)), self.laser, voxel=cfg.voxel)
             self._last_key = pose
             self.counters.keyframes += 1
         return pose
+
+    def _scaled_guess(self, wheel: FloatArray) -> FloatArray:
+        """The last matched pose moved by the wheel step since its scan, translation times
+        :attr:`wheel_scale` (the guess :func:`~ptm_ros.laser.keep_unobserved` keeps along weak directions)."""
+        if self._last_match is None or self._last_wheel is None:
+            return self.correct(wheel)
+        step = between(self._last_wheel, wheel)
+        scale = self.wheel_scale
+        return compose(self._last_match, np.array([scale * step[0], scale * step[1], step[2]]))
+
+    def _learn_scale(self, pose: FloatArray, wheel: FloatArray) -> None:
+        """Add one step between two constrained matches to the path lengths of :attr:`wheel_scale`."""
+        assert self._last_match is not None and self._last_wheel is not None  # a previous match
+        wheel_step = math.dist(wheel[:2], self._last_wheel[:2])
+        if wheel_step >= _MIN_SCALE_STEP:
+            self._path += (math.dist(pose[:2], self._last_match[:2]), wheel_step)
 
     def _inside_gate(self, guess: FloatArray, stamp: float | None) -> bool:
         """Whether a scan at corrected pose ``guess`` (and ``stamp``) is skipped by the motion gate."""

@@ -396,6 +396,68 @@ def test_the_correction_keeps_the_wheel_travel_along_a_corridor(seed):
     assert corridor_travel(0.0, seed)[1] < 0.95 * wheel  # off (the default): the travel is eroded
 
 
+def room_then_corridor(
+    wheel_scale: float, degenerate_ratio: float, seed: int = 0
+) -> tuple[LaserOdometry, list]:
+    """A 6 x 6 m room (its far wall, with a 2 m wide corridor mouth, constrains every direction) opening
+    into a 40 m corridor; the robot drives 5 m through the room and 8 m down the corridor, 5 cm per scan,
+    with wheel odometry that reads ``wheel_scale`` times the true travel."""
+    from ptm_ros.io.simulator import simulate_scans
+
+    walls = np.array(
+        [
+            [-6.0, -3.0, 0.0, -3.0],
+            [0.0, -3.0, 0.0, -1.0],
+            [0.0, -1.0, 40.0, -1.0],
+            [40.0, 1.0, 0.0, 1.0],
+            [0.0, 1.0, 0.0, 3.0],
+            [0.0, 3.0, -6.0, 3.0],
+            [-6.0, 3.0, -6.0, -3.0],
+        ]
+    )
+    laser = SimLaserConfig()
+    x = np.arange(-5.0, 8.0, 0.05)
+    true = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    ranges = simulate_scans(walls, true, laser, np.random.default_rng(0))
+    wheel = true.copy()
+    wheel[:, 0] = -5.0 + wheel_scale * (x + 5.0)
+    lo = LaserOdometry(LaserOdometryConfig(degenerate_ratio=degenerate_ratio, scale_prior_m=0.5))
+    poses = [
+        lo.on_scan(pose, scan_to_points(r, -laser.fov / 2, laser.fov / (laser.beams - 1), 0.05, 20.0).points)
+        for pose, r in zip(wheel, ranges, strict=True)
+    ]
+    return lo, poses
+
+
+def test_the_wheel_scale_is_learned_where_the_scans_constrain_every_direction():
+    """Issue #23: a wheel odometry that under-reads travel by 5 % (MIT-CSAIL's reads 2.3 % short) is
+    scaled along the corridor by what the constrained matches in the room showed, not kept as it reads."""
+    lo, poses = room_then_corridor(0.95, 0.05)
+    assert lo.wheel_scale == pytest.approx(1.0 / 0.95, rel=0.01)
+    in_corridor = [p for p in poses if p[0] > 1.0]
+    travel = in_corridor[-1][0] - in_corridor[0][0]
+    true_travel = 0.05 * (len(in_corridor) - 1)
+    assert travel == pytest.approx(true_travel, rel=0.02)  # the wheel's own reading is 5 % short
+    off, _ = room_then_corridor(0.95, 0.0)
+    assert off.wheel_scale == 1.0  # learned only where wheel motion is kept (degenerate_ratio > 0)
+    lo_exact, _ = room_then_corridor(1.0, 0.05)
+    assert lo_exact.wheel_scale == pytest.approx(1.0, abs=0.01)
+
+
+def test_a_corridor_alone_teaches_no_wheel_scale():
+    """Matches that leave a direction to the wheel odometry measure no travel: the scale stays the prior."""
+    walls = np.array([[-30.0, -1.0, 30.0, -1.0], [30.0, 1.0, -30.0, 1.0]])
+    from ptm_ros.io.simulator import simulate_scans
+
+    laser = SimLaserConfig()
+    true = np.column_stack([np.arange(-4.0, 4.0, 0.05), np.zeros(160), np.zeros(160)])
+    ranges = simulate_scans(walls, true, laser, np.random.default_rng(0))
+    lo = LaserOdometry(LaserOdometryConfig(degenerate_ratio=0.05))
+    for pose, r in zip(true * [0.9, 1.0, 1.0], ranges, strict=True):
+        lo.on_scan(pose, scan_to_points(r, -laser.fov / 2, laser.fov / (laser.beams - 1), 0.05, 20.0).points)
+    assert lo.wheel_scale == 1.0
+
+
 def test_keep_unobserved_reverts_only_the_weak_directions():
     from ptm_ros.laser import keep_unobserved
 
