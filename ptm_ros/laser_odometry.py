@@ -19,7 +19,8 @@ keeping the odometry *incremental* (no loop closing happens here: that remains t
   the last keyframe;
 * degenerate directions: along a translation direction that the scan's planes hardly constrain (a
   corridor's axis: only the noise of the estimated wall normals "sees" it), ICP slides by a fraction of
-  every step and erases the travel; the wheel odometry's motion is kept there (``degenerate_ratio``);
+  every step and erases the travel; the wheel odometry's motion, times the wheel scale learned where the
+  scans constrain every direction, is kept there (``degenerate_ratio``, ``scale_prior_m``);
 * motion gate: a scan is matched only when the corrected pose moved ``match_xy`` or turned ``match_yaw``
   since the last scan that was matched (or whose match was rejected), or when ``match_interval`` seconds
   passed since that scan (scans with stamps); a scan inside the gate keeps ``C``
@@ -86,11 +87,10 @@ class LaserOdometryConfig:
             Intel, ACES and the simulator (issue #8's closing notes).
         degenerate_ratio: with ``refine``, a translation direction the scan constrains less than this
             fraction of its best-constrained one (eigenvalues of the point-to-plane information) keeps the
-            wheel odometry's motion (:func:`ptm_ros.laser.keep_unobserved`): a corridor's axis, which
-            noisy wall normals alone "see", so that matching does not erase the travel along it. 0 (the
-            default): off. 0.05 removes the 2–5 m of travel erased in the simulated corridor worlds, but
-            on MIT-CSAIL, whose wheel odometry the scans correct along its corridors, it turned MAP F1
-            0.87 into 0.50 (issue #23's closing note): not a default until it is decided per run.
+            wheel odometry's motion, scaled by the learned :attr:`LaserOdometry.wheel_scale`
+            (:func:`ptm_ros.laser.keep_unobserved`): a corridor's axis, which noisy wall normals alone
+            "see", so that matching does not erase the travel along it (issue #23: 2–5 m erased between
+            visits in the simulated corridor worlds; ``bench/calibration_corridors.md``). 0: off.
         scale_prior_m: with ``degenerate_ratio``, the wheel odometry kept along weak directions is scaled
             by the wheel scale learned from the run (:attr:`LaserOdometry.wheel_scale`): the path length of
             consecutive fully constrained matches over the wheel odometry's over the same steps, each sum
@@ -112,7 +112,7 @@ class LaserOdometryConfig:
     match_yaw: float = 0.02
     match_interval: float = 0.09
     time_offset: float = 0.0
-    degenerate_ratio: float = 0.0
+    degenerate_ratio: float = 0.05
     scale_prior_m: float = 5.0
 
     def __post_init__(self) -> None:

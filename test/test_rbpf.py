@@ -19,7 +19,7 @@ from ptm_ros.appearance import (
 )
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import NoMatch, RelativePose, between, compose
-from ptm_ros.odometry import OdometryConfig, metric_log_likelihood
+from ptm_ros.odometry import OdometryConfig, metric_log_likelihood, place_area
 from ptm_ros.partitions import bell, canonical
 from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, PriorConfig, YuleSimonPrior, make_prior
@@ -309,6 +309,24 @@ def test_full_filter_equals_exact_posterior_odometry(odometry_case):
     # the steps' increments add up to the evidence; every update reports its topologies
     assert math.isclose(sum(s.log_evidence_increment for s in flt.history), flt.log_evidence)
     assert [s.n_visits for s in flt.history] == list(range(1, 7))
+
+
+def test_a_learned_area_moves_the_weights_exactly(odometry_case):
+    """With ``area_m2`` 0 the filter's A grows with the visits (:func:`ptm_ros.odometry.mapped_area`) and
+    every particle is reweighted by (A_old / A_new)^places at each step: the full filter still equals
+    exact enumeration with the A of all the visits, as closely as with a fixed A."""
+    visits, _, _ = odometry_case
+    learned = replace(ODO, area_m2=0.0)
+    logp, _ = exact(visits, learned)
+    ex = normalize_log(logp)
+    pw = full_filter(visits, learned).ptm_weights()
+    assert total_variation(ex, pw) <= 0.02
+    # the learned A (a 6-visit square) is far smaller than 1000 m²: a different, still open posterior
+    fixed = normalize_log(exact(visits, ODO)[0])
+    assert total_variation(ex, fixed) > 0.05
+    # the filter that knew the final A from the start ends on the same weights, up to rounding
+    final = full_filter(visits, replace(ODO, area_m2=place_area(visits, learned))).ptm_weights()
+    assert total_variation(final, pw) <= 1e-9
 
 
 def test_full_filter_equals_exact_posterior_laser_and_appearance():
