@@ -393,7 +393,7 @@ def test_the_correction_keeps_the_wheel_travel_along_a_corridor(seed):
     across it."""
     wheel, corrected = corridor_travel(0.05, seed)
     assert corrected == pytest.approx(wheel, rel=0.02)
-    assert corridor_travel(0.0, seed)[1] < 0.95 * wheel  # off (the default): the travel is eroded
+    assert corridor_travel(0.0, seed)[1] < 0.95 * wheel  # off: the travel is eroded
 
 
 def room_then_corridor(
