@@ -50,6 +50,20 @@ def no_laser() -> PtmConfig:
 # ------------------------------------------------------------------------------------------- parameters
 
 
+def scan_msgs(sc):
+    """The ``LaserScan`` messages of a run's scans, in order."""
+    from sensor_msgs.msg import LaserScan
+
+    for k, t in enumerate(sc.stamps):
+        msg = LaserScan()
+        msg.header.stamp = common.time_msg(t)
+        msg.angle_min, msg.angle_increment = float(sc.angle_min[k]), float(sc.angle_increment[k])
+        msg.angle_max = msg.angle_min + (len(sc.ranges[k]) - 1) * msg.angle_increment
+        msg.range_min, msg.range_max = float(sc.range_min[k]), float(sc.range_max[k])
+        msg.ranges = [float(r) for r in sc.ranges[k]]
+        yield msg
+
+
 def test_every_config_leaf_is_a_typed_parameter():
     from rcl_interfaces.msg import ParameterType as T
 
@@ -614,13 +628,7 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         for t, pose in zip(run.odometry.stamps, odom, strict=True):
             odom_pub.publish(odometry_msg(t, pose))
         sc = run.scans
-        for k, t in enumerate(sc.stamps):
-            msg = LaserScan()
-            msg.header.stamp = common.time_msg(t)
-            msg.angle_min, msg.angle_increment = float(sc.angle_min[k]), float(sc.angle_increment[k])
-            msg.angle_max = msg.angle_min + (len(sc.ranges[k]) - 1) * msg.angle_increment
-            msg.range_min, msg.range_max = float(sc.range_min[k]), float(sc.range_max[k])
-            msg.ranges = [float(r) for r in sc.ranges[k]]
+        for msg in scan_msgs(sc):
             scan_pub.publish(msg)
         wait_for(lambda: mp.online.counters.scans == len(sc.stamps), timeout=30.0)
         reply = ros.call(probe, Trigger, "/map_publisher/save_map")  # draws everything received
@@ -704,13 +712,7 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
         for t, pose in zip(run.odometry.stamps, corrected_odometry(run, extractor), strict=True):
             odom_pub.publish(odometry_msg(t, pose))
         sc = run.scans
-        for k, t in enumerate(sc.stamps):
-            msg = LaserScan()
-            msg.header.stamp = common.time_msg(t)
-            msg.angle_min, msg.angle_increment = float(sc.angle_min[k]), float(sc.angle_increment[k])
-            msg.angle_max = msg.angle_min + (len(sc.ranges[k]) - 1) * msg.angle_increment
-            msg.range_min, msg.range_max = float(sc.range_min[k]), float(sc.range_max[k])
-            msg.ranges = [float(r) for r in sc.ranges[k]]
+        for msg in scan_msgs(sc):
             scan_pub.publish(msg)
         wait_for(lambda: mp.online.counters.scans == len(sc.stamps), timeout=30.0)
         wait_for(lambda: mp.ptm is not None and len(mp.ptm.landmarks) == len(sim_visits), timeout=60.0)

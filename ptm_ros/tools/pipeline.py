@@ -36,6 +36,7 @@ adds ``smoothing_s`` and ``map_s`` to ``wall_s`` (bag reading, detection and inf
 
 from __future__ import annotations
 
+import functools
 import heapq
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -648,17 +649,19 @@ def mcmc_notes(inference: Mapping[str, Any]) -> list[str]:
         return []
     state = "converged" if inference["converged"] else f"not converged (stopped: {inference['stop_reason']})"
     chains = inference["chains"]
-
-    def fig(key: str) -> str:
-        v = inference.get(key)
-        return "–" if v is None else f"{v:.3f}"
-
+    fig = functools.partial(_figure, inference)
     return [
         f"MCMC: {inference['iterations']} sweeps of {chains} chain{'s' if chains != 1 else ''} from "
         f"{inference['initial']}, {inference['n_evaluated']} topologies evaluated, {state}; TV of sample "
         f"doubling {fig('doubling_tv')}, between chains {fig('chain_tv')}; largest change of a visit "
         f"pair's same-place probability: doubling {fig('doubling_pair')}, between chains {fig('chain_pair')}"
     ]
+
+
+def _figure(values: Mapping[str, Any], key: str) -> str:
+    """``values[key]`` to 3 decimals for a report line, "–" when missing."""
+    v = values.get(key)
+    return "–" if v is None else f"{v:.3f}"
 
 
 def versus_notes(versus: Mapping[str, Any] | None) -> list[str]:
@@ -684,11 +687,7 @@ def map_quality_notes(quality: Mapping[str, Any] | None) -> list[str]:
     """A report line for :func:`map_quality_against`'s figures (none without them)."""
     if not quality:
         return []
-
-    def fig(key: str) -> str:
-        v = quality.get(key)
-        return "–" if v is None else f"{v:.3f}"
-
+    fig = functools.partial(_figure, quality)
     return [
         f"occupancy map against the same scans at the true poses (aligned as for the ATE): free-space leak "
         f"{fig('leak')}, free-area ratio {fig('free_area_ratio')}, wall precision {fig('wall_precision')}, "
