@@ -369,6 +369,25 @@ def test_cli_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert exc.value.code == 2
 
 
+def test_cli_refuses_a_ground_truth_that_covers_few_landmarks(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue #25: another run's ground truth overlapping this one's clock only in part (most landmarks
+    without truth) is refused with the figures, unless --force."""
+    gt = write_carmen_gt(tmp_path / "gt.txt", [0.0, 10.0], [(0.0, 0.0), (10.0, 0.0)])
+    landmarks = [Landmark(i, t, (0.0, 0.0, 0.0)) for i, t in enumerate([1.0, 9.0, 30.0, 40.0, 50.0])]
+    path = save_ptm(make_ptm(landmarks, {(0, 1, 2, 3, 4): 1.0}), tmp_path / "ptm.json")
+    code, _, err = run_cli([str(path), "--ground-truth", str(gt)], capsys)
+    assert code == 2
+    assert err.startswith("ptm-eval: error: 3 of 5 landmarks lie outside") and "--force" in err, err
+    assert err.count("\n") == 1
+    code, doc, err = run_cli([str(path), "--ground-truth", str(gt), "--force"], capsys)
+    assert code == 0, err
+    assert doc is not None and (doc["n_visits"], doc["n_visits_without_truth"]) == (5, 3)
+    half = save_ptm(make_ptm(landmarks[:4], {(0, 1, 2, 3): 1.0}), tmp_path / "half" / "ptm.json")
+    assert run_cli([str(half), "--ground-truth", str(gt)], capsys)[0] == 0  # 2 of 4: scored
+
+
 def test_cli_on_intel_ground_truth(
     datasets_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

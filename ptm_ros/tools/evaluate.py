@@ -100,6 +100,19 @@ def true_positions_for(
     return xy
 
 
+def check_truth_covers(score: Score) -> None:
+    """Refuse a score most of whose landmarks had no ground truth (their stamps outside its span): the
+    ground truth of another run, or of part of this one. Raises :class:`DataError` with the figures."""
+    from ptm_ros.errors import DataError
+
+    if 2 * score.n_visits_without_truth > score.n_visits:
+        msg = (
+            f"{score.n_visits_without_truth} of {score.n_visits} landmarks lie outside the ground truth's "
+            "time span: is it another run's? (--force scores the rest anyway)"
+        )
+        raise DataError(msg)
+
+
 def score_against_ground_truth(
     ptm: Ptm,
     ground_truth: str | Path | GroundTruthTrajectory,
@@ -296,6 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="map_server YAML to score as the run's map (default: map.yaml beside the ptm.json)",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="score even when most landmarks lie outside the ground truth's span (another run's truth?)",
+    )
     p.add_argument("--report", type=Path, default=None, help="also write the report with the score here")
     p.add_argument("--indent", type=int, default=2, help="JSON indentation (default 2)")
     return p
@@ -366,6 +384,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         truth = load_ground_truth(args.ground_truth)
         extrapolation = args.max_extrapolation
         score = score_against_ground_truth(ptm, truth, config=config, max_extrapolation=extrapolation)
+        if not args.force:
+            check_truth_covers(score)
         quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
             from ptm_ros.report import write_report
