@@ -8,6 +8,7 @@ import dataclasses
 import itertools
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -191,6 +192,12 @@ def test_ptm_run_with_the_ground_truth_detector_scores_the_true_topology(
         [p.stamp for p in truth.passages], abs=0.06
     )
     assert "mass on the true topology" in printed
+    # the true wall time of the whole run, with its phases (issue #25: the inference alone was printed)
+    done = re.search(
+        r"done in ([0-9.]+) s of wall time \(to the PTM ([0-9.]+) s, smoothing ([0-9.]+) s", printed
+    )
+    assert done is not None, printed
+    assert float(done[1]) >= float(done[2]) + float(done[3]) - 0.1
     assert eval_cli.main([str(out / "ptm.json"), "--ground-truth", str(out), "--no-topologies"]) == 0
     score = json.loads(capsys.readouterr().out)
     assert score["true_places_from"] == "place-ids" and score["n_true_places"] == len(

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -133,8 +134,9 @@ def _progress(quiet: bool):
     return wrap
 
 
-def format_summary(result, top: int) -> str:
-    """Human-readable lines: visits, the most probable topologies, and the score if any."""
+def format_summary(result, top: int, total_s: float | None = None) -> str:
+    """Human-readable lines: visits, the most probable topologies, the score if any, and (``total_s``)
+    the run's whole wall time with its phases."""
     from ptm_ros.doubts import doubt_lines, find_doubts
     from ptm_ros.report import label_string
     from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, inference_notes, map_quality_notes
@@ -170,10 +172,15 @@ def format_summary(result, top: int) -> str:
     if result.report_path:
         written.append(str(result.report_path))
     lines.append("wrote " + ", ".join(written))
+    if total_s is not None:
+        phases = {"to the PTM": "wall_s", "smoothing": "smoothing_s", "map": "map_s"}
+        parts = [f"{name} {ptm.timing[key]:.1f} s" for name, key in phases.items() if key in ptm.timing]
+        lines.append(f"done in {total_s:.1f} s of wall time ({', '.join(parts)}; the rest: files, report)")
     return "\n".join(lines)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    start = time.perf_counter()
     args = build_parser().parse_args(argv)
     from ptm_ros.config import load_config
     from ptm_ros.errors import PtmError
@@ -201,7 +208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     warning = skipped_warning(result.diagnostics)
     if warning:
         print(f"{PROG}: warning: {warning}", file=sys.stderr)
-    print(format_summary(result, args.top))
+    print(format_summary(result, args.top, total_s=time.perf_counter() - start))
     return 0
 
 
