@@ -16,10 +16,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml") + glob("config/*.xml"))),
         (f"share/{PACKAGE}/bags", sorted(glob("bags/*.json"))),
-        *[
-            (f"share/{PACKAGE}/{d}", sorted(glob(f"{d}/*")))
-            for d in sorted(glob("bags/*/"))
-        ],
+        *[(f"share/{PACKAGE}/{d}", sorted(glob(f"{d}/*"))) for d in sorted(glob("bags/*/"))],
     ],
     # the Python dependencies of every module (ROS 2 itself, rclpy and the messages, come from the ROS
     # install or the ros-jazzy-* wheels of requirements.txt; package.xml lists them for rosdep; OpenCV
