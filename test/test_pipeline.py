@@ -205,7 +205,7 @@ def test_cli_warns_about_skipped_input(monkeypatch, tmp_path, capsys):
 
     result = SimpleNamespace(diagnostics={"skipped": {"scan-empty": 4}})
     monkeypatch.setattr("ptm_ros.tools.pipeline.run_offline", lambda *a, **k: result)
-    monkeypatch.setattr(run_cli, "format_summary", lambda result, top: "summary")
+    monkeypatch.setattr(run_cli, "format_summary", lambda result, top, total_s=None: "summary")
     assert run_cli.main([str(tmp_path), "--out", str(tmp_path / "o"), "--quiet"]) == 0
     captured = capsys.readouterr()
     assert "ptm-run: warning: skipped 4 input messages (scan-empty 4)" in captured.err
