@@ -66,9 +66,7 @@ class ExtractorConfig:
     stall_s: float = 5.0  # s of odometry after which a silent expected topic no longer holds the stream
     record_corrections: bool = False  # keep (stamp, correction) of every scan (offline smoothing; grows)
     stream_poses: bool = False  # keep each odometry sample and scan used, with its pose, until taken
-    spread_distance: float = (
-        0.0  # m: a visit's signature spread is taken against a panorama this far away (0: none)
-    )
+    spread_distance: float = 0.0  # m: a visit's signature spread is against a panorama this far (0: none)
 
 
 @dataclass

@@ -553,7 +553,7 @@ def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two caller
     overlap = _Overlap(_Target(pts, 0.5 * voxel), surface, cfg.inlier_distance)
     aligned, _, information = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
     weak = weak_directions(information, degenerate_ratio)
-    return Alignment(keep_unobserved(aligned, guess, information, degenerate_ratio), len(weak))
+    return Alignment(_keep_guess_along(aligned, guess, weak), len(weak))
 
 
 def passage_patch(
@@ -1326,7 +1326,11 @@ def keep_unobserved(pose: FloatArray, guess: FloatArray, information: FloatArray
     "sees" the along-track one: point-to-point ICP and the polish then slide along the corridor by a
     fraction of every step, erasing the travel. ``ratio`` 0, or no information at all (the polish found no
     planes: ``pose`` is ICP's), keep ``pose``."""
-    weak = weak_directions(information, ratio)
+    return _keep_guess_along(pose, guess, weak_directions(information, ratio))
+
+
+def _keep_guess_along(pose: FloatArray, guess: FloatArray, weak: FloatArray) -> FloatArray:
+    """``pose`` with the translation of ``guess`` along the unit directions ``weak`` ``(k, 2)``."""
     if not len(weak):
         return pose
     shift = pose[:2] - guess[:2]

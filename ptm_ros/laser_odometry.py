@@ -261,14 +261,7 @@ class LaserOdometry:
                 min_points=cfg.min_points,
                 degenerate_ratio=ratio,
             )
-            step = None if aligned is None else between(guess, aligned.pose)
-            if (
-                aligned is None
-                or step is None
-                or math.hypot(step[0], step[1]) > cfg.max_correction_xy
-                or abs(step[2]) > cfg.max_correction_yaw
-                or self._map.inlier_fraction(pts, aligned.pose) < cfg.min_inlier_fraction
-            ):
+            if aligned is None or not self._acceptable(guess, aligned.pose, pts):
                 self.counters.rejected += 1
             else:
                 pose = aligned.pose
@@ -285,6 +278,18 @@ class LaserOdometry:
             self._last_key = pose
             self.counters.keyframes += 1
         return pose
+
+    def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray) -> bool:
+        """Whether a match corrects the guess within the step limits and places enough of the scan on
+        the local map (``max_correction_*``, ``min_inlier_fraction``)."""
+        cfg = self.config
+        step = between(guess, aligned)
+        assert self._map is not None  # a match was made on it
+        return (
+            math.hypot(step[0], step[1]) <= cfg.max_correction_xy
+            and abs(step[2]) <= cfg.max_correction_yaw
+            and self._map.inlier_fraction(pts, aligned) >= cfg.min_inlier_fraction
+        )
 
     def _scaled_guess(self, wheel: FloatArray) -> FloatArray:
         """The last matched pose moved by the wheel step since its scan, translation times

@@ -50,6 +50,20 @@ def no_laser() -> PtmConfig:
 # ------------------------------------------------------------------------------------------- parameters
 
 
+def filter_and_map_publisher(ros, overrides, out_dir):
+    """A topology filter node (``overrides``) and a map publisher writing to ``out_dir``, in ``ros``."""
+    from rclpy.parameter import Parameter
+
+    from ptm_ros.nodes.map_publisher import MapPublisherNode
+    from ptm_ros.nodes.topology_filter import TopologyFilterNode
+
+    flt = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
+    mp = ros.add(
+        MapPublisherNode(context=ros.context, parameter_overrides=[Parameter("out_dir", value=str(out_dir))])
+    )
+    return flt, mp
+
+
 def scan_msgs(sc):
     """The ``LaserScan`` messages of a run's scans, in order."""
     from sensor_msgs.msg import LaserScan
@@ -552,9 +566,6 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
     from std_srvs.srv import Trigger
     from visualization_msgs.msg import MarkerArray
 
-    from ptm_ros.nodes.map_publisher import MapPublisherNode
-    from ptm_ros.nodes.topology_filter import TopologyFilterNode
-
     config = no_laser()
     overrides = [
         Parameter("model.use_laser", value=False),
@@ -563,12 +574,7 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         Parameter("out_dir", value=str(tmp_path / "filter")),
     ]
     with ros_context(monkeypatch) as ros:
-        flt = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
-        mp = ros.add(
-            MapPublisherNode(
-                context=ros.context, parameter_overrides=[Parameter("out_dir", value=str(tmp_path))]
-            )
-        )
+        flt, mp = filter_and_map_publisher(ros, overrides, tmp_path)
         probe = ros.node("probe")
         graph = Inbox(probe, String, "ptm_graph", common.LATCHED_QOS)
         markers = Inbox(probe, MarkerArray, "ptm_markers", common.LATCHED_QOS)
@@ -681,9 +687,6 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    from ptm_ros.nodes.map_publisher import MapPublisherNode
-    from ptm_ros.nodes.topology_filter import TopologyFilterNode
-
     nav2_qos = QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
         depth=1,
@@ -692,12 +695,7 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
     )
     overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=30)]
     with ros_context(monkeypatch) as ros:
-        flt = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
-        mp = ros.add(
-            MapPublisherNode(
-                context=ros.context, parameter_overrides=[Parameter("out_dir", value=str(tmp_path))]
-            )
-        )
+        flt, mp = filter_and_map_publisher(ros, overrides, tmp_path)
         probe = ros.node("probe")
         visits = probe.create_publisher(String, "landmark_visits", common.STREAM_QOS)
         odom_pub = probe.create_publisher(Odometry, "landmark_odom", common.MAP_STREAM_QOS)
