@@ -89,13 +89,14 @@ def make_ptm(
     """Build a :class:`Ptm` from topology masses (merging duplicates, sorting most probable first).
 
     ``weighted`` may list one topology several times (e.g. particles); masses are summed per canonical
-    topology. ``top`` keeps only the most probable ones (the masses then sum to less than 1).
+    topology (a sum that rounds above 1 is 1). ``top`` keeps only the most probable ones (the masses then
+    sum to less than 1).
     """
     items = weighted.items() if isinstance(weighted, Mapping) else weighted
     mass: dict[Labels, float] = {}
     for labels, p in items:
         key = canonical(labels)
-        mass[key] = mass.get(key, 0.0) + float(p)
+        mass[key] = min(mass.get(key, 0.0) + float(p), 1.0)
     ranked = sorted(mass.items(), key=lambda kv: (-kv[1], kv[0]))
     if top is not None:
         ranked = ranked[:top]
