@@ -1,4 +1,5 @@
-"""The PTM result and its JSON form (schema ``ptm_ros.ptm/1``, see CONTRACT.md and README).
+"""The PTM result and its JSON form (schema ``ptm_ros.ptm/1``, see CONTRACT.md and README; its JSON
+Schema is ``ptm_ros/schema/ptm.schema.json``, loaded by :func:`ptm_schema`).
 
 A probabilistic topological map is the list of the most probable topologies of the landmark visits with
 their posterior masses (thesis Ch. 0.3). This module holds the result type shared by every inference
@@ -11,6 +12,7 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +23,8 @@ if TYPE_CHECKING:
     from ptm_ros.visits import Visit
 
 SCHEMA = "ptm_ros.ptm/1"
+#: The JSON Schema (draft 2020-12) of ptm.json, package data under ``ptm_ros/`` (:func:`ptm_schema`).
+SCHEMA_FILE = ("schema", "ptm.schema.json")
 
 
 @dataclass(frozen=True)
@@ -220,6 +224,12 @@ def save_ptm(ptm: Ptm, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(to_json_dict(ptm), indent=1) + "\n")
     return path
+
+
+def ptm_schema() -> dict[str, Any]:
+    """The JSON Schema of ptm.json (``ptm_ros/schema/ptm.schema.json``, installed with the package)."""
+    folder, name = SCHEMA_FILE
+    return json.loads((files("ptm_ros") / folder / name).read_text(encoding="utf-8"))
 
 
 def load_ptm(path: str | Path) -> Ptm:
