@@ -43,10 +43,10 @@ shortened by string pulling: from each kept vertex to the farthest later one who
 passable cells. The inner vertices become *waypoint* nodes (``metadata: {waypoint: true, places: [a,
 b], index: j}``), joined in both directions by *hop* edges that carry the connection's probability and
 traversals, their own length and ``places`` (the connection's direction). A connection that cannot be
-rerouted (a place in an occupied cell, no path within the corridor, more than ``max_waypoints``
-waypoints) is dropped and listed in the collection's ``metadata.dropped_edges`` with its reason. Without
-a map the edges are the straight segments, walls unchecked. Either way no written segment meets an
-occupied cell of the map it was checked against (:func:`crossing_segments` counts them).
+rerouted (a place in an occupied cell or off the map, no path within the corridor, more than
+``max_waypoints`` waypoints) is dropped and listed in the collection's ``metadata.dropped_edges`` with
+its reason. Without a map the edges are the straight segments, walls unchecked. Either way no written
+segment meets an occupied cell of the map it was checked against (:func:`crossing_segments` counts them).
 
 Ids depend only on the place indices, the number ``M`` of MAP places and ``max_waypoints`` ``K``, never on
 which other connections exist, so a route server can reload a graph rewritten from a grown ensemble:
@@ -86,8 +86,10 @@ NAV2_CRS = {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::3857"}
 MAX_ID = 2**32 - 1  # nav2 reads ids as unsigned int
 #: Why a connection was dropped (``metadata.dropped_edges[].reason``).
 PLACE_IN_WALL = "a place lies in an occupied cell"
+PLACE_OFF_MAP = "a place lies off the map"
 NO_ROUTE = "no path around the walls within the corridor"
 TOO_WINDING = "the path needs more than max_waypoints waypoints"
+SIGHT_CHUNK = 64  # later vertices string pulling tests at once
 # 8-connected steps (row, column) taken once each: right, up and the two upward diagonals.
 _STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))
 
@@ -273,23 +275,13 @@ def crossing_segments(doc: dict[str, Any], grid: ClassGrid) -> int:
     return int(np.count_nonzero(occupied_crossings(grid, np.concatenate(starts), np.concatenate(ends))))
 
 
-def _segment_distance(points: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Distance of each point ``(..., 2)`` to the segment ``a b``."""
+def _segment_distance(x: FloatArray, y: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """``(H, W)`` distances of the points ``(x[j], y[i])`` to the segment ``a b``."""
     ab = b - a
     l2 = float(ab @ ab)
-    t = np.clip((points - a) @ ab / l2, 0.0, 1.0) if l2 > 0 else np.zeros(points.shape[:-1])
-    return np.asarray(np.linalg.norm(points - (a + t[..., None] * ab), axis=-1), dtype=float)
-
-
-def _window(grid: ClassGrid, lo: tuple[int, int], hi: tuple[int, int]) -> NDArray[np.int8]:
-    """Classes of the cells ``lo .. hi`` (column, row; inclusive), unknown off the grid."""
-    cls = np.asarray(grid.classes)
-    out = np.full((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), UNKNOWN, dtype=np.int8)
-    r0, r1 = max(lo[1], 0), min(hi[1] + 1, cls.shape[0])
-    c0, c1 = max(lo[0], 0), min(hi[0] + 1, cls.shape[1])
-    if r0 < r1 and c0 < c1:
-        out[r0 - lo[1] : r1 - lo[1], c0 - lo[0] : c1 - lo[0]] = cls[r0:r1, c0:c1]
-    return out
+    dx, dy = x[None, :] - a[0], y[:, None] - a[1]
+    t = np.clip((dx * ab[0] + dy * ab[1]) / l2, 0.0, 1.0) if l2 > 0 else np.zeros(1)
+    return np.asarray(np.hypot(dx - t * ab[0], dy - t * ab[1]), dtype=float)
 
 
 def cell_graph(passable: NDArray[np.bool_], cost: FloatArray, resolution: float) -> csr_matrix:
@@ -318,15 +310,21 @@ def cell_graph(passable: NDArray[np.bool_], cost: FloatArray, resolution: float)
 def shortcut(points: FloatArray, open_cells: NDArray[np.bool_], lo: tuple[int, int]) -> FloatArray:
     """String pulling of a polyline ``(P, 2)`` in grid cell units: from each kept vertex to the farthest
     later vertex whose segment meets only ``open_cells`` (a window whose cell (0, 0) is ``lo``; outside
-    it nothing is open); a vertex that sees no later one keeps the next."""
+    it nothing is open); a vertex that sees no later one keeps the next. Later vertices are tried
+    :data:`SIGHT_CHUNK` at a time from the far end (memory bounded on long paths)."""
+    opened = open_cells.astype(np.int8)
     keep, i, n = [0], 0, len(points)
     while i < n - 1:
-        later = np.arange(i + 1, n)
-        ix, iy, ray = grid_traversal(points[i], points[later])
-        opened = _class_at(open_cells.astype(np.int8), ix, iy, lo) == 1
-        shut = np.bincount(ray[~opened], minlength=len(later))
-        seen = later[shut == 0]
-        i = int(seen[-1]) if len(seen) else i + 1
+        nxt = i + 1
+        for top in range(n, i + 1, -SIGHT_CHUNK):
+            later = np.arange(max(i + 1, top - SIGHT_CHUNK), top)
+            ix, iy, ray = grid_traversal(points[i], points[later])
+            shut = np.bincount(ray[_class_at(opened, ix, iy, lo) != 1], minlength=len(later))
+            seen = later[shut == 0]
+            if len(seen):
+                nxt = int(seen[-1])
+                break
+        i = nxt
         keep.append(i)
     return points[keep]
 
@@ -334,47 +332,45 @@ def shortcut(points: FloatArray, open_cells: NDArray[np.bool_], lo: tuple[int, i
 def plan_route(grid: ClassGrid, start: ArrayLike, end: ArrayLike, config: RouteConfig | None = None) -> Route:
     """The way between two places (world ``(2,)``) that meets no occupied cell of ``grid``: the straight
     segment when it meets none, else the path of the module docstring over the map's cells (not beyond
-    its edge); a dropped :class:`Route` when the start or end cell is occupied, no path lies within
-    ``config.corridor`` of the segment, or it needs more than ``config.max_waypoints`` waypoints."""
+    its edge); a dropped :class:`Route` when the start or end cell is occupied or off the map, no path
+    lies within ``config.corridor`` of the segment, or it needs more than ``config.max_waypoints``
+    waypoints."""
     cfg = config if config is not None else RouteConfig()
     p0, p1 = np.asarray(start, dtype=float).reshape(2), np.asarray(end, dtype=float).reshape(2)
     if occupied_crossings(grid, p0, p1)[0] == 0:
         return Route(np.array([p0, p1]))
     g0, g1 = _cells(grid, p0), _cells(grid, p1)
     s_cell, t_cell = np.floor(g0).astype(np.int64), np.floor(g1).astype(np.int64)
-    ends = _class_at(
-        np.asarray(grid.classes), np.array([s_cell[0], t_cell[0]]), np.array([s_cell[1], t_cell[1]])
-    )
-    if np.any(ends == OCCUPIED):
+    classes = np.asarray(grid.classes)
+    h, w = classes.shape
+    if not all(0 <= c[0] < w and 0 <= c[1] < h for c in (s_cell, t_cell)):
+        return Route(None, PLACE_OFF_MAP)
+    if OCCUPIED in (classes[s_cell[1], s_cell[0]], classes[t_cell[1], t_cell[0]]):
         return Route(None, PLACE_IN_WALL)
+    # the window: the corridor's bounding box on the map
     reach = cfg.corridor / grid.resolution
-    lo_a = np.floor(np.minimum(g0, g1) - reach).astype(np.int64)
-    hi_a = np.floor(np.maximum(g0, g1) + reach).astype(np.int64)
-    lo, hi = (int(lo_a[0]), int(lo_a[1])), (int(hi_a[0]), int(hi_a[1]))
-    cls = _window(grid, lo, hi)
-    rows, cols = np.indices(cls.shape)
-    on_map = (rows + lo[1] >= 0) & (rows + lo[1] < grid.classes.shape[0])
-    on_map &= (cols + lo[0] >= 0) & (cols + lo[0] < grid.classes.shape[1])
-    centres = np.stack([cols + lo[0] + 0.5, rows + lo[1] + 0.5], axis=-1)
-    passable = (_segment_distance(centres, g0, g1) <= reach) & (cls != OCCUPIED) & on_map
-    passable[s_cell[1] - lo[1], s_cell[0] - lo[0]] = passable[t_cell[1] - lo[1], t_cell[0] - lo[0]] = True
-    index = np.cumsum(passable).reshape(cls.shape) - 1  # numbering of cell_graph
-    s = int(index[s_cell[1] - lo[1], s_cell[0] - lo[0]])
-    t = int(index[t_cell[1] - lo[1], t_cell[0] - lo[0]])
+    c0, r0 = np.maximum(np.floor(np.minimum(g0, g1) - reach).astype(np.int64), 0)
+    c1, r1 = np.minimum(np.floor(np.maximum(g0, g1) + reach).astype(np.int64), (w - 1, h - 1))
+    cls = classes[r0 : r1 + 1, c0 : c1 + 1]
+    near = _segment_distance(np.arange(c0, c1 + 1) + 0.5, np.arange(r0, r1 + 1) + 0.5, g0, g1) <= reach
+    passable = near & (cls != OCCUPIED)
+    ends = [int((c[1] - r0) * cls.shape[1] + c[0] - c0) for c in (s_cell, t_cell)]  # flat in the window
+    passable.reshape(-1)[ends] = True  # on the map and not occupied: in the corridor however narrow
+    s, t = (int(np.count_nonzero(passable.reshape(-1)[:k])) for k in ends)  # their numbers in cell_graph
     cost = np.where(cls == FREE, 1.0, cfg.unknown_cost)
     dist, pred = dijkstra(
-        cell_graph(passable, cost, 1.0), directed=False, indices=s, return_predecessors=True
+        cell_graph(passable, cost, grid.resolution), directed=False, indices=s, return_predecessors=True
     )
     if not np.isfinite(dist[t]):
         return Route(None, NO_ROUTE)
     chain = [t]
     while chain[-1] != s:
         chain.append(int(pred[chain[-1]]))
-    flat = np.flatnonzero(passable.reshape(-1))[chain[::-1]]
-    path = centres.reshape(-1, 2)[flat]
+    row, col = np.divmod(np.flatnonzero(passable.reshape(-1))[chain[::-1]], cls.shape[1])
+    path = np.column_stack([col + c0 + 0.5, row + r0 + 0.5])  # cell centres, grid cell units
     # consecutive vertices see each other: a step's segment stays in its cells and, diagonally, the two
     # passable cells beside it (the end points lie in their cells)
-    pulled = shortcut(np.vstack([g0, path[1:-1], g1]), passable, lo)
+    pulled = shortcut(np.vstack([g0, path[1:-1], g1]), passable, (int(c0), int(r0)))
     if len(pulled) - 2 > cfg.max_waypoints:
         return Route(None, TOO_WINDING)
     world = np.asarray(grid.origin[:2]) + pulled * grid.resolution

@@ -19,6 +19,7 @@ from ptm_ros.ptm import Landmark, Ptm, Topology, make_ptm
 from ptm_ros.routes import (
     NO_ROUTE,
     PLACE_IN_WALL,
+    PLACE_OFF_MAP,
     TOO_WINDING,
     Route,
     RouteConfig,
@@ -328,6 +329,7 @@ def test_an_edge_with_no_way_round_is_dropped_and_counted() -> None:
     }
     # a place inside a wall cell: no edge of it can avoid the wall
     assert plan_route(grid, (WALL_X + 0.05, 5.0), (9.0, 5.0)) == Route(None, PLACE_IN_WALL)
+    assert plan_route(grid, (2.0, 5.0), (13.0, 5.0)) == Route(None, PLACE_OFF_MAP)
     assert plan_route(grid, (2.0, 5.0), (9.0, 5.0), RouteConfig(corridor=3.0)).reason == NO_ROUTE
     # a second wall from above at x = 4: under the first, over the second, two waypoints at least
     zigzag = walled_grid(7.0)
