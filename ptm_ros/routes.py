@@ -14,11 +14,12 @@ collection carries ``"name": "graph"`` and its ``crs`` member; a foreign ``metad
 the graph was made.
 
 Nodes are the places of the MAP (most probable) topology, at ``Topology.positions`` when present, else
-at the mean odometry position of their visits. Edge probabilities are the thesis' ensemble rule
-(Ch. 0.3.1: "the transition probabilities of edges are the sum of the probabilities of the topologies in
-the PTM containing that edge"), made meaningful across topologies whose place labels differ by naming
-places through visits: with ``r_a`` the first visit of MAP place ``a`` and ``T(k)`` the place of visit
-``k`` in topology ``T``,
+at the mean odometry position of their visits; given the trajectory a map was drawn along, at their
+medoid visit on it, so that they lie in the map's frame, off its walls (:func:`node_positions`). Edge
+probabilities are the thesis' ensemble rule (Ch. 0.3.1: "the transition probabilities of edges are the
+sum of the probabilities of the topologies in the PTM containing that edge"), made meaningful across
+topologies whose place labels differ by naming places through visits: with ``r_a`` the first visit of
+MAP place ``a`` and ``T(k)`` the place of visit ``k`` in topology ``T``,
 
 .. math::
     P(a \\leftrightarrow b) = \\frac{1}{S} \\sum_{T} p_T \\,
@@ -61,6 +62,7 @@ from __future__ import annotations
 import json
 import math
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +73,7 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.geometry import interpolate_poses
 from ptm_ros.map_quality import ClassGrid
 from ptm_ros.occupancy import FREE, OCCUPIED, UNKNOWN, grid_traversal
 from ptm_ros.partitions import num_places
@@ -106,7 +109,7 @@ class RouteConfig:
             pair owns, so changing it renumbers the waypoints and hops.
     """
 
-    corridor: float = 3.0
+    corridor: float = 6.0
     unknown_cost: float = 4.0
     max_waypoints: int = 16
 
@@ -138,24 +141,56 @@ class Route:
         return self.points is not None and len(self.points) > 2
 
 
-def node_positions(ptm: Ptm) -> np.ndarray:
-    """``(M, 2)`` positions of the MAP topology's places: its ``positions`` if given, else the mean
-    odometry position of each place's visits."""
+def place_means(labels: Sequence[int], xy: ArrayLike) -> FloatArray:
+    """``(M, 2)`` mean of the visit positions ``xy (N, 2)`` of each place of the labels ``(N,)``."""
+    lab = np.asarray(labels, dtype=np.intp)
+    pts = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if len(pts) != len(lab):
+        msg = f"{len(lab)} labels for {len(pts)} landmarks"
+        raise DataError(msg)
+    m = num_places(tuple(int(v) for v in lab))
+    counts = np.bincount(lab, minlength=m).astype(float)
+    return np.stack([np.bincount(lab, pts[:, c], minlength=m) / counts for c in (0, 1)], axis=1)
+
+
+def place_medoids(labels: Sequence[int], xy: ArrayLike) -> FloatArray:
+    """``(M, 2)``: for each place of the labels ``(N,)``, the position among its visits' ``xy (N, 2)``
+    with the least summed distance to the others (the first such visit on ties)."""
+    lab = np.asarray(labels, dtype=np.intp)
+    pts = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if len(pts) != len(lab):
+        msg = f"{len(lab)} labels for {len(pts)} landmarks"
+        raise DataError(msg)
+    out = np.empty((num_places(tuple(int(v) for v in lab)), 2))
+    for a in range(len(out)):
+        own = pts[lab == a]
+        out[a] = own[np.argmin(np.linalg.norm(own[:, None] - own[None], axis=2).sum(axis=1))]
+    return out
+
+
+def node_positions(ptm: Ptm, trajectory: tuple[ArrayLike, ArrayLike] | None = None) -> FloatArray:
+    """``(M, 2)`` positions of the MAP topology's places. With ``trajectory`` = ``(stamps (T,), poses
+    (T, 3))``, the path a map was drawn along, each place's medoid visit on it (:func:`place_medoids` of
+    :func:`ptm_ros.geometry.interpolate_poses` at the visits' stamps): in the map's frame, and a spot
+    the robot stood on, so off the walls even where the smoothing left a place's visits apart; else the
+    topology's ``positions`` if given, else the mean odometry position of each place's visits."""
     top = ptm.map_topology
     m = num_places(top.labels)
-    if top.positions is not None:
+    if trajectory is not None:
+        stamps = [lm.stamp for lm in ptm.landmarks]
+        try:
+            xy = interpolate_poses(trajectory[0], trajectory[1], stamps)[:, :2]
+        except ValueError as err:
+            msg = f"cannot place the visits on the trajectory: {err}"
+            raise DataError(msg) from err
+        pos = place_medoids(top.labels, xy)
+    elif top.positions is not None:
         if len(top.positions) != m:
             msg = f"the MAP topology has {m} places but {len(top.positions)} positions"
             raise DataError(msg)
         pos = np.asarray(top.positions, dtype=float).reshape(m, 2)
     else:
-        labels = np.asarray(top.labels, dtype=np.intp)
-        xy = np.array([lm.map_pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
-        if len(xy) != len(labels):
-            msg = f"{len(labels)} labels for {len(xy)} landmarks"
-            raise DataError(msg)
-        counts = np.bincount(labels, minlength=m).astype(float)
-        pos = np.stack([np.bincount(labels, xy[:, c], minlength=m) / counts for c in (0, 1)], axis=1)
+        pos = place_means(top.labels, [lm.map_pose[:2] for lm in ptm.landmarks])
     if not np.all(np.isfinite(pos)):
         msg = "place positions must be finite"
         raise DataError(msg)
@@ -458,19 +493,24 @@ def route_graph(
     *,
     frame_id: str | None = None,
     grid: ClassGrid | None = None,
+    trajectory: tuple[ArrayLike, ArrayLike] | None = None,
     config: RouteConfig | None = None,
 ) -> dict[str, Any]:
     """The nav2 route graph GeoJSON document of ``ptm`` (see the module docstring for the edges, the walls
     and the ids).
 
-    ``grid``: the run's occupancy map in the frame of the place positions; each connection whose straight
-    segment meets its walls is rerouted or dropped (:func:`plan_route` with ``config``). Without it the
-    edges are straight, walls unchecked. ``frame_id`` defaults to the PTM's frame.
+    ``grid``: the run's occupancy map; each connection whose straight segment meets its walls is
+    rerouted or dropped (:func:`plan_route` with ``config``). Without it the edges are straight, walls
+    unchecked. ``trajectory``: ``(stamps, poses)`` of the path the map was drawn along; the nodes are
+    then the places' medoid visits on it, in the map's frame (:func:`node_positions`), rather than the
+    topology's place positions, which the inference estimated from the visits' odometry and which may lie
+    metres off the map's corridors after a smoothing that moved the path. ``frame_id`` defaults to the
+    PTM's frame.
     """
     cfg = config if config is not None else RouteConfig()
     frame = ptm.frame_id if frame_id is None else frame_id
     top = ptm.map_topology
-    pos = node_positions(ptm)
+    pos = node_positions(ptm, trajectory)
     roots = first_visits(top.labels)
     mass, passages, listed = edge_statistics(ptm)
     if not (listed > 0.0 and math.isfinite(listed)):
@@ -507,6 +547,11 @@ def route_graph(
             "schema": SCHEMA,
             "frame_id": frame,
             "nodes": "places of the MAP topology, and waypoints of the edges rerouted around walls",
+            "node_positions": "medoid of the places' visits on the trajectory the map was drawn along"
+            if trajectory is not None
+            else "the MAP topology's place positions"
+            if top.positions is not None
+            else "mean odometry position of the places' visits",
             "edge_probability": "posterior mass of the listed topologies in which the robot travelled "
             "directly between the places of the two nodes' first visits",
             "topologies": len(ptm.topologies),

@@ -172,6 +172,9 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     assert all(p.parent == tmp_path and p.is_file() for p in result.files.values())
     graph = check_route_graph(tmp_path / "route_graph.geojson", ptm, tmp_path / "map.yaml")
     assert graph["metadata"]["walls"] == "checked against the run's occupancy map"
+    assert graph["metadata"]["node_positions"] == (
+        "medoid of the places' visits on the trajectory the map was drawn along"
+    )
     # The map, in the odometry frame, moved into the world frame: occupied cells on the simulated walls,
     # the walls covered, the true path through free cells.
     truth = json.loads((tjunction_bag / "ground_truth.json").read_text())
@@ -281,6 +284,7 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     assert not written & {"map.pgm", "map.yaml", "map.png"}  # --no-map
     doc = check_route_graph(tmp_path / "o" / "route_graph.geojson", load_ptm(tmp_path / "o" / "ptm.json"))
     assert doc["metadata"]["walls"] == "not checked: no map" and doc["metadata"]["waypoints"] == 0
+    assert doc["metadata"]["node_positions"] == "the MAP topology's place positions"
 
 
 def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):

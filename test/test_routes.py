@@ -25,6 +25,7 @@ from ptm_ros.routes import (
     RouteConfig,
     crossing_segments,
     occupied_crossings,
+    place_medoids,
     plan_route,
     route_block,
     route_graph,
@@ -371,3 +372,32 @@ def test_route_config_is_validated() -> None:
         RouteConfig(unknown_cost=0.5)
     with pytest.raises(ConfigError, match="max_waypoints"):
         RouteConfig(max_waypoints=0)
+
+
+def test_nodes_on_the_trajectory_the_map_was_drawn_along() -> None:
+    # the map's trajectory: the visits' odometry moved by (1, -2), sampled between the visits too
+    positions = {(0, 1, 2, 1, 0): [(1.0, 2.0), (3.0, 2.0), (3.0, 6.0)]}
+    ptm = make_ptm(landmarks(POSES), ENSEMBLE, positions=positions)
+    stamps = np.arange(0.0, 4.01, 0.5)
+    xy = np.array([p[:2] for p in POSES])
+    along = np.column_stack([np.interp(stamps, np.arange(5.0), xy[:, c]) + (1.0, -2.0)[c] for c in (0, 1)])
+    doc = route_graph(ptm, trajectory=(stamps, np.column_stack([along, np.zeros(len(stamps))])))
+    check_nav2_structure(doc)
+    nodes, _ = nodes_and_edges(doc)
+    # MAP (0, 1, 2, 1, 0): two visits each for places 0 and 1, a tie: their first visit
+    for a, k in enumerate((0, 1, 2)):
+        np.testing.assert_allclose(nodes[a]["geometry"]["coordinates"], xy[k] + (1.0, -2.0), atol=1e-12)
+    assert doc["metadata"]["node_positions"] == (
+        "medoid of the places' visits on the trajectory the map was drawn along"
+    )
+    assert route_graph(ptm)["metadata"]["node_positions"] == "the MAP topology's place positions"
+    with pytest.raises(DataError, match="cannot place the visits on the trajectory"):
+        route_graph(ptm, trajectory=(stamps[:3], np.zeros((2, 3))))
+
+
+def test_place_medoids_are_visits_nearest_the_others() -> None:
+    xy = [(0.0, 0.0), (10.0, 0.0), (1.0, 0.0), (5.0, 5.0)]
+    # place 0: summed distances 11, 19, 10 -> (1, 0), not the mean (3.67, 0); place 1: its one visit
+    np.testing.assert_array_equal(place_medoids((0, 0, 0, 1), xy), [(1.0, 0.0), (5.0, 5.0)])
+    with pytest.raises(DataError, match="3 labels for 4 landmarks"):
+        place_medoids((0, 0, 1), xy)

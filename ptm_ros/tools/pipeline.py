@@ -10,7 +10,7 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
 
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
 * ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
-  its edges kept off the map's walls (:func:`write_route_graph`);
+  its nodes on the map's trajectory and its edges kept off the map's walls (:func:`write_route_graph`);
 * ``map.pgm`` + ``map.yaml`` (nav2 ``map_server``) and ``map.png`` — the occupancy grid
   (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
@@ -492,7 +492,12 @@ def run_offline(
     files["ptm"] = ptm_path
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
     files["route_graph"] = write_route_graph(
-        ptm, out / OUTPUT_FILES["route_graph"], grid=walls, config=config.routes, log=log
+        ptm,
+        out / OUTPUT_FILES["route_graph"],
+        grid=walls,
+        trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
+        config=config.routes,
+        log=log,
     )
     if schedule is not None and truth is not None:  # what ptm-eval needs for the true-topology mass
         files["ground_truth"] = save_sim_gt(truth, out / OUTPUT_FILES["ground_truth"])
@@ -748,20 +753,23 @@ def write_route_graph(
     path: Path,
     *,
     grid: ClassGrid | None = None,
+    trajectory: tuple[np.ndarray, np.ndarray] | None = None,
     config: RouteConfig | None = None,
     log: Callable[[str], None] | None = None,
 ) -> Path:
     """The PTM as a nav2 route graph (:func:`ptm_ros.routes.route_graph`) at ``path``.
 
     ``grid``: the classes of the run's map (:func:`class_grid` of :func:`occupancy_grid`'s grid, the cells
-    of ``map.pgm``); edges crossing its walls are rerouted through waypoints or dropped
-    (:class:`ptm_ros.routes.RouteConfig` ``config``), and ``log`` receives :func:`route_notes`. Without
-    it (``ptm-run --no-map``, a bag without scans) the edges are the straight segments between the
-    places, walls unchecked, as before issue #24.
+    of ``map.pgm``) and ``trajectory`` ``(stamps, poses)`` the smoothed MAP trajectory it was drawn along
+    (:func:`map_trajectory`): the nodes are the places' visits on it, in the map's frame, and edges
+    crossing the map's walls are rerouted through waypoints or dropped
+    (:class:`ptm_ros.routes.RouteConfig` ``config``); ``log`` receives :func:`route_notes`. Without
+    them (``ptm-run --no-map``, a bag without scans) the nodes are the MAP topology's place positions and
+    the edges the straight segments between them, walls unchecked, as before issue #24.
     """
     from ptm_ros.routes import route_graph, save_route_graph
 
-    doc = route_graph(ptm, grid=grid, config=config)
+    doc = route_graph(ptm, grid=grid, trajectory=trajectory, config=config)
     if log is not None:
         for note in route_notes(doc["metadata"]):
             log(note)
