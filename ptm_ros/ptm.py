@@ -1,4 +1,5 @@
-"""The PTM result and its JSON form (schema ``ptm_ros.ptm/1``, see CONTRACT.md and README).
+"""The PTM result and its JSON form (schema ``ptm_ros.ptm/1``, see CONTRACT.md and README; its JSON
+Schema is ``ptm_ros/schema/ptm.schema.json``, loaded by :func:`ptm_schema`).
 
 A probabilistic topological map is the list of the most probable topologies of the landmark visits with
 their posterior masses (thesis Ch. 0.3). This module holds the result type shared by every inference
@@ -11,6 +12,7 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +23,8 @@ if TYPE_CHECKING:
     from ptm_ros.visits import Visit
 
 SCHEMA = "ptm_ros.ptm/1"
+#: The JSON Schema (draft 2020-12) of ptm.json, package data under ``ptm_ros/`` (:func:`ptm_schema`).
+SCHEMA_FILE = ("schema", "ptm.schema.json")
 
 
 @dataclass(frozen=True)
@@ -89,13 +93,14 @@ def make_ptm(
     """Build a :class:`Ptm` from topology masses (merging duplicates, sorting most probable first).
 
     ``weighted`` may list one topology several times (e.g. particles); masses are summed per canonical
-    topology. ``top`` keeps only the most probable ones (the masses then sum to less than 1).
+    topology (a sum that rounds above 1 is 1). ``top`` keeps only the most probable ones (the masses then
+    sum to less than 1).
     """
     items = weighted.items() if isinstance(weighted, Mapping) else weighted
     mass: dict[Labels, float] = {}
     for labels, p in items:
         key = canonical(labels)
-        mass[key] = mass.get(key, 0.0) + float(p)
+        mass[key] = min(mass.get(key, 0.0) + float(p), 1.0)
     ranked = sorted(mass.items(), key=lambda kv: (-kv[1], kv[0]))
     if top is not None:
         ranked = ranked[:top]
@@ -219,6 +224,12 @@ def save_ptm(ptm: Ptm, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(to_json_dict(ptm), indent=1) + "\n")
     return path
+
+
+def ptm_schema() -> dict[str, Any]:
+    """The JSON Schema of ptm.json (``ptm_ros/schema/ptm.schema.json``, installed with the package)."""
+    folder, name = SCHEMA_FILE
+    return json.loads((files("ptm_ros") / folder / name).read_text(encoding="utf-8"))
 
 
 def load_ptm(path: str | Path) -> Ptm:

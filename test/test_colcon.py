@@ -86,3 +86,16 @@ def test_colcon_installs_the_shared_files(workspace):
     assert sorted(p.name for p in (pkg / "bags").iterdir()) == sorted(
         p.name for p in (REPO / "bags").iterdir()
     )
+
+
+def test_colcon_installs_the_ptm_json_schema_as_package_data(workspace):
+    """``ptm_ros.ptm.ptm_schema`` finds the schema in the installed package (setup.py ``package_data``)."""
+    site = next((workspace / "lib").glob("python3*/site-packages"))
+    assert (site / "ptm_ros" / "schema" / "ptm.schema.json").is_file()
+    code = "from ptm_ros.ptm import ptm_schema; import ptm_ros; print(ptm_ros.__file__, ptm_schema()['$id'])"
+    out = run(
+        [sys.executable, "-c", code], env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}, cwd=workspace
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    where, schema_id = out.stdout.split()
+    assert where.startswith(str(site)) and schema_id == "urn:ptm_ros:schema:ptm/1"

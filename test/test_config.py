@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
+import yaml
 
 from ptm_ros.config import PtmConfig, load_config, ros_parameters_yaml, save_config
 from ptm_ros.errors import ConfigError
@@ -15,6 +18,56 @@ REPO = Path(__file__).resolve().parents[1]
 def test_shipped_defaults_file_matches_the_dataclasses():
     assert (REPO / "config" / "ptm.yaml").read_text() == ros_parameters_yaml()
     assert load_config(REPO / "config" / "ptm.yaml") == PtmConfig()
+
+
+#: Fields the shipped ptm.yaml leaves out: their default is None ("unset"), which a ROS 2 parameter cannot
+#: hold; a missing key takes the default.
+UNSET_BY_DEFAULT = {
+    "model.appearance.nig_kappa",
+    "model.appearance.dcm_alpha",
+    "detector.kind",
+    "detector.vocabulary",
+}
+
+
+def default_fields(config: Any, prefix: str = "") -> dict[str, Any]:
+    """Every leaf field of a config dataclass instance by dotted name, with its value."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out |= default_fields(value, f"{prefix}{f.name}.")
+        else:
+            out[f"{prefix}{f.name}"] = value
+    return out
+
+
+def yaml_leaves(doc: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Every leaf of a nested YAML mapping by dotted name (lists are leaves)."""
+    out: dict[str, Any] = {}
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            out |= yaml_leaves(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def test_shipped_defaults_file_lists_every_field_with_its_default():
+    """config/ptm.yaml against PtmConfig field by field: every key is a field with that default, every
+    field is a key (except those unset by default, named above)."""
+    doc = yaml.safe_load((REPO / "config" / "ptm.yaml").read_text())
+    listed = yaml_leaves(doc["/**"]["ros__parameters"])
+    fields = default_fields(PtmConfig())
+    assert sorted(set(listed) - set(fields)) == [], "keys of config/ptm.yaml that PtmConfig lacks"
+    assert sorted(set(fields) - set(listed)) == sorted(UNSET_BY_DEFAULT)
+    assert all(fields[name] is None for name in UNSET_BY_DEFAULT)
+    differing = {
+        name: (value, fields[name])
+        for name, value in listed.items()
+        if (list(fields[name]) if isinstance(fields[name], tuple) else fields[name]) != value
+    }
+    assert differing == {}, "config/ptm.yaml value, PtmConfig default"
 
 
 def write(tmp_path, text):

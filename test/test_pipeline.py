@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 from types import SimpleNamespace
 
+import jsonschema
 import numpy as np
 import pytest
 from scipy.optimize import minimize
@@ -22,7 +23,7 @@ from ptm_ros.io.worlds import get_world
 from ptm_ros.map_quality import ClassGrid
 from ptm_ros.occupancy import FREE, OCCUPIED, load_map
 from ptm_ros.partitions import bell, num_places
-from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, to_json_dict
+from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
 from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
 from ptm_ros.routes import RouteConfig, crossing_segments
 from ptm_ros.session import cold_chain_details
@@ -156,6 +157,7 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     assert ptm.topologies[0].positions is not None
     assert len(ptm.topologies[0].positions) == len(set(ptm.topologies[0].labels))
     doc = json.loads((tmp_path / "ptm.json").read_text())
+    jsonschema.validate(doc, ptm_schema())
     assert doc["detector"] == "equidistant" and "diagnostics" in doc
     assert load_config(tmp_path / "config.yaml") == config.__class__(
         **{
@@ -297,6 +299,7 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     for method in ("exact", "mcmc", "rbpf"):
         cfg = small_config(model=model, inference={"method": method, "top": 10_000, "particles": 10_000})
         ptms[method] = run_offline(tjunction_bag, tmp_path / method, cfg, write_report=False).ptm
+        jsonschema.validate(json.loads((tmp_path / method / "ptm.json").read_text()), ptm_schema())
     dist = {m: {t.labels: t.probability for t in p.topologies} for m, p in ptms.items()}
     assert total_variation(dist["exact"], dist["mcmc"]) < 0.01
     assert total_variation(dist["exact"], dist["rbpf"]) < 0.05  # EKF linearisation vs batch Laplace
@@ -322,6 +325,7 @@ def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tm
     model = {"use_laser": False}  # importance sampling: the separation prior integrated, as the filter does
     inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {**start, "chains": 2}}
     ptm = run_offline(tjunction_bag, tmp_path / "m", small_config(model=model, inference=inference)).ptm
+    jsonschema.validate(json.loads((tmp_path / "m" / "ptm.json").read_text()), ptm_schema())
     exact_cfg = small_config(model=model, inference={"method": "exact", "top": 10_000})
     exact = run_offline(tjunction_bag, tmp_path / "e", exact_cfg, write_report=False).ptm
     versus = ptm.inference["versus_rbpf"]

@@ -37,10 +37,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate",
         type=float,
         default=1.0,
-        help="speed factor (default 1 = recorded speed; 0 = as fast as possible)",
+        help="speed factor (1 = recorded speed; 0 = as fast as the subscribers keep up; "
+        "default: %(default)s)",
     )
     p.add_argument("--topics", nargs="+", default=None, help="replay only these topics (default: all)")
-    p.add_argument("--wait", type=float, default=30.0, help="s to wait for subscribers (default 30)")
+    p.add_argument(
+        "--wait", type=float, default=30.0, help="s to wait for subscribers (default: %(default)s)"
+    )
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     return p
 

@@ -63,34 +63,53 @@ MAP_TIMEOUT_S = 120.0  # s the map publisher gets, after the ensemble is complet
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description="Start the ptm_ros nodes (and a bag player) over DDS.")
-    p.add_argument("--bag", type=Path, default=None, help="replay this rosbag2 and stop at its end")
     p.add_argument(
-        "--rate", type=float, default=1.0, help="replay speed (default 1; 0 = as fast as possible)"
+        "--bag",
+        type=Path,
+        default=None,
+        help="replay this rosbag2 and stop at its end (default: none, the nodes read the live topics)",
     )
-    p.add_argument("--params", type=Path, default=None, help="YAML parameter file (plain or ROS form)")
     p.add_argument(
-        "--out", type=Path, default=Path("out/bringup"), help="output directory (default out/bringup)"
+        "--rate",
+        type=float,
+        default=1.0,
+        help="replay speed (0 = as fast as the nodes keep up; default: %(default)s)",
     )
-    p.add_argument("--wait", type=float, default=60.0, help="s to wait for the nodes to come up (default 60)")
     p.add_argument(
-        "--timeout", type=float, default=600.0, help="s to wait for the map after the bag ended (default 600)"
+        "--params",
+        type=Path,
+        default=None,
+        help="YAML parameter file, plain or ROS form (default: none, the built-in defaults)",
+    )
+    p.add_argument(
+        "--out", type=Path, default=Path("out/bringup"), help="output directory (default: %(default)s)"
+    )
+    p.add_argument(
+        "--wait", type=float, default=60.0, help="s to wait for the nodes to come up (default: %(default)s)"
+    )
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=600.0,
+        help="s to wait for the map after the bag ended (default: %(default)s)",
     )
     p.add_argument("--no-report", action="store_true", help="skip the report and figures (with --bag)")
-    p.add_argument("--top", type=int, default=5, help="topologies to print (default 5)")
+    p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
     p.add_argument(
         "--respawn",
         type=int,
         default=0,
         metavar="N",
-        help="restart a node that dies, up to N times per node (default 0: a dead node ends the run)",
+        help="restart a node that dies, up to N times per node (default: %(default)s: a dead node ends "
+        "the run)",
     )
     p.add_argument(
         "--autosave",
         type=int,
         default=0,
         metavar="N",
-        help=f"the filter saves its state to DIR/{STATE_FILE} every N visits (default 0: off); a "
-        "respawned filter resumes from it",
+        help=f"the filter saves its state to DIR/{STATE_FILE} every N visits; a respawned filter resumes "
+        "from it (default: %(default)s, off)",
     )
     return p
 

@@ -38,18 +38,33 @@ DEFAULT_OFFSETS = (0.0, -0.05, -0.1, -0.15, -0.2, -0.25, -0.3)
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("bag", type=Path, help="rosbag2 directory with /odom and /scan")
-    p.add_argument("--params", type=Path, default=None, help="YAML parameter file (see config/ptm.yaml)")
+    p.add_argument(
+        "--params",
+        type=Path,
+        default=None,
+        help="YAML parameter file, any subset of config/ptm.yaml (default: none, the built-in defaults)",
+    )
     p.add_argument(
         "--offsets",
         type=float,
         nargs="+",
         default=list(DEFAULT_OFFSETS),
         metavar="S",
-        help="candidate offsets in [-1, 0] s (0 is always tried; default: 0 to -0.3 in 0.05 s steps)",
+        help="candidate offsets in [-1, 0] s (0 is always tried; default: %(default)s)",
     )
-    p.add_argument("--min-gain", type=float, default=0.05, help="relative RMS gain over 0 needed (0.05)")
-    p.add_argument("--max-scans", type=int, default=None, help="use only the first N scans")
-    p.add_argument("--out", type=Path, default=None, help="write the parameters with the offset here")
+    p.add_argument(
+        "--min-gain",
+        type=float,
+        default=0.05,
+        help="relative RMS gain over offset 0 needed (default: %(default)s)",
+    )
+    p.add_argument("--max-scans", type=int, default=None, help="use only the first N scans (default: all)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="write the parameters with the offset here (default: print only)",
+    )
     return p
 
 

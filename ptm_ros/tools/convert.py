@@ -160,7 +160,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("log", type=Path, help="CARMEN log file")
     parser.add_argument("out_bag", type=Path, help="rosbag2 directory to create (must not exist)")
-    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="default: mcap")
+    parser.add_argument(
+        "--storage",
+        choices=("mcap", "sqlite3"),
+        default="mcap",
+        help="rosbag2 storage (default: %(default)s)",
+    )
     parser.add_argument(
         "--max-range",
         type=float,

@@ -281,26 +281,57 @@ def build_parser() -> argparse.ArgumentParser:
     d = EvalConfig()
     p = argparse.ArgumentParser(prog=PROG, description="Score a PTM (ptm.json) against a ground truth.")
     p.add_argument(
-        "ptm", type=Path, nargs="+", help="the ptm.json to score (--calibration: runs, see the module doc)"
+        "ptm",
+        type=Path,
+        nargs="+",
+        help="the ptm.json to score (with --calibration: any number of ptm.json files, run directories "
+        "holding one, or directories searched for them)",
     )
-    p.add_argument("--ground-truth", type=Path, default=None, help="ground-truth file (see io.groundtruth)")
+    p.add_argument(
+        "--ground-truth",
+        type=Path,
+        default=None,
+        help="the ground truth: a CARMEN *-gt-*.txt file, a ground_truth.json (written by ptm-sim and by "
+        "ptm-run --detector ground-truth) or a directory holding one, e.g. a simulated bag (required "
+        "unless --calibration; there the default is each run's own)",
+    )
     p.add_argument(
         "--calibration",
         action="store_true",
         help="score many runs and print the calibration of the MAP probability (ECE, Brier, ...)",
     )
     p.add_argument(
-        "--plot", type=Path, default=None, help="--calibration: write the reliability diagram here"
+        "--plot",
+        type=Path,
+        default=None,
+        help="--calibration: write the reliability diagram (PNG) here (default: none)",
     )
-    p.add_argument("--bins", type=int, default=CALIBRATION_BINS, help="--calibration: probability bins")
-    p.add_argument("--seed", type=int, default=0, help="--calibration: seed of the chance-level redraws")
-    p.add_argument("--same-radius", type=float, default=d.same_radius, help="same place below (m)")
-    p.add_argument("--different-radius", type=float, default=d.different_radius, help="different above (m)")
+    p.add_argument(
+        "--bins",
+        type=int,
+        default=CALIBRATION_BINS,
+        help="--calibration: probability bins (default: %(default)s)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="--calibration: seed of the chance-level redraws (default: %(default)s)",
+    )
+    p.add_argument(
+        "--same-radius", type=float, default=d.same_radius, help="same place below (m; default: %(default)s)"
+    )
+    p.add_argument(
+        "--different-radius",
+        type=float,
+        default=d.different_radius,
+        help="different places above (m; default: %(default)s)",
+    )
     p.add_argument(
         "--max-extrapolation",
         type=float,
         default=0.5,
-        help="how far (s) a landmark stamp may lie outside the ground-truth span",
+        help="how far (s) a landmark stamp may lie outside the ground-truth span (default: %(default)s)",
     )
     p.add_argument("--no-topologies", action="store_true", help="leave out the per-topology list")
     p.add_argument(
@@ -314,8 +345,10 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="score even when most landmarks lie outside the ground truth's span (another run's truth?)",
     )
-    p.add_argument("--report", type=Path, default=None, help="also write the report with the score here")
-    p.add_argument("--indent", type=int, default=2, help="JSON indentation (default 2)")
+    p.add_argument(
+        "--report", type=Path, default=None, help="also write the report with the score here (default: none)"
+    )
+    p.add_argument("--indent", type=int, default=2, help="JSON indentation (default: %(default)s)")
     return p
 
 

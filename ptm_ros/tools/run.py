@@ -38,8 +38,9 @@ PROG = "ptm-run"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ptm_ros.config import DETECTORS
+    from ptm_ros.config import DETECTORS, InferenceConfig
 
+    inf = InferenceConfig()
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Compute a probabilistic topological map from a bag.",
@@ -49,7 +50,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("bag", type=Path, help="rosbag2 directory with /odom (and /scan, /panorama)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    p.add_argument("--method", choices=("rbpf", "mcmc", "exact"), default=None, help="estimator")
+    p.add_argument(
+        "--method",
+        choices=("rbpf", "mcmc", "exact"),
+        default=None,
+        help=f"estimator (default: inference.method of --params, else {inf.method})",
+    )
     p.add_argument(
         "--detector",
         choices=DETECTORS,
@@ -58,11 +64,32 @@ def build_parser() -> argparse.ArgumentParser:
         "fixed along the ground truth's path, the thesis' Intel protocol, needs --ground-truth or a "
         "simulated bag)",
     )
-    p.add_argument("--particles", type=int, default=None, help="particles of the RBPF")
-    p.add_argument("--params", type=Path, default=None, help="YAML parameter file (see config/ptm.yaml)")
-    p.add_argument("--seed", type=int, default=None, help="random seed")
-    p.add_argument("--ground-truth", type=Path, default=None, help="score against this ground truth")
-    p.add_argument("--top", type=int, default=5, help="topologies to print (default 5)")
+    p.add_argument(
+        "--particles",
+        type=int,
+        default=None,
+        help=f"particles of the RBPF (default: inference.particles of --params, else {inf.particles})",
+    )
+    p.add_argument(
+        "--params",
+        type=Path,
+        default=None,
+        help="YAML parameter file, any subset of config/ptm.yaml (default: none, the built-in defaults)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help=f"random seed (default: inference.seed of --params, else {inf.seed})",
+    )
+    p.add_argument(
+        "--ground-truth",
+        type=Path,
+        default=None,
+        help="score against this ground truth: a CARMEN *-gt-*.txt file or a ground_truth.json (default: "
+        "the bag's own ground_truth.json, if any)",
+    )
+    p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
     p.add_argument("--no-report", action="store_true", help="skip the figures and report")
     p.add_argument("--no-map", action="store_true", help="skip the occupancy map (map.pgm/.yaml/.png)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -71,7 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="N",
-        help="rbpf: save the filter state every N visits and at the end (to DIR/filter_state.npz)",
+        help="rbpf: save the filter state every N visits and at the end (to DIR/filter_state.npz; "
+        "default: off)",
     )
     p.add_argument(
         "--resume",
@@ -84,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         metavar="PATH",
-        help="the state file of --autosave/--resume (default DIR/filter_state.npz)",
+        help="the state file of --autosave/--resume (default: DIR/filter_state.npz)",
     )
     return p
 

@@ -28,10 +28,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("out_bag", type=Path, help="rosbag2 directory to create (must not exist)")
     parser.add_argument(
-        "--seed", type=_seed, default=0, help="random seed of the sensor noise, an integer >= 0 (default: 0)"
+        "--seed",
+        type=_seed,
+        default=0,
+        help="random seed of the sensor noise, an integer >= 0 (default: %(default)s)",
     )
     parser.add_argument(
-        "--world", choices=sorted(WORLDS), default=DEFAULT_WORLD, help=f"default: {DEFAULT_WORLD}"
+        "--world",
+        choices=sorted(WORLDS),
+        default=DEFAULT_WORLD,
+        help="the world to drive through (default: %(default)s)",
     )
     parser.add_argument(
         "--landmarks",
@@ -40,7 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="number of place visits, cycling the world's route (default: the world's own)",
     )
-    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="default: mcap")
+    parser.add_argument(
+        "--storage",
+        choices=("mcap", "sqlite3"),
+        default="mcap",
+        help="rosbag2 storage (default: %(default)s)",
+    )
     parser.add_argument("--no-images", action="store_true", help="write no /panorama topic")
     return parser
 
