@@ -78,6 +78,7 @@ from ptm_ros.io.validation import header_stamp_ns
 
 if typing.TYPE_CHECKING:
     from rclpy.node import Node
+    from rclpy.publisher import Publisher
 
 # ------------------------------------------------------------------------------------- end of input
 
@@ -126,6 +127,18 @@ MAP_STREAM_QOS = QoSProfile(
 
 #: Display topics (landmark poses): reliable, a deep queue.
 DISPLAY_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+#: A node module's table of what it publishes: topic -> (message type, QoS or history depth).
+Publishes = Mapping[str, tuple[type, QoSProfile | int]]
+
+
+def advertise(node: Node, publishes: Publishes, topic: str) -> Publisher:
+    """The publisher of ``topic`` with the message type and QoS of the node module's table ``publishes``:
+    the node creates its publishers from the table that tools read without starting DDS (the RViz
+    configuration's test, ``test/test_rviz.py``), so the two cannot disagree."""
+    msg_type, qos = publishes[topic]
+    return node.create_publisher(msg_type, topic, qos)
 
 
 def sensor_qos(kind: str) -> QoSProfile:
