@@ -28,7 +28,7 @@ $(VENV): requirements.txt
 install: $(VENV)
 	$(PIP) install -q --no-deps --no-build-isolation .
 
-# The whole suite, after the lint (formatting, ruff, the import layers of .importlinter).
+# The whole suite, after the lint (formatting, ruff, the import layers of .importlinter, mypy.ini's types).
 test: lint install
 	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 test
 
@@ -43,6 +43,7 @@ lint: $(VENV)
 	$(VENV)/bin/ruff check ptm_ros test bench
 	$(VENV)/bin/ruff format --check ptm_ros test bench
 	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/mypy
 
 clean:
-	rm -rf build *.egg-info out .pytest_cache
+	rm -rf build *.egg-info out .pytest_cache .mypy_cache
