@@ -16,7 +16,7 @@ ROS_ENV = AMENT_PREFIX_PATH=$(abspath $(VENV)) \
 	FASTDDS_DEFAULT_PROFILES_FILE=$(abspath config/fastdds.xml) \
 	RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 
-.PHONY: demo test bench install lint clean
+.PHONY: demo test check bench install lint clean
 
 $(VENV): requirements.txt
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,10 @@ install: $(VENV)
 # The whole suite, after the lint (formatting, ruff, the import layers of .importlinter, mypy.ini's types).
 test: lint install
 	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 test
+
+# The fast subset, after the lint: no test marked slow (many seconds) or dds (rclpy nodes over DDS).
+check: lint install
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider -m "not slow and not dds" test
 
 # The node suite over DDS on the bundled bag (separate processes, launch-free), then the score.
 demo: install

@@ -94,6 +94,7 @@ def check_route_graph(path: Path, ptm: Ptm) -> None:
     assert steps <= directed  # every passage of the MAP topology is an edge
 
 
+@pytest.mark.slow
 def test_visits_follow_the_odometry(tjunction_bag):
     run = read_run(tjunction_bag)
     diag = {}
@@ -126,6 +127,7 @@ def test_visits_follow_the_odometry(tjunction_bag):
     )
 
 
+@pytest.mark.slow
 def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     config = small_config()
     result = run_offline(tjunction_bag, tmp_path, config)
@@ -240,6 +242,7 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     assert not written & {"map.pgm", "map.yaml", "map.png"}  # --no-map
 
 
+@pytest.mark.slow
 def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     """The three estimators over the same visits and model: MCMC's visited-set estimate and the filter
     (particles >= the number of topologies it can hold) against enumeration."""
@@ -267,6 +270,7 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert inference_notes(ptms["rbpf"].inference) == [] == inference_notes(ptms["exact"].inference)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", [{"initial": "rbpf"}, {"initial": "auto", "auto_filter_visits": 3}])
 def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path, start):
     """``initial: rbpf`` (or ``auto`` on a run longer than ``auto_filter_visits``): the chains start from
