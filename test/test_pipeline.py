@@ -111,6 +111,7 @@ def check_route_graph(path: Path, ptm: Ptm, map_yaml: Path | None = None) -> dic
     return doc
 
 
+@pytest.mark.slow
 def test_visits_follow_the_odometry(tjunction_bag):
     run = read_run(tjunction_bag)
     diag = {}
@@ -143,6 +144,7 @@ def test_visits_follow_the_odometry(tjunction_bag):
     )
 
 
+@pytest.mark.slow
 def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     config = small_config()
     result = run_offline(tjunction_bag, tmp_path, config)
@@ -289,6 +291,7 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     assert doc["metadata"]["node_positions"] == "the MAP topology's place positions"
 
 
+@pytest.mark.slow
 def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     """The three estimators over the same visits and model: MCMC's visited-set estimate and the filter
     (particles >= the number of topologies it can hold) against enumeration."""
@@ -316,6 +319,7 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert inference_notes(ptms["rbpf"].inference) == [] == inference_notes(ptms["exact"].inference)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", [{"initial": "rbpf"}, {"initial": "auto", "auto_filter_visits": 3}])
 def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path, start):
     """``initial: rbpf`` (or ``auto`` on a run longer than ``auto_filter_visits``): the chains start from

@@ -279,8 +279,8 @@ def config_parameters(root: type = PtmConfig, prefix: str = "") -> tuple[ConfigP
             continue
         name = f"{prefix}{f.name}"
         hint, optional = _unwrap_optional(hints[f.name])
-        if dataclasses.is_dataclass(hint):
-            out.extend(config_parameters(hint, f"{name}."))  # type: ignore[arg-type]
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            out.extend(config_parameters(hint, f"{name}."))
             continue
         if f.default is not dataclasses.MISSING:
             default = f.default
@@ -736,7 +736,8 @@ class StreamGuard:
         if event is None:
             outliers = self.held
             self._runs.clear()
-            if stamp >= self._last[0]:  # type: ignore[index]
+            assert self._last is not None  # else the event is START
+            if stamp >= self._last[0]:
                 self._accept(stamp, payload)
             return Admission(released=((stamp, payload),), outliers=outliers)
         outliers = 0
@@ -902,7 +903,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, nam
         finally:
             # armed until the process exits (not cancelled): a hang in the node's teardown, in rclpy's
             # shutdown or in the interpreter's exit prints the stacks instead of dying silently
-            faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__)
+            faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__ or sys.stderr)
             node.destroy_node()
         return 0
     finally:

@@ -120,7 +120,7 @@ from ptm_ros.persistence import (
 from ptm_ros.ptm import Ptm, Topology, to_json_dict
 from ptm_ros.rbpf import FilterState
 from ptm_ros.session import FilterSession
-from ptm_ros.visits import Visit
+from ptm_ros.visits import Visit, pose_field
 
 NODE_NAME = "topology_filter"
 GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
@@ -610,7 +610,7 @@ class TopologyFilterNode(Node):
             self._end_count = None if state["end_count"] is None else int(state["end_count"])
             self._stream = state["stream"]
             first = state["first"]
-            self._first = None if first is None else (float(first[0]), tuple(float(x) for x in first[1]))
+            self._first = None if first is None else (float(first[0]), pose_field(first[1]))
             self._last_stamp = float(state["last_stamp"])
             self._last = None if state["last"] is None else FilterState(*state["last"])
             unknown = set(state["counters"]) - set(COUNTERS)
@@ -622,7 +622,8 @@ class TopologyFilterNode(Node):
         except (KeyError, TypeError, ValueError, IndexError) as err:
             msg = f"malformed {NODE_NAME} state: {type(err).__name__}: {err}"
             raise DataError(msg) from err
-        self._resumed = {**self._retired, self._stream: self._next_index or 0}
+        self._resumed = dict(self._retired.items())
+        self._resumed[self._stream] = self._next_index or 0
         self._unsaved, self._dirty = 0, False
 
     def _reset_all(self) -> None:
