@@ -16,7 +16,7 @@ ROS_ENV = AMENT_PREFIX_PATH=$(abspath $(VENV)) \
 	FASTDDS_DEFAULT_PROFILES_FILE=$(abspath config/fastdds.xml) \
 	RMW_IMPLEMENTATION=rmw_fastrtps_cpp
 
-.PHONY: demo test bench install lint clean
+.PHONY: demo test check bench install lint clean
 
 $(VENV): requirements.txt
 	$(PYTHON) -m venv $(VENV)
@@ -28,9 +28,13 @@ $(VENV): requirements.txt
 install: $(VENV)
 	$(PIP) install -q --no-deps --no-build-isolation .
 
-# The whole suite, after the lint (formatting, ruff, the import layers of .importlinter).
+# The whole suite, after the lint (formatting, ruff, the import layers of .importlinter, mypy.ini's types).
 test: lint install
 	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 test
+
+# The fast subset, after the lint: no test marked slow (many seconds) or dds (rclpy nodes over DDS).
+check: lint install
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider -m "not slow and not dds" test
 
 # The node suite over DDS on the bundled bag (separate processes, launch-free), then the score.
 demo: install
@@ -43,6 +47,7 @@ lint: $(VENV)
 	$(VENV)/bin/ruff check ptm_ros test bench
 	$(VENV)/bin/ruff format --check ptm_ros test bench
 	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/mypy
 
 clean:
-	rm -rf build *.egg-info out .pytest_cache
+	rm -rf build *.egg-info out .pytest_cache .mypy_cache

@@ -14,7 +14,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml") + glob("config/*.xml"))),
+        (
+            f"share/{PACKAGE}/config",
+            sorted(glob("config/*.yaml") + glob("config/*.xml") + glob("config/*.rviz")),
+        ),
         (f"share/{PACKAGE}/bags", sorted(glob("bags/*.json"))),
         *[(f"share/{PACKAGE}/{d}", sorted(glob(f"{d}/*"))) for d in sorted(glob("bags/*/"))],
     ],

@@ -12,7 +12,9 @@
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
    landmark patches (:mod:`ptm_ros.baselines`); for the pipeline also the absolute trajectory errors of
-   the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``). Every
+   the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``) and the
+   route graph's edge segments through the walls of the run's own map (``route_edges_crossing_walls``,
+   recorded, not asserted). Every
    run with scans is also calibrated for the laser's time offset (``ptm-calibrate``, no ground truth);
    where it chooses a non-zero offset the pipeline runs again with it (``ptm-rbpf calibrated``). Every
    run is also replayed with landmarks fixed in the environment (``--detector ground-truth``: a
@@ -40,6 +42,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
 
@@ -171,7 +174,23 @@ def pipeline_row(name: str, kind: str, bag: Path, gt: Path, out: Path, config, m
     row["ate_smoothed_m"] = ate.get("ate_smoothed_m")
     row["ate_odometry_m"] = ate.get("ate_odometry_m")
     row["map_s"] = result.ptm.timing.get("map_s")
+    row["route_edges_crossing_walls"] = route_edges_crossing_walls(result.files)
     return result, row
+
+
+def route_edges_crossing_walls(files: Mapping[str, Path]) -> int | None:
+    """Edge segments of the written ``route_graph.geojson`` that cross occupied cells of the run's own
+    ``map.yaml`` (:func:`ptm_ros.routes.crossing_segments`, issue #24); None without a map. Recorded,
+    not asserted."""
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.occupancy import load_map
+    from ptm_ros.routes import crossing_segments
+
+    if "map_yaml" not in files or "route_graph" not in files:
+        return None
+    grid = load_map(files["map_yaml"])
+    doc = json.loads(Path(files["route_graph"]).read_text())
+    return crossing_segments(doc, ClassGrid(grid.data, grid.origin, grid.resolution))
 
 
 def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:

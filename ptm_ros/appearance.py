@@ -52,6 +52,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -138,7 +139,7 @@ def fourier_signature(
     return np.ascontiguousarray(mags.reshape(-1), dtype=np.float64)
 
 
-def _grey_levels(img: NDArray[np.generic]) -> FloatArray:
+def _grey_levels(img: NDArray[Any]) -> FloatArray:
     """``(H, W)`` float grey levels of a mono or RGB(A) image; integer dtypes scaled to [0, 1]."""
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3, 4)):
         msg = f"panorama must have shape (H, W), (H, W, 1), (H, W, 3) or (H, W, 4), got {img.shape}"
@@ -404,7 +405,9 @@ def nig_prior_from_data(
             rho = np.minimum(within / var, MAX_WITHIN_FRACTION)
     rho_mean = float(rho.mean())
     kappa_value = rho_mean / (1.0 - rho_mean) if kappa is None else kappa
-    return NigPrior(mu=a.mean(axis=0), kappa=kappa_value, alpha=alpha, beta=(alpha - 1.0) * rho * var)
+    return NigPrior(
+        mu=a.mean(axis=0), kappa=kappa_value, alpha=np.full_like(rho, alpha), beta=(alpha - 1.0) * rho * var
+    )
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -104,8 +104,12 @@ __all__ = [
 
 
 def _check_float(owner: str, name: str, value: object, *, low: float, strict: bool) -> None:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    ok = ok and (value > low if strict else value >= low)  # type: ignore[operator]
+    ok = (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and (value > low if strict else value >= low)
+    )
     if not ok:
         bound = f"> {low}" if strict else f">= {low}"
         msg = f"{owner}.{name} must be a finite number {bound}, got {value!r}"

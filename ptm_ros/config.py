@@ -22,6 +22,7 @@ from ptm_ros.mcmc import McmcConfig
 from ptm_ros.occupancy import OccupancyConfig
 from ptm_ros.posterior import ModelConfig
 from ptm_ros.refinement import RefinementConfig
+from ptm_ros.routes import RouteConfig
 from ptm_ros.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
 
 METHODS = ("exact", "rbpf", "mcmc")
@@ -103,6 +104,7 @@ class PtmConfig:
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)  # map.pgm / map.png and /map
     mapping: MappingConfig = field(default_factory=MappingConfig)  # the map publisher's online map
     refinement: RefinementConfig = field(default_factory=RefinementConfig)  # scan matches along revisits
+    routes: RouteConfig = field(default_factory=RouteConfig)  # route_graph.geojson's edges around walls
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:

@@ -23,11 +23,11 @@ T = TypeVar("T")
 
 def _convert(value: Any, hint: Any, where: str) -> Any:
     origin = typing.get_origin(hint)
-    if dataclasses.is_dataclass(hint):
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
         if not isinstance(value, Mapping):
             msg = f"{where}: expected a mapping, got {type(value).__name__}"
             raise ConfigError(msg)
-        return from_dict(hint, value, where)  # type: ignore[arg-type]
+        return from_dict(hint, value, where)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(hint)
         if value is None and type(None) in args:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -29,12 +30,16 @@ from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.geometry import wrap_angle
 
 
-class Detector:
+class Detector(Protocol):
     """What the visit extractor (:class:`ptm_ros.landmarks.VisitExtractor`) asks of a landmark detector:
     each ``on_*`` call feeds one message and returns True when a landmark visit is declared; the visit
     then lies at ``last_landmark_stamp`` when set (a detector that localises its landmark at an earlier
     measurement, e.g. the surprise maximum), else at the message's stamp. ``flush`` ends the data (True:
-    one more visit). This base ignores every input: a detector overrides the ones it uses."""
+    one more visit).
+
+    A Protocol: any object with these members is a detector. The bodies here ignore every input, so a
+    class that subclasses ``Detector`` explicitly (as the detectors of this package do) inherits them and
+    overrides only the inputs it uses."""
 
     last_landmark_stamp: float | None = None
 

@@ -91,7 +91,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import pdist
 
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.partitions import canonical, num_places
+from ptm_ros.partitions import IntSequence, canonical, num_places
 from ptm_ros.ptm import Ptm
 
 #: Schema tag of :meth:`Score.as_dict` (the JSON printed by ``ptm-eval``).
@@ -498,7 +498,7 @@ def absolute_trajectory_error(est_xy: ArrayLike, true_xy: ArrayLike) -> float:
 # Calibration over many runs (module docstring: "Calibration")
 
 
-def map_errors_against_truth(labels: Sequence[int], true_places: Sequence[int]) -> tuple[int, int]:
+def map_errors_against_truth(labels: IntSequence, true_places: IntSequence) -> tuple[int, int]:
     """``(false_merges, missed_merges)`` of one topology against true place ids: visit pairs it puts in
     one place that are different places, and pairs of one place it keeps apart. ``(0, 0)`` exactly when
     the topology is the true one."""

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, MutableMapping, Sequence
-from typing import Any
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.detectors import Detector, EquidistantDetector, ScheduledDetector
@@ -98,7 +97,7 @@ def make_extractor(
 
 
 def make_registrar(
-    visits: Sequence[Visit], config: PtmConfig, diag: MutableMapping[str, Any] | None = None
+    visits: Sequence[Visit], config: PtmConfig, diag: MutableMapping[str, int] | None = None
 ) -> Registrar:
     """Laser registration of visit j's patch onto visit i's (i < j) under the same-place hypothesis
     (``visits`` may grow after the call: a pair is registered when asked for); ``diag`` receives the

@@ -48,11 +48,13 @@ from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
 from ptm_ros.laser import LaserConfig, passage_patch, scan_to_points
 from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
-from ptm_ros.visits import MAX_COORDINATE, Visit
+from ptm_ros.visits import MAX_COORDINATE, Visit, pose_field
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
 TOPIC_NAMES = {ODOM: "odometry", SCAN: "scan", IMAGE: "image"}
 VISIT_SCHEMA = "ptm_ros.visit/1"
+#: A scan as the extractor keeps it: ``(ranges, angle_min, angle_increment, range_min, range_max)``.
+ScanFields = tuple[NDArray[np.float64], float, float, float, float]
 
 
 @dataclass(frozen=True)
@@ -131,7 +133,7 @@ class VisitExtractor:
         self._raw: deque[tuple[float, NDArray[np.float64]]] = deque()  # recent input, for time_offset
         self.corrections: list[tuple[float, NDArray[np.float64]]] = []  # if config.record_corrections
         self._poses_out: list[tuple[float, NDArray[np.float64]]] = []  # if config.stream_poses
-        self._scans_out: list[tuple[float, tuple, NDArray[np.float64]]] = []  # if config.stream_poses
+        self._scans_out: list[tuple[float, ScanFields, NDArray[np.float64]]] = []  # if config.stream_poses
         self._queue: list[tuple[float, int, int, Any]] = []
         self._seq = 0
         self._watermark = {ODOM: -math.inf, SCAN: -math.inf, IMAGE: -math.inf}
@@ -196,7 +198,7 @@ class VisitExtractor:
         out, self._poses_out = self._poses_out, []
         return out
 
-    def take_scans(self) -> list[tuple[float, tuple, NDArray[np.float64]]]:
+    def take_scans(self) -> list[tuple[float, ScanFields, NDArray[np.float64]]]:
         """``(stamp, (ranges, angle_min, angle_increment, range_min, range_max), pose)`` of every scan
         processed since the last call (after the first odometry sample), with the pose of the latest
         odometry sample (:meth:`take_poses`) at or before it. Empty unless ``config.stream_poses``."""
@@ -291,7 +293,7 @@ class VisitExtractor:
         t = [q for q, _ in self._raw]
         return interpolate_poses(t, [w for _, w in self._raw], stamp + offset)[0]
 
-    def _process_scan(self, stamp: float, scan: tuple) -> None:
+    def _process_scan(self, stamp: float, scan: ScanFields) -> None:
         ranges, amin, ainc, rmin, rmax = scan
         try:
             res = scan_to_points(ranges, amin, ainc, rmin, min(rmax, self.laser.max_range))
@@ -547,8 +549,8 @@ def visit_from_json(text: str) -> Visit:
         return Visit(
             index=int(d["index"]),
             stamp=float(d["stamp"]),
-            pose=tuple(float(x) for x in d["pose"]),  # type: ignore[arg-type]
-            odom_pose=None if d.get("odom_pose") is None else tuple(float(x) for x in d["odom_pose"]),  # type: ignore[arg-type]
+            pose=pose_field(d["pose"]),
+            odom_pose=None if d.get("odom_pose") is None else pose_field(d["odom_pose"]),
             travel=float(d["travel"]),
             rotation=float(d["rotation"]),
             signature=_decode(d.get("signature")),

@@ -41,10 +41,10 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import MutableMapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -361,7 +361,7 @@ def build_patch(
     visit = _as_pose(visit_pose, "visit_pose")
     offset = _offset(sensor_offset)
     inside = np.flatnonzero(_within(poses, visit, radius))
-    scans = [_as_points(scans_points[k], f"scans_points[{k}]") for k in inside]
+    scans = [_as_points(scans_points[int(k)], f"scans_points[{k}]") for k in inside]
     return _concatenate(scans, poses[inside], visit, offset, voxel)
 
 
@@ -524,7 +524,7 @@ def align_scan_to_map(
 
 
 def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two callers
-    icp: object,
+    icp: _PointAligner,
     pts: FloatArray,
     voxel_map: object,
     map_points: FloatArray,
@@ -854,7 +854,7 @@ def _register(
     coarse_distance = 3.0 * (2.0 * cfg.voxel)
     poses = []
     for k in range(cfg.n_rotations):
-        pose = compose(guess, np.array([0.0, 0.0, 2.0 * np.pi * k / cfg.n_rotations]))
+        pose: FloatArray | None = compose(guess, np.array([0.0, 0.0, 2.0 * np.pi * k / cfg.n_rotations]))
         pose = _align(icp, source.coarse, coarse_map, pose, coarse_distance)
         pose = _align(icp, source.fine, fine_map, pose, cfg.correspondence_distance)
         if pose is not None:
@@ -1222,12 +1222,30 @@ def _se2(matrix: FloatArray) -> FloatArray:
     return np.array([matrix[0, 3], matrix[1, 3], float(wrap_angle(yaw))])
 
 
-def _align(icp: object, src: FloatArray, voxel_map: object, pose: FloatArray | None, max_dist: float):
+class _PointAligner(Protocol):
+    """What :func:`_align` calls of a ``kiss_icp.registration.Registration`` (kiss-icp ships no types)."""
+
+    def align_points_to_map(
+        self,
+        *,
+        points: FloatArray,
+        voxel_map: object,
+        initial_guess: FloatArray,
+        max_correspondance_distance: float,
+        kernel: float,
+    ) -> ArrayLike:
+        """The 4×4 transform taking ``points`` onto ``voxel_map``, ICP from ``initial_guess``."""
+        ...
+
+
+def _align(
+    icp: _PointAligner, src: FloatArray, voxel_map: object, pose: FloatArray | None, max_dist: float
+) -> FloatArray | None:
     """One kiss-icp alignment of ``src`` onto ``voxel_map`` from ``pose``; None if it failed."""
     if pose is None:
         return None
     matrix = np.asarray(
-        icp.align_points_to_map(  # type: ignore[attr-defined]
+        icp.align_points_to_map(
             points=_lift(src),
             voxel_map=voxel_map,
             initial_guess=_se3(pose),
@@ -1374,7 +1392,7 @@ def _floor_cov(cov: FloatArray, min_std: FloatArray) -> FloatArray:
 def patch_registrar(
     visits: Sequence[Visit],
     config: LaserConfig | None = None,
-    counters: dict[str, int] | None = None,
+    counters: MutableMapping[str, int] | None = None,
     *,
     keep_prepared: int = _PREPARED_PATCHES,
 ) -> Registrar:

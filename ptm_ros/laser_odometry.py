@@ -415,7 +415,7 @@ def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candi
         for k, pose in zip(keep, wheel, strict=True):
             matched = lo.counters.matched
             guess = lo.correct(pose)
-            aligned = lo.on_scan(pose, scan_points[k], float(st[k]))
+            aligned = lo.on_scan(pose, scan_points[int(k)], float(st[k]))
             if lo.counters.matched > matched:
                 yaw.append(abs(float(between(guess, aligned)[2])))
         y = np.asarray(yaw)

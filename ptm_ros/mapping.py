@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, DataError, PtmError
-from ptm_ros.geometry import Registrar, interpolate_poses, moved
+from ptm_ros.geometry import Registrar, RelativePose, interpolate_poses, moved
 from ptm_ros.laser import LaserConfig, scan_to_points
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.posterior import ModelConfig, chained_registrations, split_aliases
@@ -116,7 +116,7 @@ def topology_trajectory(
     ``scans`` and an enabled ``refinement``, keyframe scan matches along revisited passages refine the
     result (:func:`ptm_ros.refinement.refine_trajectory`; ``laser`` configures the scans and the matching).
     The visits must sit on odometry samples (their stamps among ``stamps``)."""
-    loops: tuple = ()
+    loops: tuple[RelativePose, ...] = ()
     if registration is not None and model.use_laser and len(visits) > 1:
         measured = chained_registrations(labels, registration)
         loops, _ = split_aliases(labels, visits, model.odometry, measured)
@@ -148,7 +148,7 @@ def scan_points(scans: ScanLog, laser: LaserConfig) -> tuple[FloatArray, list[Fl
     for k in order:
         try:
             res = scan_to_points(
-                scans.ranges[k],
+                scans.ranges[int(k)],
                 float(scans.angle_min[k]),
                 float(scans.angle_increment[k]),
                 float(scans.range_min[k]),
@@ -162,14 +162,20 @@ def scan_points(scans: ScanLog, laser: LaserConfig) -> tuple[FloatArray, list[Fl
 
 class ScanLog(Protocol):
     """Scans as arrays over the scans ``(S,)`` (``ranges``: one array per scan, or ``(S, B)``): the
-    offline run's :class:`ptm_ros.io.bag.ScanData`, or :class:`Keyframes`."""
+    offline run's :class:`ptm_ros.io.bag.ScanData`, or :class:`Keyframes` (read only)."""
 
-    stamps: ArrayLike
-    ranges: Sequence[ArrayLike] | ArrayLike
-    angle_min: ArrayLike
-    angle_increment: ArrayLike
-    range_min: ArrayLike
-    range_max: ArrayLike
+    @property
+    def stamps(self) -> FloatArray: ...
+    @property
+    def ranges(self) -> NDArray[np.floating[Any]] | Sequence[NDArray[np.floating[Any]]]: ...
+    @property
+    def angle_min(self) -> FloatArray: ...
+    @property
+    def angle_increment(self) -> FloatArray: ...
+    @property
+    def range_min(self) -> FloatArray: ...
+    @property
+    def range_max(self) -> FloatArray: ...
 
 
 @dataclass(frozen=True)
@@ -199,7 +205,7 @@ def grid_along(
         return None
     poses = interpolate_poses(t, trajectory, st[keep])
     ranges = scans.ranges
-    used = ranges[keep] if isinstance(ranges, np.ndarray) else [ranges[k] for k in keep]
+    used = ranges[keep] if isinstance(ranges, np.ndarray) else [ranges[int(k)] for k in keep]
 
     def field_of(value: ArrayLike) -> FloatArray:
         return np.broadcast_to(np.asarray(value, dtype=float).reshape(-1), st.shape)[keep]

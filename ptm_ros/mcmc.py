@@ -114,10 +114,10 @@ import math
 import multiprocessing as mp
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations, pairwise
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -226,7 +226,7 @@ class McmcConfig:
             if value not in options:
                 msg = f"McmcConfig.{name} must be one of {options}, got {value!r}"
                 raise ConfigError(msg)
-        in_range = {
+        in_range: dict[str, Callable[[float], bool]] = {
             "odometry_scale": lambda v: v > 0.0,
             "appearance_strength": lambda v: v >= 0.0,
             "new_place_distance": lambda v: v > 0.0,
@@ -241,7 +241,7 @@ class McmcConfig:
             if not (number and check(value)):
                 msg = f"McmcConfig.{name} is out of range: {value!r}"
                 raise ConfigError(msg)
-        for name, value, low in (
+        for name, count, low in (
             ("max_split_enumeration", self.max_split_enumeration, 2),
             ("max_chaining", self.max_chaining, 1),
             ("chains", self.chains, 1),
@@ -251,8 +251,8 @@ class McmcConfig:
             ("trace_samples", self.trace_samples, 1),
             ("auto_filter_visits", self.auto_filter_visits, 1),
         ):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                msg = f"McmcConfig.{name} must be an integer >= {low}, got {value!r}"
+            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < low:
+                msg = f"McmcConfig.{name} must be an integer >= {low}, got {count!r}"
                 raise ConfigError(msg)
         if self.max_split_enumeration > _MAX_SPLIT_ENUMERATION:
             msg = f"McmcConfig.max_split_enumeration must be <= {_MAX_SPLIT_ENUMERATION}"
@@ -467,7 +467,7 @@ def _split_code(block: Block, other: Sequence[int]) -> int:
 def _split_halves(block: Block, code: int) -> tuple[Block, Block]:
     """The halves ``(R, S)`` of split ``code`` of ``block``; ``R`` holds ``block[0]``."""
     r = [block[0]]
-    s = []
+    s: list[int] = []
     for j in range(1, len(block)):
         (s if code >> (j - 1) & 1 else r).append(block[j])
     return tuple(r), tuple(s)
@@ -1384,9 +1384,11 @@ def _given_starts(initial: Sequence[int] | Sequence[Sequence[int]] | None, n: in
         return None
     items = list(initial)
     many = bool(items) and all(isinstance(v, Sequence) and not isinstance(v, str) for v in items)
+    # many: every item is a label sequence (checked just above); else the items are the labels themselves
+    states = cast("list[Sequence[int]]", items) if many else [cast("list[int]", items)]
     out: list[Labels] = []
-    for state in items if many else [items]:
-        start = tuple(int(v) for v in state)  # type: ignore[union-attr]
+    for state in states:
+        start = tuple(int(v) for v in state)
         if len(start) != n or not is_canonical(start):
             msg = f"initial topology must be a canonical label sequence of {n} visits, got {start}"
             raise ModelError(msg)

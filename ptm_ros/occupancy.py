@@ -268,7 +268,7 @@ def _scan_beams(
 
 def build_grid(
     poses: ArrayLike,
-    ranges: Sequence[ArrayLike] | ArrayLike,
+    ranges: Sequence[ArrayLike] | NDArray[Any],
     angle_min: ArrayLike,
     angle_increment: ArrayLike,
     range_max: ArrayLike,

@@ -89,6 +89,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -409,7 +410,8 @@ def _loop_arrays(loops: Sequence[RelativePose], n: int) -> tuple[NDArray[np.intp
     bad = np.flatnonzero(~finite | asymmetric)
     if len(bad):
         q = bad[0]
-        what = "mean must be 3 and cov 3x3 finite numbers" if not finite[q] else "covariance is not symmetric"
+        finite_q = np.isfinite(means[q]).all() and np.isfinite(covs[q]).all()
+        what = "mean must be 3 and cov 3x3 finite numbers" if not finite_q else "covariance is not symmetric"
         msg = f"laser constraint {q} ({ij[q, 0]}, {ij[q, 1]}): {what}"
         raise ModelError(msg)
     return ij, means, covs
@@ -419,7 +421,7 @@ def _cholesky_3(s: FloatArray, what: str, index: NDArray[np.intp], ij: NDArray[n
     """Lower Cholesky factors of ``(K, 3, 3)`` symmetric matrices; names the first that is not positive
     definite (``what`` ``index[k]`` ``(i, j)``)."""
     try:
-        return np.linalg.cholesky(s)
+        return cast("FloatArray", np.linalg.cholesky(s))  # float64 in, float64 out (numpy types it floating)
     except np.linalg.LinAlgError:
         for k in range(len(s)):
             try:
@@ -562,7 +564,11 @@ def _pair_jacobians(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatArr
 def _scatter(blocks: FloatArray, prob: _Problem) -> FloatArray:
     """The ``(Q, 6, 6)`` blocks over ``(x_a, x_b)`` summed into a dense ``(d, d)`` matrix (gauge dropped)."""
     d = 3 * (prob.n - 1)
-    return np.bincount(prob.h_index, weights=blocks.ravel()[prob.h_keep], minlength=d * d).reshape(d, d)
+    # with weights, bincount sums them in float64 (numpy's stub types every bincount as intp)
+    summed = cast(
+        "FloatArray", np.bincount(prob.h_index, weights=blocks.ravel()[prob.h_keep], minlength=d * d)
+    )
+    return summed.reshape(d, d)
 
 
 def _newton_hessian(x: FloatArray, prob: _Problem, info: FloatArray) -> FloatArray:
@@ -592,8 +598,11 @@ def _normal_equations(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatA
     r, jab, r_rel = _pair_jacobians(x, prob)
     d = 3 * (prob.n - 1)
     info = _scatter(jab.transpose(0, 2, 1) @ jab, prob) + prob.h_topo  # (a new array also when d = 0)
-    grad = np.bincount(
-        prob.g_index, weights=np.einsum("qki,qk->qi", jab, r_rel).ravel()[prob.g_keep], minlength=d
+    grad = cast(  # float64 (see _scatter)
+        "FloatArray",
+        np.bincount(
+            prob.g_index, weights=np.einsum("qki,qk->qi", jab, r_rel).ravel()[prob.g_keep], minlength=d
+        ),
     )
     r_top = r[3 * len(prob.pair_a) :].reshape(-1, 2)
     g_top = prob.centering.T @ r_top  # (N, 2)
@@ -743,7 +752,7 @@ def _optimize(prob: _Problem, config: OdometryConfig, initial: ArrayLike | None)
             break
         near = decrease < NEWTON_BELOW_NATS
     try:
-        chol = np.linalg.cholesky(info)
+        chol = cast("FloatArray", np.linalg.cholesky(info))  # float64 (numpy types it floating)
     except np.linalg.LinAlgError as err:
         msg = "the information matrix J^T J at the optimum is not positive definite"
         raise ModelError(msg) from err

@@ -16,12 +16,16 @@ from __future__ import annotations
 import random
 from collections.abc import Iterator, Sequence
 from functools import cache
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ptm_ros.errors import ModelError
 
 Labels = tuple[int, ...]
+#: Integers as the functions over labels or visit counts take them: a Python sequence or an integer array.
+IntSequence = Sequence[int] | NDArray[np.integer[Any]]
 
 #: Largest N for which :func:`enumerate_partitions` is allowed (B_12 = 4 213 597).
 MAX_ENUMERATION = 12

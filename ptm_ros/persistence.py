@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ptm_ros.appearance import AppearanceModel, NigPrior
 from ptm_ros.errors import DataError, ModelError, PtmError
@@ -359,7 +360,7 @@ def _hash_array(h: Any, name: str, value: Any, dtype: type) -> None:
     if value is None:
         h.update(f"{name}:none;".encode())
         return
-    arr = np.ascontiguousarray(np.asarray(value, dtype=dtype))
+    arr: NDArray[Any] = np.ascontiguousarray(np.asarray(value, dtype=dtype))
     h.update(f"{name}:{arr.dtype.str}{list(arr.shape)};".encode())
     h.update(arr.tobytes())
 

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from scipy.special import gammaln, logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.partitions import is_canonical
+from ptm_ros.partitions import IntSequence, is_canonical
 
 
 class TopologyPrior(Protocol):
@@ -44,7 +44,7 @@ class TopologyPrior(Protocol):
         """log P(T) of a canonical label sequence."""
         ...
 
-    def log_predictive(self, counts: Sequence[int]) -> NDArray[np.float64]:
+    def log_predictive(self, counts: IntSequence) -> NDArray[np.float64]:
         """log P(next label) for each known place (by visit counts) and, last, for a new place."""
         ...
 
@@ -61,7 +61,7 @@ def _block_sizes(labels: Sequence[int]) -> list[int]:
     return sizes
 
 
-def _check_counts(counts: Sequence[int]) -> NDArray[np.float64]:
+def _check_counts(counts: IntSequence) -> NDArray[np.float64]:
     c = np.asarray(counts, dtype=float).reshape(-1)
     if np.any(c < 1):
         msg = f"place visit counts must be >= 1, got {list(counts)}"
@@ -89,7 +89,7 @@ class DirichletProcessPrior:
         a = self.alpha
         return float(len(sizes) * math.log(a) + np.sum(gammaln(sizes)) - (gammaln(a + n) - gammaln(a)))
 
-    def log_predictive(self, counts: Sequence[int]) -> NDArray[np.float64]:
+    def log_predictive(self, counts: IntSequence) -> NDArray[np.float64]:
         """Eq. 10: revisit ∝ visits so far, new place ∝ alpha."""
         c = _check_counts(counts)
         return np.log(np.append(c, self.alpha)) - math.log(self.alpha + c.sum())
@@ -124,7 +124,7 @@ class YuleSimonPrior:
                 total += math.log1p(-self.u) - math.log(m)
         return total
 
-    def log_predictive(self, counts: Sequence[int]) -> NDArray[np.float64]:
+    def log_predictive(self, counts: IntSequence) -> NDArray[np.float64]:
         """Eq. 12 for the next visit; the first visit is always a new place."""
         c = _check_counts(counts)
         m = len(c)
@@ -175,7 +175,7 @@ class OccupancyPrior:
             return -math.inf
         return float(logsumexp(self._log_joint_terms(n, m)))
 
-    def log_predictive(self, counts: Sequence[int]) -> NDArray[np.float64]:
+    def log_predictive(self, counts: IntSequence) -> NDArray[np.float64]:
         """P(T_{1:n}) / P(T_{1:n−1}): a known place or a new one (depends only on n−1 and M)."""
         c = _check_counts(counts)
         n, m = int(c.sum()), len(c)

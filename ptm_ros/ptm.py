@@ -20,6 +20,9 @@ from ptm_ros.errors import DataError
 from ptm_ros.partitions import Labels, canonical, is_canonical
 
 if TYPE_CHECKING:
+    import numpy as np
+    from numpy.typing import NDArray
+
     from ptm_ros.visits import Visit
 
 SCHEMA = "ptm_ros.ptm/1"
@@ -46,9 +49,12 @@ class Landmark:
     @classmethod
     def from_visit(cls, visit: Visit) -> Landmark:
         """The landmark of a visit: its input odometry pose, and its corrected pose when it differs."""
-        pose = tuple(float(x) for x in visit.input_pose)
-        corrected = None if visit.odom_pose is None else tuple(float(x) for x in visit.pose)
-        return cls(int(visit.index), float(visit.stamp), pose, corrected)  # type: ignore[arg-type]
+        x, y, yaw = visit.input_pose
+        corrected = None
+        if visit.odom_pose is not None:
+            cx, cy, cyaw = visit.pose
+            corrected = (float(cx), float(cy), float(cyaw))
+        return cls(int(visit.index), float(visit.stamp), (float(x), float(y), float(yaw)), corrected)
 
 
 @dataclass(frozen=True)
@@ -86,7 +92,7 @@ def make_ptm(
     weighted: Mapping[Labels, float] | Sequence[tuple[Labels, float]],
     *,
     top: int | None = None,
-    positions: Mapping[Labels, Sequence[Sequence[float]]] | None = None,
+    positions: Mapping[Labels, Sequence[Sequence[float]] | NDArray[np.floating[Any]]] | None = None,
     log_posteriors: Mapping[Labels, float] | None = None,
     **kwargs: Any,
 ) -> Ptm:
@@ -151,7 +157,7 @@ def _pose(values: Any, what: str) -> tuple[float, float, float]:
     pose = tuple(float(v) for v in values)
     if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
         raise _fail(f"{what} must be 3 finite numbers (x, y, yaw), got {list(pose)}")
-    return pose  # type: ignore[return-value]
+    return pose
 
 
 def _landmark(d: Mapping[str, Any]) -> Landmark:

@@ -147,7 +147,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -161,7 +161,7 @@ from ptm_ros.odometry import OdometryConfig, odometry_covariances, place_area
 from ptm_ros.partitions import Labels
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
 from ptm_ros.ptm import Landmark, Ptm, make_ptm
-from ptm_ros.visits import Visit
+from ptm_ros.visits import Visit, pose_field
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -1344,7 +1344,7 @@ def _laser_factor(
     except np.linalg.LinAlgError as err:
         msg = "a laser innovation covariance is not positive definite"
         raise ModelError(msg) from err
-    W = np.linalg.solve(L, hp)
+    W = cast("FloatArray", np.linalg.solve(L, hp))  # float64 (numpy types linalg results floating)
     v = np.linalg.solve(L, e[:, :, None])[..., 0]
     log_det = 2.0 * np.sum(np.log(np.diagonal(L, axis1=1, axis2=2)), axis=1)
     return W, v, -1.5 * _LOG_2PI - 0.5 * log_det - 0.5 * np.sum(v * v, axis=1)
@@ -1443,8 +1443,8 @@ def visit_from_dict(d: dict[str, Any]) -> Visit:
     return Visit(
         index=int(d["index"]),
         stamp=float(d["stamp"]),
-        pose=tuple(float(x) for x in d["pose"]),
-        odom_pose=None if odom_pose is None else tuple(float(x) for x in odom_pose),
+        pose=pose_field(d["pose"]),
+        odom_pose=None if odom_pose is None else pose_field(odom_pose),
         travel=float(d["travel"]),
         rotation=float(d["rotation"]),
         signature=None if d["signature"] is None else np.asarray(d["signature"], dtype=float),

@@ -231,7 +231,7 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
     odom_stamps: ArrayLike,
     odom_poses: ArrayLike,
     scan_stamps: ArrayLike,
-    scan_points: Sequence[ArrayLike],
+    scan_points: Sequence[FloatArray],
     labels: Sequence[int],
     visits: Sequence[Visit],
     odometry: OdometryConfig,
@@ -269,7 +269,7 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
         msg = "visit stamps must be odometry stamps"
         raise ModelError(msg)
     inside = np.flatnonzero((st >= t[0]) & (st <= t[-1]))
-    if not any(len(scan_points[k]) for k in inside):  # nothing to match: the smoothing as it is
+    if not any(len(scan_points[int(k)]) for k in inside):  # nothing to match: the smoothing as it is
         res = robust_visit_poses(labels, visits, odometry, loops, scfg)
         traj = smoothed_trajectory(t, u, t[vidx], res.poses)
         nodes = vidx.astype(np.intp)
@@ -305,13 +305,14 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
             d = np.hypot(kx[:, 0] - kx[i, 0], kx[:, 1] - kx[i, 1])
             cand = np.flatnonzero((d <= cfg.search_radius) & (key_travel - key_travel[i] >= cfg.min_travel))
             for j in cand[np.argsort(d[cand], kind="stable")][: cfg.max_candidates]:
-                if (i, j) in seen or submaps[i] is None or submaps[j] is None:
+                source, target = submaps[j], submaps[i]
+                if (i, j) in seen or source is None or target is None:
                     continue
                 seen.add((i, j))
                 tried += 1
                 guess = between(kx[i], kx[j])
                 try:
-                    reg = register_patches(submaps[j], submaps[i], guess, lcfg, slide_axis=cfg.corridors)
+                    reg = register_patches(source, target, guess, lcfg, slide_axis=cfg.corridors)
                 except RegistrationError:
                     continue
                 cov = _closure_cov(reg, cfg)
@@ -356,7 +357,7 @@ def _submaps(  # noqa: PLR0917 - internal helper
     inside: NDArray[np.intp],
     s_travel: FloatArray,
     scan_pose: FloatArray,
-    scan_points: Sequence[ArrayLike],
+    scan_points: Sequence[FloatArray],
     reach: float,
 ) -> list[FloatArray | None]:
     """Each keyframe's submap: the scans within ``reach`` of travel, in the frame of its node's odometry

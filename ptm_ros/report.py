@@ -50,7 +50,7 @@ from numpy.typing import ArrayLike, NDArray
 from ptm_ros.convergence import most_visited, srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import Score
-from ptm_ros.partitions import num_places
+from ptm_ros.partitions import IntSequence, num_places
 from ptm_ros.ptm import Ptm, Topology
 
 if TYPE_CHECKING:
@@ -149,7 +149,7 @@ def place_positions(topology: Topology, visit_xy: NDArray[np.float64]) -> NDArra
     return np.stack([np.bincount(labels, visit_xy[:, c], minlength=m) / counts for c in (0, 1)], axis=1)
 
 
-def place_edges(labels: Sequence[int]) -> NDArray[np.intp]:
+def place_edges(labels: IntSequence) -> NDArray[np.intp]:
     """``(E, 2)`` distinct undirected edges between the places of consecutive visits (sorted)."""
     lab = np.asarray(labels, dtype=np.intp)
     if lab.size < 2:
@@ -224,10 +224,12 @@ def _draw_topology(
         ax.plot(path_xy[:, 0], path_xy[:, 1], color="0.75", linewidth=0.8, zorder=1)
     if labels.size:
         spokes = np.stack([visit_xy, places[labels]], axis=1)
-        ax.add_collection(LineCollection(spokes, colors=colors[labels], linewidths=0.6, alpha=0.5, zorder=2))
+        ax.add_collection(
+            LineCollection(list(spokes), colors=colors[labels], linewidths=0.6, alpha=0.5, zorder=2)
+        )
         edges = place_edges(labels)
         if len(edges):
-            ax.add_collection(LineCollection(places[edges], colors="black", linewidths=1.0, zorder=3))
+            ax.add_collection(LineCollection(list(places[edges]), colors="black", linewidths=1.0, zorder=3))
         size = 60.0 * min(1.0, 30.0 / len(places))  # shrink markers when there are many places
         ax.scatter(visit_xy[:, 0], visit_xy[:, 1], s=size / 4, c=colors[labels], edgecolors="none", zorder=4)
         ax.scatter(places[:, 0], places[:, 1], s=size, c=colors, edgecolors="black", linewidths=0.6, zorder=5)
@@ -574,9 +576,9 @@ def _score_notes(score: Score) -> list[str]:
 
 
 def _topology_rows(ptm: Ptm, score: Score | None, config: ReportConfig) -> list[tuple[str, ...]]:
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for k, t in enumerate(ptm.topologies[: config.max_rows]):
-        row = (str(k + 1), f"{t.probability:.4f}", str(num_places(t.labels)))
+        row: tuple[str, ...] = (str(k + 1), f"{t.probability:.4f}", str(num_places(t.labels)))
         if score is not None:
             row += (f"{score.topologies[k].counts.f1:.3f}", "yes" if score.topologies[k].consistent else "no")
         rows.append((*row, label_string(t.labels, config.max_label_chars)))

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import scipy.sparse as sp
@@ -279,8 +280,8 @@ def robust_optimum(
         rounds += 1
         x = levenberg_marquardt(
             x,
-            lambda y, w=weights: _weighted_cost(y, g, w),
-            lambda y, w=weights: _normal_equations(y, g, w),
+            partial(_weighted_cost, g=g, weights=weights),
+            partial(_normal_equations, g=g, weights=weights),
             max_iterations=config.max_iterations,
             tolerance=1e-10,
         )

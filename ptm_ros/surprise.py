@@ -521,7 +521,8 @@ def fit_edcm(stats: EdcmStats, prior: EdcmPrior, extra_presence: ArrayLike | Non
         msg = f"statistics have {stats.presence.size} words, the prior {prior.words}"
         raise ModelError(msg)
     lam, tau = prior.strength, prior.strength / prior.precision
-    base = stats.presence + lam * prior.background  # type: ignore[operator]
+    assert prior.background is not None  # __post_init__ fills in the uniform background
+    base = stats.presence + lam * prior.background
     if extra_presence is None:
         totals = np.array([base.sum()])
     else:
@@ -604,16 +605,16 @@ def gaussian_surprise_step(
         diag = np.diag(stats.outer)
         kappa = prior.kappa + n
         mean = (prior.kappa * prior.mean + stats.total) / kappa
-        dof = 2.0 * prior.shape + n
+        dofs = 2.0 * prior.shape + n
         scatter = diag + prior.kappa * prior.mean**2 - kappa * mean**2  # >= 0 up to rounding
         scale = 2.0 * prior.rate + np.maximum(scatter, 0.0)
         actual = 0.0
         pred = np.zeros(samples)
         for k in range(k_dim):
-            post = Niw(mean[k : k + 1], float(kappa[k]), float(dof[k]), scale[k : k + 1, None])
+            post = Niw(mean[k : k + 1], float(kappa[k]), float(dofs[k]), scale[k : k + 1, None])
             q = np.empty(samples + 1)
             q[0] = (v[k] - mean[k]) ** 2 / scale[k]
-            q[1:] = rng.f(1.0, dof[k], samples) / dof[k] * (kappa[k] + 1.0) / kappa[k]
+            q[1:] = rng.f(1.0, dofs[k], samples) / dofs[k] * (kappa[k] + 1.0) / kappa[k]
             values = niw_surprise(post, q)
             actual += float(values[0])
             pred += values[1:]
@@ -724,8 +725,8 @@ class BandTrigger:
         if found is None:
             return None
         peak_stamp, _, peak_travel = found
-        close = peak_travel is not None and self._last_travel is not None
-        if close and peak_travel - self._last_travel < self.min_travel:  # type: ignore[operator]
+        last = self._last_travel
+        if peak_travel is not None and last is not None and peak_travel - last < self.min_travel:
             return None
         self._last_travel = peak_travel
         return peak_stamp
@@ -1256,7 +1257,9 @@ class AppearanceSurpriseDetector(_SurpriseDetector):
         if self._ng_prior is None:
             shape = 1.0 + 0.5 * cfg.prior_strength
             rate = 0.5 * cfg.prior_strength * cfg.prior_std**2
-            self._ng_prior = NormalGamma(v, cfg.prior_kappa, shape, rate)
+            self._ng_prior = NormalGamma(
+                v, np.full_like(v, cfg.prior_kappa), np.full_like(v, shape), np.full_like(v, rate)
+            )
         before_g = self._stats.decay(factor)
         step = gaussian_surprise_step(self._ng_prior, before_g, v, self._rng, cfg.samples)
         self._stats = before_g.add(v)

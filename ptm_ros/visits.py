@@ -13,8 +13,9 @@ measurements each model needs:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import SupportsFloat, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -95,6 +96,13 @@ class Visit:
                     f"signature, got shape {spread.shape}"
                 )
                 raise ModelError(msg)
+
+
+def pose_field(values: Iterable[SupportsFloat]) -> tuple[float, float, float]:
+    """``values`` as a tuple of Python floats, for a pose read from untyped data (JSON, a saved state).
+    Typed as the pose it must be but not checked here: :class:`Visit` rejects any other length itself,
+    with its own message."""
+    return cast("tuple[float, float, float]", tuple(float(x) for x in values))
 
 
 def poses_array(visits: Sequence[Visit]) -> NDArray[np.float64]:

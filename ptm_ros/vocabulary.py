@@ -56,14 +56,14 @@ def sift_descriptors(
     height, width = grey.shape
     pad = min(width, height) if wrap else 0
     padded = np.concatenate([grey[:, width - pad :], grey, grey[:, :pad]], axis=1) if pad else grey
-    sift = cv2.SIFT_create(nfeatures=0, contrastThreshold=contrast_threshold)
+    sift = cv2.SIFT.create(nfeatures=0, contrastThreshold=contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(np.ascontiguousarray(padded), None)
     if descriptors is None or not keypoints:
         return np.zeros((0, DESCRIPTOR_SIZE), dtype=np.float32)
     xs = np.array([kp.pt[0] for kp in keypoints])
     keep = np.flatnonzero((xs >= pad) & (xs < pad + width))
     if max_features and keep.size > max_features:
-        response = np.array([keypoints[i].response for i in keep])
+        response = np.array([keypoints[int(i)].response for i in keep])
         keep = np.sort(keep[np.argsort(-response, kind="stable")[:max_features]])
     return np.ascontiguousarray(descriptors[keep], dtype=np.float32)
 

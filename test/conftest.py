@@ -17,6 +17,18 @@ REPO = Path(__file__).resolve().parents[1]
 DATASETS = REPO.parent / "shared" / "datasets"
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """The suite's markers: ``make check`` runs the tests that carry neither (``-m "not slow and not dds"``),
+    ``make test`` runs them all."""
+    config.addinivalue_line(
+        "markers",
+        "slow: many seconds (long runs, ptm-run on many bags, the Intel log, bringups): not in make check",
+    )
+    config.addinivalue_line(
+        "markers", "dds: starts rclpy nodes or processes talking over DDS on a ROS domain: not in make check"
+    )
+
+
 @pytest.fixture(scope="session")
 def datasets_dir() -> Path:
     """``../shared/datasets`` beside the checkout; tests needing it skip when it is absent."""

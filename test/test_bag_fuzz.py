@@ -28,6 +28,8 @@ from ptm_ros.io.worlds import get_world
 from ptm_ros.tools import evaluate as eval_tool
 from ptm_ros.tools import run as run_tool
 
+pytestmark = pytest.mark.slow  # ptm-run on many damaged bags (3-20 s a test)
+
 EXAMPLES = int(os.environ.get("PTM_FUZZ_EXAMPLES", "6"))
 RUN_ARGS = ("--quiet", "--no-report", "--particles", "10", "--seed", "0")
 TOPICS = tuple(TOPIC_STREAMS)

@@ -48,6 +48,8 @@ def assert_no_orphans(*marks: str) -> None:
     assert not left, f"processes outlived ptm-bringup: {left}"
 
 
+@pytest.mark.dds
+@pytest.mark.slow
 def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
     # a ROS parameter file with a per-node section; ptm-run gets the same configuration in plain form
     ros_params = tmp_path / "ros.yaml"
@@ -99,6 +101,8 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
     assert "score vs ground truth" in proc.stdout  # the simulator's ground truth beside the bag
 
 
+@pytest.mark.dds
+@pytest.mark.slow
 def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
     out = tmp_path / "interrupted"
     run = BringupProcess(
@@ -125,6 +129,8 @@ def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
     ]
 
 
+@pytest.mark.dds
+@pytest.mark.slow
 def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path):
     out = tmp_path / "live"
     run = BringupProcess(["--out", str(out)], dds_env(next_domain_id()))

@@ -233,6 +233,8 @@ def tails(procs: Sequence[Proc]) -> str:
 # ---------------------------------------------------------------------------------------------- test
 
 
+@pytest.mark.dds
+@pytest.mark.slow
 def test_two_hosts_give_the_ptm_of_one(hosts: Hosts, tmp_path: Path) -> None:
     from ptm_ros.tools import bringup
 

@@ -25,6 +25,9 @@ from test_bringup import assert_no_orphans
 
 from ptm_ros.ptm import load_ptm
 
+# the node suite over DDS, killed and restarted (15-40 s a test)
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
+
 PARAMS = REPO / "config" / "demo.yaml"
 
 

@@ -35,6 +35,8 @@ from ptm_ros.partitions import enumerate_partitions
 from ptm_ros.ptm import Landmark, make_ptm
 from ptm_ros.visits import Visit
 
+pytestmark = pytest.mark.dds  # every test runs the nodes in an rclpy context on its own ROS domain
+
 N_STORM = 5_000  # malformed messages per kind and storm (two storms per kind: >= 10,000 per kind)
 
 

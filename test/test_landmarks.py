@@ -79,6 +79,7 @@ def assert_same_visits(a, b):
         assert np.array_equal(u.signature_spread, v.signature_spread)
 
 
+@pytest.mark.slow
 def test_visits_do_not_depend_on_arrival_order(sim):
     odom, scans, images, cfg = messages(sim)
     merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
@@ -110,6 +111,7 @@ def test_visit_content(sim):
     assert ext.diagnostics.visits == len(visits)
 
 
+@pytest.mark.slow
 def test_laser_odometry_corrects_the_visit_poses(sim):
     """With scans, visit poses are the odometry corrected by scan matching: the relative poses between
     consecutive visits are closer to the truth than the wheel odometry's, and the firing stamps agree."""
@@ -220,6 +222,7 @@ def test_odometry_beyond_any_run_is_counted_not_raised():
     assert ext.diagnostics.skipped == {"odometry-out-of-range": 1, "visit-invalid": 1}
 
 
+@pytest.mark.slow
 def test_buffers_stay_bounded_on_a_long_run(sim):
     odom, scans, _, cfg = messages(sim)
     ext = VisitExtractor(  # buffers of the extractor itself: laser odometry (a bounded window) off for speed
@@ -244,6 +247,7 @@ def test_buffers_stay_bounded_on_a_long_run(sim):
     assert sizes[-1][0] <= 2 * sizes[1][0] + 10 and sizes[-1][1] <= 2 * sizes[1][1] + 10
 
 
+@pytest.mark.slow
 def test_signature_spread_against_the_panorama_one_place_width_away(sim):
     odom, scans, images, cfg = messages(sim)
     merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))

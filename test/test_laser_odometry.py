@@ -248,6 +248,7 @@ def test_scan_time_poses_interpolate_the_odometry_at_the_offset():
     np.testing.assert_allclose(moved[3], [2.0, 1.75, 1.0 + 0.75 * wrap_angle(2.0)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("laser_odometry", [True, False])
 def test_extractor_works_in_the_scans_time_frame(tmp_path, laser_odometry):
     from ptm_ros.config import load_config

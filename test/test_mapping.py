@@ -43,6 +43,7 @@ def feed(online: OnlineMap, run, odom) -> None:
             )
 
 
+@pytest.mark.slow
 def test_online_map_equals_ptm_run_map_from_the_same_samples(loop_run):
     run, config, visits, odom, labels = loop_run
     registrar = cached(make_registrar(visits, config))
@@ -68,6 +69,7 @@ def test_online_map_equals_ptm_run_map_from_the_same_samples(loop_run):
     assert np.max(np.abs(bare.trajectory[:, :2] - res.trajectory[:, :2])) > 1e-3
 
 
+@pytest.mark.slow
 def test_default_online_map_keeps_keyframes_and_matches_the_full_map(loop_run):
     run, config, visits, odom, labels = loop_run
     registrar = cached(make_registrar(visits, config))
@@ -161,6 +163,7 @@ def test_config_is_checked(field, value):
         MappingConfig(**{field: value})
 
 
+@pytest.mark.slow
 def test_the_detector_stream_draws_the_map_of_every_sample(loop_run):
     """The detector sends a few odometry samples per metre and the keyframe scans (KeyframeStream); the
     map publisher's map from them is the map of the full-rate streams."""

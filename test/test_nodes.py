@@ -374,6 +374,7 @@ def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
         common.check_params_files(["--params-file", str(tmp_path / "missing.yaml")])
 
 
+@pytest.mark.dds
 def test_an_error_raised_by_the_shutdown_itself_is_a_clean_stop(monkeypatch):
     """run_node: the spin raising once the context is shut down (the signal handler racing a take) ends
     with 0 and destroys the node; the same error with the context alive is a bug and propagates."""
@@ -555,6 +556,7 @@ def odometry_msg(stamp, pose, frame="odom"):
     return msg
 
 
+@pytest.mark.dds
 def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkeypatch, capfd):
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import OccupancyGrid as GridMsg
@@ -674,6 +676,7 @@ def nav2_static_layer_costs(data: np.ndarray) -> np.ndarray:
     return np.where(value == -1, NAV2_NO_INFORMATION, np.where(value >= 100, NAV2_LETHAL, NAV2_FREE))
 
 
+@pytest.mark.dds
 def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
     sim_bag, sim_visits, tmp_path, monkeypatch
 ):
@@ -736,6 +739,7 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
         assert grid.info.resolution == pytest.approx(saved.resolution)
 
 
+@pytest.mark.dds
 def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_visits, monkeypatch):
     """Visit stream anomalies, fed straight to the node's callback (no DDS traffic needed)."""
     from rclpy.parameter import Parameter
@@ -785,6 +789,7 @@ def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_
         assert node.counters["internal_errors"] == 0
 
 
+@pytest.mark.dds
 def test_filter_node_follows_detector_sessions(sim_visits, monkeypatch):
     """Visits carry the detector's session id: a new session (from visit 0) starts a new map; visits of
     another session, old visits, implausible index jumps and inconsistent end markers are dropped."""
@@ -847,6 +852,7 @@ def stream_messages(visits, session):
     return [*msgs, String(data=json.dumps(end))]
 
 
+@pytest.mark.dds
 def test_filter_node_autosaves_and_resumes_from_the_detector_history(sim_visits, tmp_path, monkeypatch):
     """Issue #8: a filter killed after its last autosave, restarted with ``resume``, skips the visits the
     detector's transient-local history redelivers that it restored, maps the rest and ends exactly as a
@@ -894,6 +900,7 @@ def test_filter_node_autosaves_and_resumes_from_the_detector_history(sim_visits,
         assert not reply.success and "state_file is not set" in reply.message
 
 
+@pytest.mark.dds
 def test_an_empty_new_detector_session_ends_the_input_with_the_map_as_it_is(sim_visits, monkeypatch):
     """A restarted detector that finds no visit before its input ends: its end marker (0 visits) makes
     the map final; an end marker of another session announcing visits is still foreign."""
@@ -909,6 +916,7 @@ def test_an_empty_new_detector_session_ends_the_input_with_the_map_as_it_is(sim_
         assert node.counters["resets"] == 0
 
 
+@pytest.mark.dds
 def test_resume_from_an_unusable_state_file_starts_afresh(sim_visits, tmp_path, monkeypatch, capfd):
     """A corrupt or foreign state file, or one made with another configuration, is moved aside and the
     filter starts afresh (WARN); the detector's history then rebuilds the map."""
@@ -946,6 +954,7 @@ def test_resume_from_an_unusable_state_file_starts_afresh(sim_visits, tmp_path, 
             assert node.diagnostics()["persistence"]["resume_rejected"] == 1  # /diagnostics: WARN
 
 
+@pytest.mark.dds
 def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypatch, capfd):
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
@@ -1030,6 +1039,7 @@ def odometry_detector(ros, **params):
     return node
 
 
+@pytest.mark.dds
 def test_detector_node_refuses_the_ground_truth_detector(monkeypatch):
     """The thesis' perfect detector needs the run's ground truth, which a live node does not have: a
     clear ConfigError (run_node makes it a fatal log and exit code 2), not a node that never fires."""
@@ -1046,6 +1056,7 @@ def visits_by_session(node):
     return list(out.values())
 
 
+@pytest.mark.dds
 def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(monkeypatch):
     """Odometry pauses for 60 s (a forward jump: same session, nothing lost), then jumps 500 m (odometry
     reset: a new session, visits from 0): each session's visits are ptm-run's on its samples."""
@@ -1079,6 +1090,7 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(m
         }
 
 
+@pytest.mark.dds
 def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
     with ros_context(monkeypatch) as ros:
         node = odometry_detector(ros, use_scans=True, use_images=True, silence_s=10.0)
@@ -1105,6 +1117,7 @@ def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
         assert node.check_silence(300.0) == []  # off
 
 
+@pytest.mark.dds
 def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monkeypatch):
     from nav_msgs.msg import Odometry
     from rosgraph_msgs.msg import Clock
@@ -1161,6 +1174,7 @@ def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monk
 # ----------------------------------------------------------------------------- node processes: start-up
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize(
     ("node", "ros_args", "match"),
     [

@@ -20,14 +20,22 @@ from ptm_ros.geometry import between, compose
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.map_quality import ClassGrid
 from ptm_ros.occupancy import FREE, OCCUPIED, load_map
 from ptm_ros.partitions import bell, num_places
 from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
 from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
+from ptm_ros.routes import RouteConfig, crossing_segments
 from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.evaluate import main as eval_main
-from ptm_ros.tools.pipeline import detect_visits, inference_notes, run_offline
+from ptm_ros.tools.pipeline import (
+    detect_visits,
+    inference_notes,
+    route_notes,
+    run_offline,
+    write_route_graph,
+)
 
 
 @pytest.fixture(scope="module")
@@ -68,15 +76,19 @@ def brute_ate(est: np.ndarray, true: np.ndarray) -> float:
     return math.sqrt(min(minimize(cost, x0, method="Nelder-Mead", options=opts).fun for x0 in starts))
 
 
-def check_route_graph(path: Path, ptm: Ptm) -> None:
-    """The nav2 route graph GeoJSON: nodes = MAP places, directed edges between existing nodes, ids
-    unique over nodes and edges, finite coordinates, probabilities in (0, 1]."""
+def check_route_graph(path: Path, ptm: Ptm, map_yaml: Path | None = None) -> dict:
+    """The nav2 route graph GeoJSON: nodes = MAP places and the waypoints of rerouted edges, directed
+    edges straight between existing nodes, ids unique over nodes and edges, finite coordinates,
+    probabilities in (0, 1], every passage of the MAP topology an edge, a chain of hops or a dropped
+    edge; with the run's map (``map_yaml``), no edge segment through its walls."""
     doc = json.loads(path.read_text())
     assert doc["type"] == "FeatureCollection"
     nodes = [f for f in doc["features"] if f["geometry"]["type"] == "Point"]
     edges = [f for f in doc["features"] if f["geometry"]["type"] == "MultiLineString"]
     assert len(nodes) + len(edges) == len(doc["features"])
-    assert len(nodes) == num_places(ptm.map_topology.labels)
+    places = [f for f in nodes if "place" in f["properties"]["metadata"]]
+    assert len(places) == num_places(ptm.map_topology.labels)
+    assert len(nodes) - len(places) == doc["metadata"]["waypoints"]
     ids = [f["properties"]["id"] for f in doc["features"]]
     assert len(set(ids)) == len(ids) and all(isinstance(i, int) and i >= 0 for i in ids)
     node_xy = {f["properties"]["id"]: f["geometry"]["coordinates"] for f in nodes}
@@ -87,13 +99,19 @@ def check_route_graph(path: Path, ptm: Ptm) -> None:
         assert p["startid"] in node_xy and p["endid"] in node_xy and p["startid"] != p["endid"]
         assert e["geometry"]["coordinates"] == [[node_xy[p["startid"]], node_xy[p["endid"]]]]
         assert 0.0 < p["metadata"]["probability"] <= 1.0
-        directed.add((p["startid"], p["endid"]))
+        directed.add(tuple(p["metadata"].get("places", (p["startid"], p["endid"]))))
     assert all((b, a) in directed for a, b in directed)  # each connection in both directions
+    dropped = {tuple(d["places"]) for d in doc["metadata"]["dropped_edges"]}
     labels = ptm.map_topology.labels
     steps = {(a, b) for a, b in itertools.pairwise(labels) if a != b}
-    assert steps <= directed  # every passage of the MAP topology is an edge
+    assert all(s in directed or tuple(sorted(s)) in dropped for s in steps)  # every passage is an edge
+    if map_yaml is not None:
+        grid = load_map(map_yaml)
+        assert crossing_segments(doc, ClassGrid(grid.data, grid.origin, grid.resolution)) == 0
+    return doc
 
 
+@pytest.mark.slow
 def test_visits_follow_the_odometry(tjunction_bag):
     run = read_run(tjunction_bag)
     diag = {}
@@ -126,6 +144,7 @@ def test_visits_follow_the_odometry(tjunction_bag):
     )
 
 
+@pytest.mark.slow
 def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     config = small_config()
     result = run_offline(tjunction_bag, tmp_path, config)
@@ -155,7 +174,11 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     names = {"ptm.json", "config.yaml", "route_graph.geojson", "map.pgm", "map.yaml", "map.png"}
     assert {p.name for p in result.files.values()} == names
     assert all(p.parent == tmp_path and p.is_file() for p in result.files.values())
-    check_route_graph(tmp_path / "route_graph.geojson", ptm)
+    graph = check_route_graph(tmp_path / "route_graph.geojson", ptm, tmp_path / "map.yaml")
+    assert graph["metadata"]["walls"] == "checked against the run's occupancy map"
+    assert graph["metadata"]["node_positions"] == (
+        "medoid of the places' visits on the trajectory the map was drawn along"
+    )
     # The map, in the odometry frame, moved into the world frame: occupied cells on the simulated walls,
     # the walls covered, the true path through free cells.
     truth = json.loads((tjunction_bag / "ground_truth.json").read_text())
@@ -195,6 +218,31 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
         == 0
     )
     assert json.loads(capsys.readouterr().out)["map_quality"] == quality
+
+
+def test_route_graph_is_kept_off_the_walls_and_logged(tmp_path):
+    """write_route_graph with the map's classes: an edge through a wall is rerouted, one with no way
+    round dropped, and ptm-run's log says so."""
+    classes = np.full((100, 120), FREE, dtype=np.int8)
+    classes[:70, 60] = OCCUPIED  # a wall at x = 6 m from y = 0 to 7 m, 0.1 m cells
+    classes[:, 30] = OCCUPIED  # and at x = 3 m across the whole map
+    walls = ClassGrid(classes, (0.0, 0.0, 0.0), 0.1)
+    poses = [(1.0, 5.0, 0.0), (4.5, 5.0, 0.0), (9.0, 5.0, 0.0)]
+    ptm = make_ptm([Landmark(k, float(k), p) for k, p in enumerate(poses)], {(0, 1, 2): 1.0})
+    notes = []
+    path = write_route_graph(
+        ptm, tmp_path / "g.geojson", grid=walls, config=RouteConfig(corridor=3.0), log=notes.append
+    )
+    doc = json.loads(path.read_text())
+    assert crossing_segments(doc, walls) == 0
+    assert doc["metadata"]["rerouted_edges"] == 1 and [
+        d["places"] for d in doc["metadata"]["dropped_edges"]
+    ] == [[0, 1]]
+    assert notes[0].startswith("route graph: 1 connections rerouted around the map's walls through")
+    assert notes[1].startswith("route graph: dropped the edge between places 0 and 1 (p = 1.000): ")
+    assert (
+        route_notes(json.loads(write_route_graph(ptm, tmp_path / "s.geojson").read_text())["metadata"]) == []
+    )
 
 
 def test_cli_warns_about_skipped_input(monkeypatch, tmp_path, capsys):
@@ -238,8 +286,12 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     written = {p.name for p in (tmp_path / "o").iterdir()}
     assert {"ptm.json", "route_graph.geojson", "report.html"} <= written
     assert not written & {"map.pgm", "map.yaml", "map.png"}  # --no-map
+    doc = check_route_graph(tmp_path / "o" / "route_graph.geojson", load_ptm(tmp_path / "o" / "ptm.json"))
+    assert doc["metadata"]["walls"] == "not checked: no map" and doc["metadata"]["waypoints"] == 0
+    assert doc["metadata"]["node_positions"] == "the MAP topology's place positions"
 
 
+@pytest.mark.slow
 def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     """The three estimators over the same visits and model: MCMC's visited-set estimate and the filter
     (particles >= the number of topologies it can hold) against enumeration."""
@@ -267,6 +319,7 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert inference_notes(ptms["rbpf"].inference) == [] == inference_notes(ptms["exact"].inference)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", [{"initial": "rbpf"}, {"initial": "auto", "auto_filter_visits": 3}])
 def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path, start):
     """``initial: rbpf`` (or ``auto`` on a run longer than ``auto_filter_visits``): the chains start from

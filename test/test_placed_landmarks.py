@@ -175,6 +175,7 @@ def loop_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_ptm_run_with_the_ground_truth_detector_scores_the_true_topology(
     loop_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -248,6 +249,7 @@ def test_a_ground_truth_of_another_clock_is_refused_before_the_work(
     assert not (tmp_path / "o" / "ptm.json").exists()
 
 
+@pytest.mark.slow
 def test_intel_with_landmarks_every_5_m_beats_the_thesis(datasets_dir: Path, tmp_path: Path) -> None:
     """The thesis' Intel experiment (Ch. 4.5, Fig. 57: landmarks placed 5 m from each other, 63 visits,
     72 % of the mass on the true topology with MC³), replayed with the filter at its defaults."""

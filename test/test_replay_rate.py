@@ -23,6 +23,9 @@ from test_bringup import BRINGUP, assert_no_orphans
 from ptm_ros.nodes.bag_player import bag_topics
 from ptm_ros.ptm import load_ptm
 
+# the node suite over DDS at ten times real time (about 20 s)
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
+
 PTM_RUN = [sys.executable, "-m", "ptm_ros.tools.run"]
 RATE = 10.0
 NODES = ("landmark_detector", "topology_filter", "map_publisher")

@@ -160,6 +160,7 @@ def test_resume_in_process_gives_the_uninterrupted_ptm(bag, reference, partial_s
     assert comparable(read_ptm(tmp_path)) == comparable(reference)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_uninterrupted_ptm(bag, params, reference, tmp_path):
     """SIGKILL a ``ptm-run --autosave 1`` subprocess once its state holds a few visits, then resume."""
     out = tmp_path / "out"

@@ -101,6 +101,7 @@ def run_demo(method: str, out: Path) -> dict[str, Any]:
     return json.loads((out / "ptm.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", sorted(RUNS))
 def test_ptm_run_output_validates_and_is_documented(method, validator, tmp_path, capsys):
     doc = run_demo(method, tmp_path / "out")

@@ -364,7 +364,7 @@ class BagWriter:
             msg = "a scan needs at least one range"
             raise BagError(msg)
         ns = stamp_to_ns(stamp_s)
-        msg = typestore().types[SCAN_TYPE](
+        scan = typestore().types[SCAN_TYPE](
             header=self._header(ns, frame_id),
             angle_min=float(angle_min),
             angle_max=float(angle_min) + (r.size - 1) * float(angle_increment),
@@ -376,7 +376,7 @@ class BagWriter:
             ranges=r,
             intensities=np.zeros(0, dtype=np.float32),
         )
-        self._write_msg(topic, SCAN_TYPE, ns, msg)
+        self._write_msg(topic, SCAN_TYPE, ns, scan)
 
     def write_image(
         self,
@@ -394,7 +394,7 @@ class BagWriter:
         height, width = img.shape[:2]
         channels = 1 if img.ndim == 2 else 3
         ns = stamp_to_ns(stamp_s)
-        msg = typestore().types[IMAGE_TYPE](
+        message = typestore().types[IMAGE_TYPE](
             header=self._header(ns, frame_id),
             height=height,
             width=width,
@@ -403,7 +403,7 @@ class BagWriter:
             step=width * channels,
             data=np.ascontiguousarray(img).reshape(-1),
         )
-        self._write_msg(topic, IMAGE_TYPE, ns, msg)
+        self._write_msg(topic, IMAGE_TYPE, ns, message)
 
 
 # -------------------------------------------------------------------------------------------- readers
@@ -594,8 +594,15 @@ def read_run(
     :data:`IMAGE_ENCODINGS` are also counted by encoding in ``ImageData.skipped``.
     """
     bag = Path(path)
-    wanted = {odom_topic: ODOMETRY_TYPE, scan_topic: SCAN_TYPE, image_topic: IMAGE_TYPE}
-    wanted.pop(None, None)
+    wanted = {
+        topic: msgtype
+        for topic, msgtype in (
+            (odom_topic, ODOMETRY_TYPE),
+            (scan_topic, SCAN_TYPE),
+            (image_topic, IMAGE_TYPE),
+        )
+        if topic is not None
+    }
     reader = _open_reader(bag)
     try:
         topics = {name: info.msgtype for name, info in reader.topics.items()}

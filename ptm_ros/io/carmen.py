@@ -27,7 +27,7 @@ from __future__ import annotations
 import gzip
 import math
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -269,7 +269,11 @@ def _parse_odom(tokens: list[str], lineno: int) -> OdomRecord:
     return OdomRecord(lineno, x, y, theta, tv, rv, accel, ipc, host, logger)
 
 
-_PARSERS = {FLASER: _parse_flaser, ROBOTLASER1: _parse_robotlaser, ODOM: _parse_odom}
+_PARSERS: dict[str, Callable[[list[str], int], Record]] = {
+    FLASER: _parse_flaser,
+    ROBOTLASER1: _parse_robotlaser,
+    ODOM: _parse_odom,
+}
 
 
 def line_kind(text: str) -> str:
@@ -355,7 +359,10 @@ def read_log(path: str | Path, *, strict: bool = False) -> CarmenLog:
     lasers: list[LaserRecord] = []
     odometry: list[OdomRecord] = []
     for record in iter_records(path, strict=strict, report=report):
-        (lasers if isinstance(record, LaserRecord) else odometry).append(record)
+        if isinstance(record, LaserRecord):
+            lasers.append(record)
+        else:
+            odometry.append(record)
     return CarmenLog(path=Path(path), lasers=tuple(lasers), odometry=tuple(odometry), report=report)
 
 

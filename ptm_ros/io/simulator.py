@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -160,7 +160,7 @@ class LaserConfig:
     @property
     def angles(self) -> FloatArray:
         """Beam angles ``(B,)`` in the sensor frame (rad)."""
-        return self.angle_min + self.angle_increment * np.arange(self.beams)
+        return self.angle_min + self.angle_increment * np.arange(self.beams, dtype=float)
 
 
 @dataclass(frozen=True)
@@ -680,7 +680,7 @@ def simulate(
     route = world.visits(visits)
     traj = plan_trajectory(world, config, visits)
     dt = 1.0 / config.odom_rate
-    k = np.arange(math.floor(traj.total_time / dt + 1e-9) + 1)
+    k = np.arange(math.floor(traj.total_time / dt + 1e-9) + 1, dtype=float)
     t = k * dt
     true = traj.pose_at(t)
     odom, inc = odometry_from_truth(true, config.odometry, rng)
@@ -688,7 +688,7 @@ def simulate(
     twist[1:] = inc[:, [0, 2]] / dt
 
     laser = config.laser
-    t_scan = np.arange(math.floor(traj.total_time * laser.rate + 1e-9) + 1) / laser.rate
+    t_scan = np.arange(math.floor(traj.total_time * laser.rate + 1e-9) + 1, dtype=float) / laser.rate
     ranges = simulate_scans(world.segments, traj.pose_at(t_scan), laser, rng)
 
     cam = config.camera
@@ -726,7 +726,7 @@ def simulate(
     )
 
 
-def write_run(run: SimRun, out_bag: str | Path, storage: str = "mcap") -> Path:
+def write_run(run: SimRun, out_bag: str | Path, storage: Literal["mcap", "sqlite3"] = "mcap") -> Path:
     """Write ``/odom``, ``/scan`` and ``/panorama`` (in time order) to a new rosbag2 ``out_bag`` through
     :class:`ptm_ros.io.bag.BagWriter`, then ``out_bag/ground_truth.json``. Returns the bag directory."""
     import json

@@ -50,10 +50,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 @dataclass(frozen=True)
 class BagTopic:
-    """A topic of a bag: name, ROS type (``nav_msgs/msg/Odometry``) and message count."""
+    """A topic of a bag: name, ROS type (``nav_msgs/msg/Odometry``; None when the topic's connections
+    disagree on it) and message count."""
 
     name: str
-    msgtype: str
+    msgtype: str | None
     count: int
 
 
@@ -80,14 +81,17 @@ def bag_topics(path: Path) -> dict[str, BagTopic]:
         raise BagError(msg) from err
 
 
-def message_class(msgtype: str) -> Any:
+def message_class(msgtype: str | None) -> Any:
     """The rclpy message class of a ROS type name (``pkg/msg/Name``).
 
     Raises:
-        BagError: the type is not installed.
+        BagError: the type is not installed, or None (:class:`BagTopic`: a topic of several types).
     """
     from ptm_ros.errors import BagError
 
+    if msgtype is None:
+        msg = "a topic whose connections have different message types cannot be replayed"
+        raise BagError(msg)
     pkg, _, name = msgtype.partition("/msg/")
     try:
         return getattr(importlib.import_module(f"{pkg}.msg"), name)

@@ -78,6 +78,7 @@ from ptm_ros.io.validation import header_stamp_ns
 
 if typing.TYPE_CHECKING:
     from rclpy.node import Node
+    from rclpy.publisher import Publisher
 
 # ------------------------------------------------------------------------------------- end of input
 
@@ -126,6 +127,18 @@ MAP_STREAM_QOS = QoSProfile(
 
 #: Display topics (landmark poses): reliable, a deep queue.
 DISPLAY_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+#: A node module's table of what it publishes: topic -> (message type, QoS or history depth).
+Publishes = Mapping[str, tuple[type, QoSProfile | int]]
+
+
+def advertise(node: Node, publishes: Publishes, topic: str) -> Publisher:
+    """The publisher of ``topic`` with the message type and QoS of the node module's table ``publishes``:
+    the node creates its publishers from the table that tools read without starting DDS (the RViz
+    configuration's test, ``test/test_rviz.py``), so the two cannot disagree."""
+    msg_type, qos = publishes[topic]
+    return node.create_publisher(msg_type, topic, qos)
 
 
 def sensor_qos(kind: str) -> QoSProfile:
@@ -266,8 +279,8 @@ def config_parameters(root: type = PtmConfig, prefix: str = "") -> tuple[ConfigP
             continue
         name = f"{prefix}{f.name}"
         hint, optional = _unwrap_optional(hints[f.name])
-        if dataclasses.is_dataclass(hint):
-            out.extend(config_parameters(hint, f"{name}."))  # type: ignore[arg-type]
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            out.extend(config_parameters(hint, f"{name}."))
             continue
         if f.default is not dataclasses.MISSING:
             default = f.default
@@ -723,7 +736,8 @@ class StreamGuard:
         if event is None:
             outliers = self.held
             self._runs.clear()
-            if stamp >= self._last[0]:  # type: ignore[index]
+            assert self._last is not None  # else the event is START
+            if stamp >= self._last[0]:
                 self._accept(stamp, payload)
             return Admission(released=((stamp, payload),), outliers=outliers)
         outliers = 0
@@ -889,7 +903,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, nam
         finally:
             # armed until the process exits (not cancelled): a hang in the node's teardown, in rclpy's
             # shutdown or in the interpreter's exit prints the stacks instead of dying silently
-            faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__)
+            faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__ or sys.stderr)
             node.destroy_node()
         return 0
     finally:

@@ -86,6 +86,8 @@ from ptm_ros.nodes.common import (
     MAP_STREAM_QOS,
     STREAM_QOS,
     OnceLogger,
+    Publishes,
+    advertise,
     check_parameter_names,
     declare_config,
     declare_node_parameter,
@@ -106,6 +108,13 @@ NODE_NAME = "map_publisher"
 PREPARED_PATCHES = 16  # patches kept prepared for registration (each MAP pair is registered once, cached)
 CLOSE_WAIT_S = 3.0  # s the node waits for a drawing in progress when it is destroyed
 BUILD_SHARE = 4.0  # a map that took d seconds to draw waits 4 d before the next: at most 1/5 of a core
+#: What the node publishes (topic: message type, QoS), the table its publishers are made from.
+PUBLISHES: Publishes = {
+    "ptm_path": (PathMsg, LATCHED_QOS),
+    "map": (GridMsg, LATCHED_QOS),
+    "ptm_trajectory": (PathMsg, LATCHED_QOS),
+    "/diagnostics": (DiagnosticArray, 10),
+}
 
 
 def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float, config: OccupancyConfig) -> GridMsg:
@@ -234,10 +243,10 @@ class MapPublisherNode(Node):
         self.scans_expected: int | None = None  # keyframes the detector sent, from its end marker
         self._text: str | None = None  # the latest document as received
         self._log_once = OnceLogger(self.get_logger())
-        self._path_pub = self.create_publisher(PathMsg, "ptm_path", LATCHED_QOS)
-        self._map_pub = self.create_publisher(GridMsg, "map", LATCHED_QOS)
-        self._trajectory_pub = self.create_publisher(PathMsg, "ptm_trajectory", LATCHED_QOS)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._path_pub = advertise(self, PUBLISHES, "ptm_path")
+        self._map_pub = advertise(self, PUBLISHES, "map")
+        self._trajectory_pub = advertise(self, PUBLISHES, "ptm_trajectory")
+        self._diag_pub = advertise(self, PUBLISHES, "/diagnostics")
         self.create_subscription(String, "ptm_graph", self._on_graph, LATCHED_QOS)
         self.create_subscription(String, "landmark_visits", self._on_visit, STREAM_QOS)
         self.create_subscription(Odometry, "landmark_odom", self._on_odom, MAP_STREAM_QOS)

@@ -101,6 +101,8 @@ from ptm_ros.nodes.common import (
     LATCHED_QOS,
     STREAM_QOS,
     OnceLogger,
+    Publishes,
+    advertise,
     check_parameter_names,
     declare_config,
     declare_node_parameter,
@@ -118,10 +120,17 @@ from ptm_ros.persistence import (
 from ptm_ros.ptm import Ptm, Topology, to_json_dict
 from ptm_ros.rbpf import FilterState
 from ptm_ros.session import FilterSession
-from ptm_ros.visits import Visit
+from ptm_ros.visits import Visit, pose_field
 
 NODE_NAME = "topology_filter"
 GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
+FRAME_ID = "odom"  # default of the frame_id parameter: the frame of the visits, the graph and the markers
+#: What the node publishes (topic: message type, QoS), the table its publishers are made from.
+PUBLISHES: Publishes = {
+    "ptm_graph": (String, LATCHED_QOS),
+    "ptm_markers": (MarkerArray, LATCHED_QOS),
+    "/diagnostics": (DiagnosticArray, 10),
+}
 #: Schema tag of the node's state file content (its ``session`` is a :class:`FilterSession` state).
 NODE_STATE_SCHEMA = "ptm_ros.topology_filter_state/1"
 MARKER_Z_STEP = 1.0  # m between stacked hypotheses
@@ -285,7 +294,7 @@ class TopologyFilterNode(Node):
             "(the ensemble then equals ptm-run's exactly, at O(N) updates per visit)",
             minimum=0,
         )
-        self.frame_id = declare_node_parameter(self, "frame_id", "odom", "odometry frame of the visits")
+        self.frame_id = declare_node_parameter(self, "frame_id", FRAME_ID, "odometry frame of the visits")
         state_file = declare_node_parameter(
             self,
             "state_file",
@@ -318,9 +327,9 @@ class TopologyFilterNode(Node):
         self._dirty = False  # anything changed since then (visits, end markers, resets)
         self.persistence = {"resumed_visits": 0, "resume_rejected": 0, "saves": 0, "save_failures": 0}
         self._log_once = OnceLogger(self.get_logger())
-        self._graph_pub = self.create_publisher(String, "ptm_graph", LATCHED_QOS)
-        self._marker_pub = self.create_publisher(MarkerArray, "ptm_markers", LATCHED_QOS)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._graph_pub = advertise(self, PUBLISHES, "ptm_graph")
+        self._marker_pub = advertise(self, PUBLISHES, "ptm_markers")
+        self._diag_pub = advertise(self, PUBLISHES, "/diagnostics")
         self.create_subscription(String, "landmark_visits", self._on_visit, STREAM_QOS)
         self.create_service(Trigger, "~/save_ptm", self._on_save)
         self.create_service(Trigger, "~/reset", self._on_reset)
@@ -601,7 +610,7 @@ class TopologyFilterNode(Node):
             self._end_count = None if state["end_count"] is None else int(state["end_count"])
             self._stream = state["stream"]
             first = state["first"]
-            self._first = None if first is None else (float(first[0]), tuple(float(x) for x in first[1]))
+            self._first = None if first is None else (float(first[0]), pose_field(first[1]))
             self._last_stamp = float(state["last_stamp"])
             self._last = None if state["last"] is None else FilterState(*state["last"])
             unknown = set(state["counters"]) - set(COUNTERS)
@@ -613,7 +622,8 @@ class TopologyFilterNode(Node):
         except (KeyError, TypeError, ValueError, IndexError) as err:
             msg = f"malformed {NODE_NAME} state: {type(err).__name__}: {err}"
             raise DataError(msg) from err
-        self._resumed = {**self._retired, self._stream: self._next_index or 0}
+        self._resumed = dict(self._retired.items())
+        self._resumed[self._stream] = self._next_index or 0
         self._unsaved, self._dirty = 0, False
 
     def _reset_all(self) -> None:

@@ -160,7 +160,9 @@ def odometry_frame(bag: Path, topic: str) -> str:
     from ptm_ros.io.bag import iter_raw, typestore
 
     for raw in iter_raw(bag, [topic]):
-        return typestore().deserialize_cdr(raw.rawdata, raw.msgtype).header.frame_id or "odom"
+        message = typestore().deserialize_cdr(raw.rawdata, raw.msgtype)
+        # rosbags types a deserialized message as object; an odometry message has a header
+        return message.header.frame_id or "odom"  # type: ignore[attr-defined]
     return "odom"
 
 

@@ -110,14 +110,18 @@ def calibrate_run(
     if run.scans is None:
         msg = f"no scans in {run.path}"
         raise DataError(msg)
+    odom = run.odometry
+    if odom is None:
+        msg = f"no odometry in {run.path}"
+        raise DataError(msg)
     stamps, points = scan_points(run.scans, config.laser)
     stamps, points = stamps[:max_scans], points[:max_scans]
     if not any(len(p) for p in points):
         msg = f"no usable scan points in {run.path}"
         raise DataError(msg)
     scores = time_offset_scores(
-        run.odometry.stamps,
-        run.odometry.poses,
+        odom.stamps,
+        odom.poses,
         stamps,
         points,
         sorted({0.0, *offsets}, reverse=True),

@@ -9,7 +9,8 @@ messages.
 Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
 
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
-* ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always;
+* ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
+  its nodes on the map's trajectory and its edges kept off the map's walls (:func:`write_route_graph`);
 * ``map.pgm`` + ``map.yaml`` (nav2 ``map_server``) and ``map.png`` — the occupancy grid
   (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
@@ -76,6 +77,8 @@ from ptm_ros.visits import Visit
 
 if TYPE_CHECKING:
     from ptm_ros.geometry import Registrar
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.routes import RouteConfig
 
 #: Names of the files :func:`run_offline` writes (keys of :attr:`RunResult.files`).
 OUTPUT_FILES = {
@@ -398,7 +401,8 @@ def run_offline(
     the visits again, refuses a state of another run (:func:`check_state_config`,
     :func:`check_run_state`), fits the models on all visits as an uninterrupted run does, and continues
     the filter with the visits not yet seen: the same ``ptm.json`` but for the timings. ``log`` receives
-    progress notes (resumed, started afresh).
+    progress notes (resumed, started afresh) and the route graph's rerouted and dropped edges
+    (:func:`route_notes`).
     """
     t0 = time.perf_counter()
     bag = Path(bag)
@@ -469,14 +473,16 @@ def run_offline(
         if ate is not None:
             extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(gt)}
     files: dict[str, Path] = {}
+    walls = None  # the map's classes, for the map's quality and the route graph
     if want_map and traj is not None:
         t1 = time.perf_counter()
         grid = occupancy_grid(run, traj, config)
         files |= write_occupancy_map(run, traj, out, config, grid=grid)
         timing["map_s"] = time.perf_counter() - t1
+        walls = class_grid(grid, config) if grid is not None else None
         ate = extra.get(TRAJECTORY_ERROR_KEY)
-        if grid is not None and truth is not None and ate is not None:
-            quality = map_quality_against(run, class_grid(grid, config), truth, ate["alignment"], config)
+        if walls is not None and truth is not None and ate is not None:
+            quality = map_quality_against(run, walls, truth, ate["alignment"], config)
             if quality is not None:
                 extra[MAP_QUALITY_KEY] = quality
     if session is not None:  # the laser registrations' counters, after the smoothing's registrations
@@ -485,7 +491,14 @@ def run_offline(
     ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["ptm"] = ptm_path
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
-    files["route_graph"] = write_route_graph(ptm, out / OUTPUT_FILES["route_graph"])
+    files["route_graph"] = write_route_graph(
+        ptm,
+        out / OUTPUT_FILES["route_graph"],
+        grid=walls,
+        trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
+        config=config.routes,
+        log=log,
+    )
     if schedule is not None and truth is not None:  # what ptm-eval needs for the true-topology mass
         files["ground_truth"] = save_sim_gt(truth, out / OUTPUT_FILES["ground_truth"])
     if checkpoint is not None and checkpoint.every:
@@ -735,11 +748,49 @@ def write_occupancy_map(
     return {"map_pgm": pgm, "map_yaml": yml, "map_png": png}
 
 
-def write_route_graph(ptm: Ptm, path: Path) -> Path:
-    """The PTM as a nav2 route graph (:func:`ptm_ros.routes.route_graph`) at ``path``."""
+def write_route_graph(
+    ptm: Ptm,
+    path: Path,
+    *,
+    grid: ClassGrid | None = None,
+    trajectory: tuple[np.ndarray, np.ndarray] | None = None,
+    config: RouteConfig | None = None,
+    log: Callable[[str], None] | None = None,
+) -> Path:
+    """The PTM as a nav2 route graph (:func:`ptm_ros.routes.route_graph`) at ``path``.
+
+    ``grid``: the classes of the run's map (:func:`class_grid` of :func:`occupancy_grid`'s grid, the cells
+    of ``map.pgm``) and ``trajectory`` ``(stamps, poses)`` the smoothed MAP trajectory it was drawn along
+    (:func:`map_trajectory`): the nodes are the places' visits on it, in the map's frame, and edges
+    crossing the map's walls are rerouted through waypoints or dropped
+    (:class:`ptm_ros.routes.RouteConfig` ``config``); ``log`` receives :func:`route_notes`. Without
+    them (``ptm-run --no-map``, a bag without scans) the nodes are the MAP topology's place positions and
+    the edges the straight segments between them, walls unchecked, as before issue #24.
+    """
     from ptm_ros.routes import route_graph, save_route_graph
 
-    return save_route_graph(route_graph(ptm), path)
+    doc = route_graph(ptm, grid=grid, trajectory=trajectory, config=config)
+    if log is not None:
+        for note in route_notes(doc["metadata"]):
+            log(note)
+    return save_route_graph(doc, path)
+
+
+def route_notes(meta: Mapping[str, Any]) -> list[str]:
+    """Lines on the edges a route graph rerouted around walls or dropped (its ``metadata``)."""
+    lines = []
+    if meta["rerouted_edges"]:
+        lines.append(
+            f"route graph: {meta['rerouted_edges']} connections rerouted around the map's walls through "
+            f"{meta['waypoints']} waypoints"
+        )
+    for d in meta["dropped_edges"]:
+        a, b = d["places"]
+        lines.append(
+            f"route graph: dropped the edge between places {a} and {b} (p = {d['probability']:.3f}): "
+            f"{d['reason']}"
+        )
+    return lines
 
 
 def map_trajectory(

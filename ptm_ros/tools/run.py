@@ -1,9 +1,10 @@
 """``ptm-run BAG --out DIR``: the offline pipeline (same core code as the nodes, no DDS).
 
 Writes ``DIR/ptm.json`` (CONTRACT.md schema), ``DIR/config.yaml`` (the parameters used),
-``DIR/route_graph.geojson`` (nav2 route graph), for a bag with scans the occupancy map ``DIR/map.pgm`` +
-``DIR/map.yaml`` (nav2 map_server) and ``DIR/map.png`` (unless ``--no-map``), and
-``DIR/report.{md,html}`` with figures (unless ``--no-report``); see :mod:`ptm_ros.tools.pipeline`.
+``DIR/route_graph.geojson`` (nav2 route graph, its edges kept off the map's walls), for a bag with scans
+the occupancy map ``DIR/map.pgm`` + ``DIR/map.yaml`` (nav2 map_server) and ``DIR/map.png`` (unless
+``--no-map``), and ``DIR/report.{md,html}`` with figures (unless ``--no-report``); see
+:mod:`ptm_ros.tools.pipeline`.
 Prints the most probable topologies and, when the bag carries a ground truth (``BAG/ground_truth.json``)
 or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
 trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``), and the map's
