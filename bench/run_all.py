@@ -7,7 +7,10 @@
    (``bench_online_map.py``) and the calibration of the MAP probability over simulated aliased worlds and
    their controls (``bench_calibration.py``: ``calibration.{json,md,png}``, about an hour on one core,
    resumable) and corrupted bags through ``ptm-run``/``ptm-eval`` with a larger budget than the test's
-   (``bench_fuzz.py``: ``fuzz.json``), when present.
+   (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities fitted leave one run out
+   (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised in ``results.md``) and the model's
+   odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
+   when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -63,6 +66,8 @@ COMPONENTS = (
     "bench_online_map.py",
     "bench_calibration.py",
     "bench_fuzz.py",
+    "bench_fitness_loo.py",
+    "bench_odometry_noise.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (
@@ -350,9 +355,39 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         ]
         lines += [""] + [f"- [{name}]({path})" for name, path in maps] + [""]
         lines += [f"![{name}]({path})" for name, path in maps]
+    lines += loo_section(BENCH / "fitness_loo.json")
     lines += ["", "Component benchmarks (their own JSON files beside this one):", ""]
     lines += [f"- `{c['script']}`: exit {c['exit_code']}, {c['wall_s']:.1f} s" for c in components]
     (BENCH / "results.md").write_text("\n".join(lines) + "\n")
+
+
+def loo_section(path: Path) -> list[str]:
+    """The leave-one-run-out figures of the constants fitted on the real runs (``bench_fitness_loo.py``'s
+    JSON), beside the in-sample ones: mean MAP F1 over its seeds per held-out run."""
+    if not path.is_file():
+        return []
+    doc = json.loads(path.read_text())
+    lines = [
+        "",
+        "## Constants fitted on the real runs, leave one run out",
+        "",
+        "The laser fitness densities (`laser.fitness_*`) were fitted on Intel, ACES and MIT-CSAIL. Each run "
+        "scored with the densities fitted on the other two (`bench/fitness_loo.md`, "
+        f"generated {doc['generated']}), mean MAP F1 (precision) over seeds "
+        f"{sorted({r['seed'] for r in doc['runs']})}:",
+        "",
+        "| run | in-sample (defaults) | leave-one-out |",
+        "|---|---|---|",
+    ]
+    for run in dict.fromkeys(r["run"] for r in doc["runs"]):
+        cells = []
+        for label in ("defaults", "leave-one-out"):
+            rs = [r for r in doc["runs"] if r["run"] == run and r["densities"] == label and "map_f1" in r]
+            f1 = np.mean([r["map_f1"] for r in rs]) if rs else float("nan")
+            pr = np.mean([r["map_precision"] for r in rs]) if rs else float("nan")
+            cells.append(f"{f1:.3f} ({pr:.3f})")
+        lines.append(f"| {run} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def main() -> None:
