@@ -100,7 +100,7 @@ from ptm_ros.nodes.common import (
     valid_stamp,
 )
 from ptm_ros.nodes.messages import parse_visit_envelope
-from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map, save_png, to_ros_data
+from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
 from ptm_ros.visits import Visit
 
@@ -465,12 +465,8 @@ class MapPublisherNode(Node):
             return response
         out = Path(self.get_parameter("out_dir").value)
         try:
-            pgm, yml = save_map(result.grid, out / "map", self.config.occupancy)
-            png = save_png(
-                result.grid,
-                out / "map.png",
-                trajectory=result.trajectory,
-                title=f"occupancy grid ({result.grid.resolution:g} m cells, {result.grid.scans} scans)",
+            pgm, yml, png = save_map_files(
+                result.grid, out, self.config.occupancy, trajectory=result.trajectory
             )
         except OSError as err:
             response.success, response.message = False, f"cannot write the map to {out}: {err}"
