@@ -74,12 +74,14 @@ from ptm_ros.session import (
     infer,
     require_rbpf,
 )
+from ptm_ros.surprise import surprise_trace
 from ptm_ros.visits import Visit
 
 if TYPE_CHECKING:
     from ptm_ros.geometry import Registrar
     from ptm_ros.map_quality import ClassGrid
     from ptm_ros.routes import RouteConfig
+    from ptm_ros.surprise import SurpriseTrace
 
 #: Names of the files :func:`run_offline` writes (keys of :attr:`RunResult.files`).
 OUTPUT_FILES = {
@@ -530,7 +532,7 @@ def write_outputs(
     truth: GroundTruthTrajectory | None = None,
     truth_file: Path | None = None,
     save_truth: bool = False,
-    surprise: Any | None = None,
+    surprise: SurpriseTrace | None = None,
     write_report: bool = True,
     title: str,
     log: Callable[[str], None] | None = None,
@@ -545,8 +547,8 @@ def write_outputs(
       walls and trajectory when there is a map), ``ground_truth.json`` when ``save_truth`` (the
       ``ground-truth`` detector's landmarks);
     * with ``write_report``, the report: the score against ``truth``, the detector's ``surprise`` trace
-      (:func:`surprise_trace`), the map image and the notes (doubts, trajectory errors, map quality,
-      inference), the trajectory drawn under the topologies (the raw odometry without one).
+      (:func:`ptm_ros.surprise.surprise_trace`), the map image and the notes (doubts, trajectory errors,
+      map quality, inference), the trajectory drawn under the topologies (the raw odometry without one).
 
     ``RunResult.diagnostics`` is ``ptm.extra["diagnostics"]`` (callers with the extractor's replace it).
     """
@@ -627,15 +629,6 @@ def _checkpoint(
         save_filter_state(checkpoint.path, s.state_dict(), meta=meta)
 
     return resumed, (save if checkpoint.every else None)
-
-
-def surprise_trace(detector: Any) -> Any | None:
-    """The Bayesian surprise trace of a surprise detector (thesis Fig. 62), None for other detectors."""
-    from ptm_ros.surprise import AppearanceSurpriseDetector, LaserSurpriseDetector
-
-    if isinstance(detector, LaserSurpriseDetector | AppearanceSurpriseDetector):
-        return detector.trace
-    return None
 
 
 def trajectory_errors(
