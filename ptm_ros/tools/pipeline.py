@@ -522,6 +522,33 @@ class MetricMap:
     files: Mapping[str, Path] = field(default_factory=dict)
 
 
+def saved_map(
+    run: RunData, files: Mapping[str, Path], trajectory: tuple[np.ndarray, np.ndarray] | None
+) -> MetricMap:
+    """The :class:`MetricMap` of a map drawn elsewhere (the map publisher's, saved by its ``~/save_map``):
+    its ``files`` (keys ``map_pgm``, ``map_yaml``, ``map_png``; none without a map), the classes of
+    ``map.yaml`` read back (:func:`map_classes`), and the ``trajectory`` ``(stamps (K,), poses (K, 3))``
+    it was drawn along at the run's odometry stamps (:func:`ptm_ros.geometry.interpolate_poses`: exact
+    where the run's stamps are among the trajectory's, as when the map was drawn from every sample)."""
+    from ptm_ros.geometry import interpolate_poses
+
+    traj = None
+    if trajectory is not None and len(trajectory[0]):
+        traj = interpolate_poses(trajectory[0], trajectory[1], run_odometry(run).stamps)
+    walls = map_classes(files["map_yaml"]) if "map_yaml" in files else None
+    return MetricMap(trajectory=traj, walls=walls, files=dict(files))
+
+
+def map_classes(yaml_path: Path) -> ClassGrid:
+    """The classes of a saved map (``map.yaml`` + ``map.pgm``, :func:`ptm_ros.occupancy.load_map`): the
+    :func:`class_grid` of the grid it was saved from."""
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.occupancy import load_map
+
+    saved = load_map(yaml_path)
+    return ClassGrid(saved.data, saved.origin, saved.resolution)
+
+
 def write_outputs(
     out: Path,
     ptm: Ptm,
