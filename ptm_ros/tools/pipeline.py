@@ -6,7 +6,9 @@ this module only loops over a recorded run, times, checkpoints and writes files 
 ``pipeline.py`` plays the same role). The detector and filter nodes drive the same core code on live
 messages.
 
-Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
+Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them; all but the map and the
+state through :func:`write_outputs`, which ``ptm-bringup`` calls on what the nodes published, so that both
+tools write one set of outputs, issue #24):
 
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
 * ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
