@@ -167,15 +167,17 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
     """Human-readable lines: visits, the most probable topologies, the score if any, and (``total_s``)
     the run's whole wall time with its phases."""
     from ptm_ros.doubts import doubt_lines, find_doubts
-    from ptm_ros.report import label_string
+    from ptm_ros.landmarks import landmark_accounting
+    from ptm_ros.report import CONSISTENT_MASS_MEANING, inference_line, label_string
     from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, inference_notes, map_quality_notes
 
     ptm = result.ptm
-    lines = [
-        f"{len(ptm.landmarks)} landmark visits, method {ptm.inference.get('method')}, "
-        f"{ptm.timing.get('wall_s', 0.0):.2f} s",
-        "most probable topologies:",
-    ]
+    lines = [f"{len(ptm.landmarks)} landmark visits, {ptm.timing.get('wall_s', 0.0):.2f} s to the PTM"]
+    skipped = (result.diagnostics or ptm.extra.get("diagnostics") or {}).get("skipped") or {}
+    accounting = landmark_accounting(len(ptm.landmarks), skipped)
+    if accounting:
+        lines.append(accounting)
+    lines += [inference_line(ptm.inference), "most probable topologies:"]
     for rank, t in enumerate(ptm.topologies[:top]):
         places = len(set(t.labels))
         lines.append(f"  #{rank + 1} p = {t.probability:.4f}  places = {places:3d}  {label_string(t.labels)}")
@@ -186,6 +188,7 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
             "posterior F1 = {posterior_f1:.3f}, consistent mass = {consistent_mass:.3f}, "
             "true places = {n_true_places}".format(**s)
         )
+        lines.append(f"  ({CONSISTENT_MASS_MEANING})")
         if s.get("true_topology_mass") is not None:
             lines.append(f"mass on the true topology = {s['true_topology_mass']:.3f}")
     ate = result.trajectory_error
@@ -244,7 +247,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 def skipped_warning(diagnostics: dict) -> str:
     """One line naming the input messages the extractor skipped, by reason (``''`` when none): bad input
     is reported, never dropped silently (the counts are also in ptm.json's ``diagnostics``)."""
-    skipped = {k: int(v) for k, v in (diagnostics.get("skipped") or {}).items() if v}
+    from ptm_ros.landmarks import LANDMARK_DROPS
+
+    items = (diagnostics.get("skipped") or {}).items()
+    skipped = {k: int(v) for k, v in items if v and k not in LANDMARK_DROPS}  # landmarks: in the summary
     if not skipped:
         return ""
     reasons = ", ".join(f"{k} {v}" for k, v in sorted(skipped.items()))
