@@ -38,10 +38,11 @@ PTMs stay quick because bars, tables and panels are capped and points/lines are 
 from __future__ import annotations
 
 import html
+import json
 import math
 import shutil
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -68,10 +69,19 @@ SURPRISE = "ptm_surprise.png"
 SRQ = "ptm_srq.png"
 REPORT_MD = "report.md"
 REPORT_HTML = "report.html"
-#: Key of ``Ptm.inference`` holding the MCMC cold-chain states drawn as the SRQ plot (module docstring).
+#: Key of ``Ptm.inference`` holding the MCMC cold-chain states drawn as the SRQ plot (module docstring):
+#: in memory, and in a ptm.json written before issue #25; ``ptm-run`` moves them to :data:`TRACE`.
 SRQ_KEY = "cold_chain_states"
 #: Key of ``Ptm.inference`` holding the thinning stride of those states (sweeps per kept state).
 SRQ_THIN_KEY = "cold_chain_thin"
+#: Key of ``Ptm.inference`` holding the topology (labels) of each state id in :data:`SRQ_KEY` (in memory).
+SRQ_LABELS_KEY = "cold_chain_labels"
+#: Key of ``Ptm.inference`` holding the summary of the cold chains that ptm.json keeps
+#: (:func:`split_chain_trace`).
+CHAINS_KEY = "cold_chains"
+#: The file of the full cold-chain states beside ptm.json (``ptm-run --trace``) and its schema tag.
+TRACE = "mcmc_trace.json"
+TRACE_SCHEMA = "ptm_ros.mcmc_trace/1"
 #: Caption of the occupancy map figure.
 MAP_CAPTION = "Occupancy grid of the scans along the smoothed trajectory of the most probable topology"
 
@@ -513,15 +523,16 @@ def _hashable(state: Any) -> Hashable:
     return tuple(state) if isinstance(state, list) else state
 
 
-def chain_states(ptm: Ptm) -> list[list[Hashable]] | None:
-    """The MCMC cold-chain states of ``ptm.inference[SRQ_KEY]`` (one list per chain), None if absent.
+def chain_states(ptm: Ptm, trace: Mapping[str, Any] | None = None) -> list[list[Hashable]] | None:
+    """The MCMC cold-chain states (one list per chain) of ``trace`` (:func:`load_chain_trace`) when given,
+    else of ``ptm.inference[SRQ_KEY]``; None if absent.
 
     Label lists become tuples (hashable); numpy arrays are accepted as from an in-memory result.
 
     Raises:
-        DataError: the key holds something other than non-empty sequences of states, one per chain.
+        DataError: the states are something other than non-empty sequences of states, one per chain.
     """
-    raw = ptm.inference.get(SRQ_KEY)
+    raw = trace["chains"] if trace is not None else ptm.inference.get(SRQ_KEY)
     if raw is None:
         return None
     rows = raw.tolist() if isinstance(raw, np.ndarray) else raw
@@ -551,6 +562,96 @@ def chain_srq(chains: Sequence[Sequence[Hashable]]) -> tuple[dict[str, SrqPoints
         else:
             missing.append(k)
     return points, missing
+
+
+def split_chain_trace(ptm: Ptm, *, trace_file: str | None = None) -> tuple[Ptm, dict[str, Any] | None]:
+    """``(ptm, trace)``: the PTM whose ``inference`` keeps only a summary of MCMC's cold chains, and the
+    chains' full states as a trace document (None when ``ptm`` holds none).
+
+    The summary (:data:`CHAINS_KEY`) holds ``chains``, ``states`` (kept per chain), ``thin`` (sweeps per
+    kept state), ``srq_max_deviation`` (per chain, the SRQ plot's ``max |y − x|`` at the atom most
+    visited over all chains; null for a chain that never visits it) and ``trace`` (``trace_file``: where
+    the caller writes the trace, null when nowhere). The trace (:data:`TRACE_SCHEMA`) holds ``thin``,
+    ``chains`` (the states, one list per chain: topology ids, or label lists) and ``topologies`` (the
+    labels of each id, when known).
+
+    Raises:
+        DataError: malformed states (:func:`chain_states`).
+    """
+    inf = dict(ptm.inference)
+    chains = chain_states(ptm)
+    if chains is None:
+        return ptm, None
+    raw = inf.pop(SRQ_KEY)
+    rows = raw.tolist() if isinstance(raw, np.ndarray) else [list(np.asarray(c).tolist()) for c in raw]
+    thin = int(inf.pop(SRQ_THIN_KEY, 1))
+    labels = inf.pop(SRQ_LABELS_KEY, None)
+    points, _ = chain_srq(chains)
+    devs = [points.get(f"chain {k}") for k in range(len(chains))]
+    inf[CHAINS_KEY] = {
+        "chains": len(chains),
+        "states": [len(c) for c in chains],
+        "thin": thin,
+        "srq_max_deviation": [None if p is None else srq_deviation(*p) for p in devs],
+        "trace": trace_file,
+    }
+    trace = {"schema": TRACE_SCHEMA, "thin": thin, "chains": rows, "topologies": labels}
+    return replace(ptm, inference=inf), trace
+
+
+def save_chain_trace(trace: Mapping[str, Any], path: str | Path) -> Path:
+    """Write a trace document (:func:`split_chain_trace`) as compact JSON; returns the path."""
+    path = Path(path)
+    path.write_text(json.dumps(trace, separators=(",", ":")), encoding="utf-8")
+    return path
+
+
+def load_chain_trace(path: str | Path, ptm: Ptm) -> dict[str, Any]:
+    """The trace document at ``path``, checked against ``ptm``'s chain summary (:data:`CHAINS_KEY`: the
+    same number of chains, states per chain and thinning).
+
+    Raises:
+        DataError: not a trace, malformed, or the trace of another run.
+        OSError: the file cannot be read.
+    """
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        msg = f"{path} is not a JSON document: {err}"
+        raise DataError(msg) from err
+    if not isinstance(doc, dict) or doc.get("schema") != TRACE_SCHEMA:
+        msg = f"{path} is not an MCMC trace (schema {TRACE_SCHEMA})"
+        raise DataError(msg)
+    summary = ptm.inference.get(CHAINS_KEY)
+    chains = chain_states(ptm, doc)
+    got = {"states": [len(c) for c in chains or ()], "thin": doc.get("thin")}
+    if not isinstance(summary, Mapping) or {k: summary.get(k) for k in got} != got:
+        msg = f"{path} is the trace of another run (its chains do not match the PTM's {CHAINS_KEY})"
+        raise DataError(msg)
+    return doc
+
+
+def find_chain_trace(ptm: Ptm, directory: str | Path) -> dict[str, Any] | None:
+    """The trace that ``ptm``'s chain summary names (``trace``, a file in ``directory``, the directory of
+    its ptm.json), loaded and checked (:func:`load_chain_trace`); None when it names none or the file is
+    missing."""
+    summary = ptm.inference.get(CHAINS_KEY)
+    name = summary.get("trace") if isinstance(summary, Mapping) else None
+    if not isinstance(name, str) or not (Path(directory) / name).is_file():
+        return None
+    return load_chain_trace(Path(directory) / name, ptm)
+
+
+def srq_summary_line(summary: Mapping[str, Any]) -> str:
+    """The report line of a chain summary (:data:`CHAINS_KEY`) without the states: the SRQ figures, and
+    that the plot needs the trace."""
+    devs = summary.get("srq_max_deviation") or []
+    shown = [f"chain {k} {'–' if d is None else f'{d:.3f}'}" for k, d in enumerate(devs)]
+    trapped = [str(k) for k, d in enumerate(devs) if d is None]
+    line = f"SRQ max |y − x| (0 = ideal mixing): {', '.join(shown)}" if shown else "SRQ"
+    if trapped:
+        line += f"; atom never visited by chain {', '.join(trapped)}"
+    return line + f"; the SRQ plot needs the chains' states: run ptm-run with --trace (they go to {TRACE})"
 
 
 def _fmt(v: float | None) -> str:
@@ -782,15 +883,18 @@ def write_report(
     notes: Sequence[str] = (),
     title: str = "Probabilistic topological map",
     config: ReportConfig | None = None,
+    chain_trace: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` into ``out_dir``; returns the HTML path.
 
     ``trajectory`` ``(T, 3)`` (or ``(T, 2)``) odometry or smoothed poses drawn under the topologies;
     ``score`` from :func:`ptm_ros.evaluation.score_ptm` on this PTM; ``surprise_trace`` the landmark
     detector's :attr:`~ptm_ros.surprise.LaserSurpriseDetector.trace` (drawn unless empty); the SRQ plot
-    is drawn when ``ptm.inference`` holds :data:`SRQ_KEY`; ``occupancy_map`` an image of the metric map
-    (shown with :data:`MAP_CAPTION`) and ``extra_figures`` image files to include (both copied into
-    ``out_dir`` unless already there); ``notes`` extra summary lines.
+    is drawn from ``chain_trace`` (:func:`load_chain_trace`) or, without it, from the states in
+    ``ptm.inference[SRQ_KEY]``; a PTM with only the chains' summary (:data:`CHAINS_KEY`) gets its SRQ
+    figures as a line and a note that the plot needs ``ptm-run --trace``; ``occupancy_map`` an image of
+    the metric map (shown with :data:`MAP_CAPTION`) and ``extra_figures`` image files to include (both
+    copied into ``out_dir`` unless already there); ``notes`` extra summary lines.
     """
     config = config or ReportConfig()
     if not ptm.topologies:
@@ -810,7 +914,7 @@ def write_report(
             f"this PTM has {len(ptm.landmarks)} and {len(ptm.topologies)})"
         )
         raise DataError(msg)
-    chains = chain_states(ptm)
+    chains = chain_states(ptm, chain_trace)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figures = [
@@ -842,6 +946,8 @@ def write_report(
         figures.append(("Scaled regeneration quantiles of the MCMC chains (thesis Fig. 42)", SRQ))
         devs = ", ".join(f"{name} {srq_deviation(x, y):.3f}" for name, (x, y) in points.items())
         notes.append(f"SRQ max |y − x| (0 = ideal mixing): {devs}" + (f"; atom {trapped}" if trapped else ""))
+    elif isinstance(summary := ptm.inference.get(CHAINS_KEY), Mapping):
+        notes.append(srq_summary_line(summary))
     taken = {HISTOGRAM, TOPOLOGIES, SCORES, SURPRISE, SRQ, REPORT_MD, REPORT_HTML}
     if occupancy_map is not None:
         figures.append((MAP_CAPTION, _place_extra(occupancy_map, out, taken, "map")))

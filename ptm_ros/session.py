@@ -584,11 +584,17 @@ def _json_state(state: Any) -> Any:
 
 def cold_chain_details(res: Any) -> dict[str, Any]:
     """The cold-chain states of an MCMC result for the report's SRQ plot (``ptm_ros.report.SRQ_KEY``),
-    one list per chain, and their thinning stride; nothing when the result holds none."""
+    one list per chain, their thinning stride and the topology of each state id (when known); nothing
+    when the result holds none. ``ptm-run`` keeps only their summary in ptm.json
+    (:func:`ptm_ros.report.split_chain_trace`)."""
     chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
     if not chains:
         return {}
-    return {
+    out = {
         "cold_chain_states": [[_json_state(s) for s in c] for c in chains],
         "cold_chain_thin": int(getattr(res, "cold_thin", 1)),
     }
+    labels = getattr(res, "state_labels", None)
+    if labels:
+        out["cold_chain_labels"] = [_json_state(lab) for lab in labels]
+    return out

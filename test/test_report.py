@@ -20,6 +20,7 @@ from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import score_ptm
 from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
 from ptm_ros.report import (
+    CHAINS_KEY,
     CONSISTENT_MASS_MEANING,
     HISTOGRAM,
     MAP_CAPTION,
@@ -28,18 +29,25 @@ from ptm_ros.report import (
     SCORES,
     SRQ,
     SRQ_KEY,
+    SRQ_LABELS_KEY,
     SRQ_THIN_KEY,
     SURPRISE,
     TOPOLOGIES,
+    TRACE,
+    TRACE_SCHEMA,
     ReportConfig,
     chain_srq,
     chain_states,
     draw_srq,
+    find_chain_trace,
     fired_indices,
     inference_line,
     label_string,
+    load_chain_trace,
     place_edges,
     place_positions,
+    save_chain_trace,
+    split_chain_trace,
     srq_figure,
     surprise_figure,
     trigger_indices,
@@ -456,6 +464,60 @@ def test_draw_srq_writes_a_file(tmp_path: Path) -> None:
     x, y = srq_points([0, 1, 0, 0, 1, 0])
     path = draw_srq({"chain 0": (x, y)}, tmp_path / "srq.png", config=ReportConfig(dpi=50))
     assert path == tmp_path / "srq.png" and imread(path).shape[0] == 300  # 6 in at 50 dpi
+
+
+def test_ptm_json_keeps_a_chain_summary_and_the_trace_file_the_states(tmp_path: Path) -> None:
+    """Issue #25: the cold chains' states leave ptm.json (a summary stays) for a trace file, from which
+    the report draws the SRQ plot; without the trace the report gives the SRQ figures and says the plot
+    needs ``--trace``; a trace of another run is refused."""
+    rng = np.random.default_rng(4)
+    good = rng.integers(0, 3, 600).tolist()
+    stuck = [5] * 300 + rng.integers(0, 3, 300).tolist()
+    labels = [[0, 1, 2, 0], [0, 1, 0, 1], [0, 0, 0, 0], [0, 1, 2, 3], [0, 0, 1, 1], [0, 1, 1, 0]]
+    full = mcmc_ptm([good, stuck], **{SRQ_THIN_KEY: 4, SRQ_LABELS_KEY: labels})
+    ptm, trace = split_chain_trace(full, trace_file=TRACE)
+    assert trace is not None and not {SRQ_KEY, SRQ_THIN_KEY, SRQ_LABELS_KEY} & set(ptm.inference)
+    summary = ptm.inference[CHAINS_KEY]
+    points, _ = chain_srq(chain_states(full) or [])
+    devs = [srq_deviation(*points[f"chain {k}"]) for k in (0, 1)]
+    assert summary == {
+        "chains": 2,
+        "states": [600, 600],
+        "thin": 4,
+        "srq_max_deviation": devs,
+        "trace": TRACE,
+    }
+    assert trace == {"schema": TRACE_SCHEMA, "thin": 4, "chains": [good, stuck], "topologies": labels}
+    saved = save_ptm(ptm, tmp_path / "run" / "ptm.json")
+    save_chain_trace(trace, tmp_path / "run" / TRACE)
+    before = save_ptm(full, tmp_path / "before.json")
+    assert SRQ_KEY not in saved.read_text() and saved.stat().st_size + 2000 < before.stat().st_size
+    loaded = load_ptm(saved)
+    again = find_chain_trace(loaded, tmp_path / "run")
+    assert again == trace
+    write_report(tmp_path / "with", loaded, chain_trace=again)
+    md = (tmp_path / "with" / REPORT_MD).read_text(encoding="utf-8")
+    assert (tmp_path / "with" / SRQ).is_file() and f"chain 0 {devs[0]:.3f}, chain 1 {devs[1]:.3f}" in md
+    write_report(tmp_path / "without", loaded)
+    md = (tmp_path / "without" / REPORT_MD).read_text(encoding="utf-8")
+    assert not (tmp_path / "without" / SRQ).exists()
+    assert f"chain 0 {devs[0]:.3f}, chain 1 {devs[1]:.3f}" in md and "run ptm-run with --trace" in md
+    assert (
+        find_chain_trace(
+            replace(loaded, inference={**loaded.inference, CHAINS_KEY: {**summary, "trace": None}}),
+            tmp_path / "run",
+        )
+        is None
+    )
+    _, other_trace = split_chain_trace(mcmc_ptm([good[:500], stuck]), trace_file=TRACE)
+    assert other_trace is not None
+    save_chain_trace(other_trace, tmp_path / "run" / TRACE)
+    with pytest.raises(DataError, match="the trace of another run"):
+        find_chain_trace(loaded, tmp_path / "run")
+    (tmp_path / "run" / TRACE).write_text("{}")
+    with pytest.raises(DataError, match="not an MCMC trace"):
+        load_chain_trace(tmp_path / "run" / TRACE, loaded)
+    assert split_chain_trace(loop_ptm()) == (loop_ptm(), None)  # no chains: unchanged
 
 
 def test_report_shows_the_occupancy_map_and_notes(tmp_path: Path) -> None:

@@ -16,6 +16,8 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
 * ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector);
+* ``mcmc_trace.json`` — with ``write_trace`` (``ptm-run --trace``) and MCMC: the cold chains' full
+  states (:func:`ptm_ros.report.split_chain_trace`; ``ptm.json`` keeps their summary);
 * ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
   (:func:`run_offline`);
@@ -63,6 +65,7 @@ from ptm_ros.io.groundtruth import (
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
 from ptm_ros.partitions import Labels
 from ptm_ros.ptm import Ptm, save_ptm
+from ptm_ros.report import save_chain_trace, split_chain_trace
 from ptm_ros.session import (
     SESSION_STATE_SCHEMA,
     VERSUS_KEY,
@@ -90,6 +93,7 @@ OUTPUT_FILES = {
     "map_png": "map.png",
     "state": "filter_state.npz",
     "ground_truth": "ground_truth.json",
+    "mcmc_trace": "mcmc_trace.json",
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
 TRAJECTORY_ERROR_KEY = "trajectory_error"
@@ -390,6 +394,7 @@ def run_offline(
     write_map: bool = True,
     checkpoint: RunCheckpoint | None = None,
     log: Callable[[str], None] | None = None,
+    write_trace: bool = False,
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
@@ -403,6 +408,10 @@ def run_offline(
     the filter with the visits not yet seen: the same ``ptm.json`` but for the timings. ``log`` receives
     progress notes (resumed, started afresh) and the route graph's rerouted and dropped edges
     (:func:`route_notes`).
+
+    MCMC's cold chains: ``ptm.json`` keeps their summary (:func:`ptm_ros.report.split_chain_trace`);
+    ``write_trace`` also writes their full states to ``mcmc_trace.json``, from which the report draws the
+    SRQ plot.
     """
     t0 = time.perf_counter()
     bag = Path(bag)
@@ -459,6 +468,9 @@ def run_offline(
         detector=used.detector.kind,
         diagnostics=diag,
     )
+    ptm, chain_trace = split_chain_trace(ptm, trace_file=OUTPUT_FILES["mcmc_trace"] if write_trace else None)
+    if write_trace and chain_trace is None and log is not None:
+        log(f"--trace: method {config.inference.method} has no MCMC chains: no {OUTPUT_FILES['mcmc_trace']}")
     want_map = write_map and sensors["has_scans"]
     timing = dict(ptm.timing)
     extra = dict(ptm.extra)
@@ -491,6 +503,8 @@ def run_offline(
     ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["ptm"] = ptm_path
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
+    if write_trace and chain_trace is not None:
+        files["mcmc_trace"] = save_chain_trace(chain_trace, out / OUTPUT_FILES["mcmc_trace"])
     files["route_graph"] = write_route_graph(
         ptm,
         out / OUTPUT_FILES["route_graph"],
@@ -520,6 +534,7 @@ def run_offline(
             + map_quality_notes(extra.get(MAP_QUALITY_KEY))
             + inference_notes(ptm.inference),
             title=f"PTM of {bag.name}",
+            chain_trace=chain_trace if write_trace else None,
         )
     return RunResult(
         ptm=ptm,

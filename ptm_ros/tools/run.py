@@ -94,6 +94,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-map", action="store_true", help="skip the occupancy map (map.pgm/.yaml/.png)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
+        "--trace",
+        action="store_true",
+        help="mcmc: also write the cold chains' full states to DIR/mcmc_trace.json, for the report's SRQ "
+        "plot (default: off; ptm.json keeps their summary)",
+    )
+    p.add_argument(
         "--autosave",
         type=int,
         default=None,
@@ -233,6 +239,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             write_map=not args.no_map,
             checkpoint=checkpoint,
             log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
+            write_trace=args.trace,
         )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
