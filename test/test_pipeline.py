@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -414,3 +415,39 @@ def test_ptm_json_with_non_finite_or_misshapen_values_is_refused(edit, match):
     edit(bad)
     with pytest.raises(DataError, match=f"invalid ptm.json: .*{match}"):
         from_json_dict(bad)
+
+
+DEMO_BAG = Path(__file__).resolve().parents[1] / "bags" / "demo"
+#: The phases of ptm-run on the demo bag (a particle filter, a map, a ground truth, a report), in order.
+DEMO_PHASES = (
+    "reading the bag",
+    "landmark visits",
+    "particle filter",
+    "smoothing",
+    "map",
+    "map quality",
+    "route graph",
+    "report",
+)
+
+
+@pytest.mark.slow
+def test_ptm_run_shows_every_phase_on_stderr_unless_quiet(tmp_path, capsys):
+    """Issue #25: a named progress bar per phase on stderr (stdout keeps the summary), none with --quiet;
+    the summary's figures rounded, the consistent mass explained, the ESS a share of the particles."""
+    assert run_cli.main([str(DEMO_BAG), "--out", str(tmp_path / "loud")]) == 0
+    loud = capsys.readouterr()
+    bars = [ln.split(":")[0] for ln in loud.err.replace("\r", "\n").splitlines() if "%|" in ln]
+    shown = list(dict.fromkeys(bars))  # each bar redraws itself: its first line, in order
+    assert shown == list(DEMO_PHASES), loud.err
+    assert "%|" not in loud.out
+    assert run_cli.main([str(DEMO_BAG), "--out", str(tmp_path / "quiet"), "--quiet"]) == 0
+    quiet = capsys.readouterr()
+    assert all(ln.startswith("ptm-run: ") for ln in quiet.err.splitlines()), quiet.err  # notes only
+    assert "%|" not in quiet.err
+    assert not [ln for ln in quiet.err.splitlines() for p in DEMO_PHASES if ln.startswith(f"{p}:")]
+    same = [ln for ln in quiet.out.splitlines() if ln.startswith("  #")]  # the topologies
+    assert same and same == [ln for ln in loud.out.splitlines() if ln.startswith("  #")]
+    out = quiet.out
+    assert re.findall(r"\d\.\d{5,}", out) == []  # no float printed in full
+    assert "ESS 1.00/100" in out and "(consistent mass = the posterior mass of the topologies" in out

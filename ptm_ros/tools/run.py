@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
     p.add_argument("--no-report", action="store_true", help="skip the figures and report")
     p.add_argument("--no-map", action="store_true", help="skip the occupancy map (map.pgm/.yaml/.png)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (one per phase, on stderr)")
     p.add_argument(
         "--trace",
         action="store_true",
@@ -158,17 +158,6 @@ def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
     return RunCheckpoint(path, every=args.autosave or 0, resume=args.resume)
 
 
-def _progress(quiet: bool):
-    if quiet:
-        return None
-    from tqdm import tqdm
-
-    def wrap(it, total):
-        return tqdm(it, total=total, desc="ptm", mininterval=0.5, file=sys.stderr)
-
-    return wrap
-
-
 def format_summary(result, top: int, total_s: float | None = None) -> str:
     """Human-readable lines: visits, the most probable topologies, the score if any, and (``total_s``)
     the run's whole wall time with its phases."""
@@ -224,7 +213,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ptm_ros.errors import PtmError
     from ptm_ros.tools.paths import output_dir
     from ptm_ros.tools.pipeline import run_offline
+    from ptm_ros.tools.progress import Phases
 
+    phases = Phases(quiet=args.quiet)
     try:
         config = load_config(args.params, _overrides(args))
         checkpoint = checkpoint_of(args)
@@ -234,11 +225,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.out,
             config,
             ground_truth=args.ground_truth,
-            progress=_progress(args.quiet),
+            phases=phases,
             write_report=not args.no_report,
             write_map=not args.no_map,
             checkpoint=checkpoint,
-            log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
+            log=lambda note: phases.note(f"{PROG}: {note}"),
             write_trace=args.trace,
         )
     except (PtmError, OSError) as err:
