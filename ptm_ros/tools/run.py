@@ -168,8 +168,9 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
 
     ptm = result.ptm
     lines = [f"{len(ptm.landmarks)} landmark visits, {ptm.timing.get('wall_s', 0.0):.2f} s to the PTM"]
-    skipped = (result.diagnostics or ptm.extra.get("diagnostics") or {}).get("skipped") or {}
-    accounting = landmark_accounting(len(ptm.landmarks), skipped)
+    diag = result.diagnostics or ptm.extra.get("diagnostics")
+    skipped = diag.get("skipped") if isinstance(diag, dict) else None
+    accounting = landmark_accounting(len(ptm.landmarks), skipped if isinstance(skipped, dict) else {})
     if accounting:
         lines.append(accounting)
     lines += [inference_line(ptm.inference), "most probable topologies:"]
