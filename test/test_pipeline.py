@@ -368,6 +368,13 @@ def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_pat
     assert all(len(lab) == len(saved.landmarks) for lab in trace["topologies"])
     assert max(max(c) for c in trace["chains"]) < len(trace["topologies"])  # ids index the topologies
     assert (tmp_path / SRQ).is_file() and f"({SRQ})" in md
+    # ptm-eval's report finds the trace the summary names beside ptm.json, and says how MCMC ended
+    report = tmp_path / "eval"
+    argv = [str(tmp_path / "ptm.json"), "--ground-truth", str(tjunction_bag), "--report", str(report)]
+    assert eval_main([*argv, "--no-topologies"]) == 0
+    assert (report / SRQ).is_file() and inference_notes(saved.inference)[0] in (
+        report / "report.md"
+    ).read_text()
 
 
 def test_mcmc_without_trace_keeps_the_summary_only(tjunction_bag, tmp_path):
