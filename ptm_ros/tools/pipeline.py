@@ -16,6 +16,8 @@ Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
 * ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector);
+* ``mcmc_trace.json`` — with ``write_trace`` (``ptm-run --trace``) and MCMC: the cold chains' full
+  states (:func:`ptm_ros.report.split_chain_trace`; ``ptm.json`` keeps their summary);
 * ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
   (:func:`run_offline`);
@@ -67,6 +69,7 @@ from ptm_ros.laser import Registration
 from ptm_ros.partitions import Labels
 from ptm_ros.ptm import Ptm, save_ptm
 from ptm_ros.refinement import Mapper, RegistrationJob
+from ptm_ros.report import save_chain_trace, split_chain_trace
 from ptm_ros.session import (
     SESSION_STATE_SCHEMA,
     VERSUS_KEY,
@@ -77,6 +80,7 @@ from ptm_ros.session import (
     infer,
     require_rbpf,
 )
+from ptm_ros.tools.progress import Phases
 from ptm_ros.visits import Visit
 
 if TYPE_CHECKING:
@@ -94,6 +98,7 @@ OUTPUT_FILES = {
     "map_png": "map.png",
     "state": "filter_state.npz",
     "ground_truth": "ground_truth.json",
+    "mcmc_trace": "mcmc_trace.json",
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
 TRAJECTORY_ERROR_KEY = "trajectory_error"
@@ -191,18 +196,24 @@ def detect_visits(
     diagnostics: dict[str, Any] | None = None,
     *,
     extractor: VisitExtractor | None = None,
+    progress: Progress | None = None,
 ) -> list[Visit]:
     """Landmark visits of a recorded run, with their appearance signatures and laser patches.
 
     Feeds the run's messages in stamp order through :class:`ptm_ros.landmarks.VisitExtractor`, the same
     object the detector node uses (``extractor``, a fresh one, else :func:`run_extractor`; pass one to
-    read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters.
+    read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters;
+    ``progress`` wraps the messages (it receives their iterator and number).
     """
     odom = run_odometry(run)
     if extractor is None:
         extractor = run_extractor(run, config)
     visits: list[Visit] = []
-    for _, topic, k in merged_messages(run):
+    messages: Iterable[tuple[float, int, int]] = merged_messages(run)
+    if progress is not None:
+        total = sum(len(d.stamps) for d in (run.odometry, run.scans, run.images) if d is not None)
+        messages = progress(messages, total)
+    for _, topic, k in messages:
         if topic == ODOM:
             visits += extractor.on_odometry(odom.stamps[k], odom.poses[k])
         elif topic == SCAN:
@@ -394,6 +405,8 @@ def run_offline(
     write_map: bool = True,
     checkpoint: RunCheckpoint | None = None,
     log: Callable[[str], None] | None = None,
+    write_trace: bool = False,
+    phases: Phases | None = None,
     jobs: int = 1,
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
@@ -409,8 +422,18 @@ def run_offline(
     the filter with the visits not yet seen: the same ``ptm.json`` but for the timings. ``log`` receives
     progress notes (resumed, started afresh) and the route graph's rerouted and dropped edges
     (:func:`route_notes`).
+
+    ``phases`` (:class:`ptm_ros.tools.progress.Phases`) shows a progress bar per phase: reading the bag,
+    the landmark visits, the inference (the filter's visits or the enumeration's topologies, and MCMC's
+    sweeps), the smoothing, the scores, the map, the route graph and the report; ``progress``, when
+    given, replaces its bar over the filter's visits.
+
+    MCMC's cold chains: ``ptm.json`` keeps their summary (:func:`ptm_ros.report.split_chain_trace`);
+    ``write_trace`` also writes their full states to ``mcmc_trace.json``, from which the report draws the
+    SRQ plot.
     """
     t0 = time.perf_counter()
+    ph = phases if phases is not None else Phases(quiet=True)
     bag = Path(bag)
     out = Path(out_dir)
     if checkpoint is not None:
@@ -424,6 +447,7 @@ def run_offline(
         image_topic=topics.panorama,
         require=(topics.odom,),
         appearance=config.model.appearance,
+        progress=ph.wrap("reading the bag", "msg"),
     )
     gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
@@ -438,7 +462,14 @@ def run_offline(
         check_state_config(saved[1], used, checkpoint.path)
     diag: dict[str, Any] = {}
     extractor = run_extractor(run, config, schedule)
-    visits = detect_visits(run, config, diag, extractor=extractor)
+    visits = detect_visits(run, config, diag, extractor=extractor, progress=ph.wrap("landmark visits", "msg"))
+    method = config.inference.method
+    if progress is None:
+        name, unit = {
+            "exact": ("enumeration", "topology"),
+            "mcmc": ("particle filter (MCMC's starts)", "visit"),
+        }.get(method, ("particle filter", "visit"))
+        progress = ph.wrap(name, unit)
     session, resumed = None, 0
     if config.inference.method == "rbpf":
         session = FilterSession(config, fitted_to=visits)
@@ -452,7 +483,8 @@ def run_offline(
             filter_visits(session, visits, progress=progress, save=save, every=max(checkpoint.every, 1))
     else:
         registrar = cached(make_registrar(visits, config, diag)) if config.model.use_laser else None
-    result = infer(visits, config, session=session, registrar=registrar, progress=progress)
+    with ph.counter("MCMC sweeps", "sweep") as sweeps:
+        result = infer(visits, config, session=session, registrar=registrar, progress=progress, sweeps=sweeps)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
     ptm = build_ptm(
@@ -465,14 +497,17 @@ def run_offline(
         detector=used.detector.kind,
         diagnostics=diag,
     )
+    ptm, chain_trace = split_chain_trace(ptm, trace_file=OUTPUT_FILES["mcmc_trace"] if write_trace else None)
+    if write_trace and chain_trace is None and log is not None:
+        log(f"--trace: method {config.inference.method} has no MCMC chains: no {OUTPUT_FILES['mcmc_trace']}")
     want_map = write_map and sensors["has_scans"]
     timing = dict(ptm.timing)
     extra = dict(ptm.extra)
     traj = None
     if write_report or want_map or truth is not None:
         t1 = time.perf_counter()
-        base = corrected_odometry(run, extractor)
-        with RegistrationPool(jobs) as mapper:
+        with ph.step("smoothing"), RegistrationPool(jobs) as mapper:
+            base = corrected_odometry(run, extractor)
             traj = map_trajectory(
                 run, visits, ptm.map_topology.labels, config, registrar, odometry=base, mapper=mapper
             )
@@ -485,13 +520,15 @@ def run_offline(
     walls = None  # the map's classes, for the map's quality and the route graph
     if want_map and traj is not None:
         t1 = time.perf_counter()
-        grid = occupancy_grid(run, traj, config)
-        files |= write_occupancy_map(run, traj, out, config, grid=grid)
+        with ph.step("map"):
+            grid = occupancy_grid(run, traj, config)
+            files |= write_occupancy_map(run, traj, out, config, grid=grid)
         timing["map_s"] = time.perf_counter() - t1
         walls = class_grid(grid, config) if grid is not None else None
         ate = extra.get(TRAJECTORY_ERROR_KEY)
         if walls is not None and truth is not None and ate is not None:
-            quality = map_quality_against(run, walls, truth, ate["alignment"], config)
+            with ph.step("map quality"):
+                quality = map_quality_against(run, walls, truth, ate["alignment"], config)
             if quality is not None:
                 extra[MAP_QUALITY_KEY] = quality
     if session is not None:  # the laser registrations' counters, after the smoothing's registrations
@@ -500,14 +537,17 @@ def run_offline(
     ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["ptm"] = ptm_path
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
-    files["route_graph"] = write_route_graph(
-        ptm,
-        out / OUTPUT_FILES["route_graph"],
-        grid=walls,
-        trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
-        config=config.routes,
-        log=log,
-    )
+    if write_trace and chain_trace is not None:
+        files["mcmc_trace"] = save_chain_trace(chain_trace, out / OUTPUT_FILES["mcmc_trace"])
+    with ph.step("route graph"):
+        files["route_graph"] = write_route_graph(
+            ptm,
+            out / OUTPUT_FILES["route_graph"],
+            grid=walls,
+            trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
+            config=config.routes,
+            log=log,
+        )
     if schedule is not None and truth is not None:  # what ptm-eval needs for the true-topology mass
         files["ground_truth"] = save_sim_gt(truth, out / OUTPUT_FILES["ground_truth"])
     if checkpoint is not None and checkpoint.every:
@@ -517,19 +557,21 @@ def run_offline(
     if write_report:
         from ptm_ros.report import write_report as _write_report
 
-        report = _write_report(
-            out,
-            ptm,
-            trajectory=traj,
-            score=score,
-            surprise_trace=surprise_trace(extractor.detector),
-            occupancy_map=files.get("map_png"),
-            notes=doubt_lines(find_doubts(ptm))
-            + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
-            + map_quality_notes(extra.get(MAP_QUALITY_KEY))
-            + inference_notes(ptm.inference),
-            title=f"PTM of {bag.name}",
-        )
+        with ph.step("report"):
+            report = _write_report(
+                out,
+                ptm,
+                trajectory=traj,
+                score=score,
+                surprise_trace=surprise_trace(extractor.detector),
+                occupancy_map=files.get("map_png"),
+                notes=doubt_lines(find_doubts(ptm))
+                + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
+                + map_quality_notes(extra.get(MAP_QUALITY_KEY))
+                + inference_notes(ptm.inference),
+                title=f"PTM of {bag.name}",
+                chain_trace=chain_trace if write_trace else None,
+            )
     return RunResult(
         ptm=ptm,
         ptm_path=ptm_path,
