@@ -41,8 +41,10 @@ from __future__ import annotations
 
 import functools
 import heapq
+import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -63,8 +65,10 @@ from ptm_ros.io.groundtruth import (
     with_placed_landmarks,
 )
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
+from ptm_ros.laser import Registration
 from ptm_ros.partitions import Labels
 from ptm_ros.ptm import Ptm, save_ptm
+from ptm_ros.refinement import Mapper, RegistrationJob
 from ptm_ros.report import save_chain_trace, split_chain_trace
 from ptm_ros.session import (
     SESSION_STATE_SCHEMA,
@@ -403,10 +407,12 @@ def run_offline(
     log: Callable[[str], None] | None = None,
     write_trace: bool = False,
     phases: Phases | None = None,
+    jobs: int = 1,
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
-    occupancy map files.
+    occupancy map files. ``jobs`` > 1: the refinement's scan matches run in that many worker processes
+    (:class:`RegistrationPool`; the same files).
 
     ``checkpoint`` (RBPF only) saves the filter's state along the way and/or resumes from it: the state
     is the filter session's (:meth:`ptm_ros.session.FilterSession.state_dict`: the filter, the
@@ -500,9 +506,11 @@ def run_offline(
     traj = None
     if write_report or want_map or truth is not None:
         t1 = time.perf_counter()
-        with ph.step("smoothing"):
+        with ph.step("smoothing"), RegistrationPool(jobs) as mapper:
             base = corrected_odometry(run, extractor)
-            traj = map_trajectory(run, visits, ptm.map_topology.labels, config, registrar, odometry=base)
+            traj = map_trajectory(
+                run, visits, ptm.map_topology.labels, config, registrar, odometry=base, mapper=mapper
+            )
         timing["smoothing_s"] = time.perf_counter() - t1
     if truth is not None and traj is not None:
         ate = trajectory_errors(run, traj, truth)
@@ -844,6 +852,7 @@ def map_trajectory(
     registrar: Registrar | None,
     *,
     odometry: np.ndarray | None = None,
+    mapper: Mapper = map,
 ) -> np.ndarray:
     """The odometry trajectory smoothed for a topology and refined by the run's scans
     (:func:`ptm_ros.mapping.topology_trajectory`, the function the map publisher's online map calls; the
@@ -863,7 +872,42 @@ def map_trajectory(
         scans=run.scans,
         refinement=config.refinement,
         laser=config.laser,
+        mapper=mapper,
     )
+
+
+class RegistrationPool:
+    """A :class:`~ptm_ros.refinement.Mapper` over ``jobs`` worker processes, started on the first batch of
+    at least ``min_batch`` registrations (smaller batches, and ``jobs`` <= 1, run here: a pool's start-up
+    costs more than they do). Outcomes come back in order, computed by the same function, so the
+    refinement is identical whatever ``jobs``. Workers come from a fork server that has imported
+    :mod:`ptm_ros.refinement` once (forking this process could copy a held lock of its threads)."""
+
+    def __init__(self, jobs: int, min_batch: int = 32) -> None:
+        self.jobs = jobs
+        self.min_batch = min_batch
+        self._pool: ProcessPoolExecutor | None = None
+
+    def __call__(
+        self, fn: Callable[[RegistrationJob], Registration | None], jobs: Iterable[RegistrationJob], /
+    ) -> Iterable[Registration | None]:
+        batch = list(jobs)
+        if self.jobs <= 1 or len(batch) < self.min_batch:
+            return map(fn, batch)
+        if self._pool is None:
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload(["ptm_ros.refinement"])
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context)
+        chunk = max(1, len(batch) // (4 * self.jobs))
+        return self._pool.map(fn, batch, chunksize=chunk)
+
+    def __enter__(self) -> RegistrationPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
 
 
 def score_against(ptm: Ptm, ground_truth: str | Path | GroundTruthTrajectory) -> Any:

@@ -25,6 +25,7 @@ it needs the ground truth, scores the mass on the true topology, and writes ``DI
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -100,6 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
         "plot (default: off; ptm.json keeps their summary)",
     )
     p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="worker processes for the map's scan matches (default: the machine's CPUs); the same results",
+    )
+    p.add_argument(
         "--autosave",
         type=int,
         default=None,
@@ -135,6 +142,22 @@ def _overrides(args: argparse.Namespace) -> dict:
     if args.detector is not None:
         out["detector"] = {"kind": args.detector}
     return out
+
+
+def jobs_of(args: argparse.Namespace) -> int:
+    """``--jobs``, or the machine's CPUs.
+
+    Raises:
+        ConfigError: ``--jobs`` below 1.
+    """
+    from ptm_ros.errors import ConfigError
+
+    if args.jobs is None:
+        return os.cpu_count() or 1
+    if args.jobs < 1:
+        msg = f"--jobs N needs N >= 1 (worker processes), got {args.jobs}"
+        raise ConfigError(msg)
+    return int(args.jobs)
 
 
 def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
@@ -220,6 +243,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_config(args.params, _overrides(args))
         checkpoint = checkpoint_of(args)
+        jobs = jobs_of(args)
         output_dir(args.out)  # fails now, not after the inference
         result = run_offline(
             args.bag,
@@ -232,6 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             checkpoint=checkpoint,
             log=lambda note: phases.note(f"{PROG}: {note}"),
             write_trace=args.trace,
+            jobs=jobs,
         )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
