@@ -35,7 +35,7 @@ import heapq
 import json
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -51,6 +51,15 @@ from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
 from ptm_ros.visits import MAX_COORDINATE, Visit, pose_field
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
+#: The reasons (keys of ``ExtractorDiagnostics.skipped``) for which a landmark the detector declared
+#: became no visit, with what each means; the other reasons count input messages.
+LANDMARK_DROPS = {
+    "landmark-at-same-odometry-sample": (
+        "fell on the odometry sample of the visit before (two landmarks closer in time than the odometry's "
+        "sampling period) and merged into that visit"
+    ),
+    "visit-invalid": "had unusable odometry since the visit before (travel or turn out of range)",
+}
 TOPIC_NAMES = {ODOM: "odometry", SCAN: "scan", IMAGE: "image"}
 VISIT_SCHEMA = "ptm_ros.visit/1"
 #: A scan as the extractor keeps it: ``(ranges, angle_min, angle_increment, range_min, range_max)``.
@@ -566,6 +575,26 @@ def visit_from_json(text: str) -> Visit:
 def diagnostics_dict(diag: ExtractorDiagnostics) -> dict[str, Any]:
     """Plain-dict counters (for ptm.json and /diagnostics)."""
     return asdict(diag)
+
+
+def landmark_accounting(visits: int, skipped: Mapping[str, int], declared: int | None = None) -> str | None:
+    """One sentence reconciling the landmarks a detector declared with the ``visits`` they became, naming
+    the landmarks dropped by reason (:data:`LANDMARK_DROPS` in ``skipped``, the extractor's counters);
+    None when every declared landmark became a visit. ``declared`` (e.g. the surprise trace's landmarks)
+    defaults to the visits plus the drops; a difference the drops do not explain is named as such."""
+    drops = {r: int(skipped.get(r, 0)) for r in LANDMARK_DROPS if skipped.get(r, 0)}
+    dropped = sum(drops.values())
+    total = visits + dropped if declared is None else max(int(declared), visits + dropped)
+    if total == visits and not dropped:
+        return None
+    parts = [f"{n} {LANDMARK_DROPS[r]} ({r})" for r, n in drops.items()]
+    unexplained = total - visits - dropped
+    if unexplained:
+        parts.append(f"{unexplained} for no recorded reason")
+    return (
+        f"the detector declared {total} landmarks and {visits} became visits: "
+        f"{total - visits} dropped ({'; '.join(parts)})"
+    )
 
 
 ExtractorFactory = Callable[[], VisitExtractor]

@@ -42,7 +42,7 @@ from ptm_ros.geometry import Registrar, RelativePose, interpolate_poses, moved
 from ptm_ros.laser import LaserConfig, scan_to_points
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.posterior import ModelConfig, chained_registrations, split_aliases
-from ptm_ros.refinement import RefinementConfig, refine_trajectory
+from ptm_ros.refinement import Mapper, RefinementConfig, refine_trajectory
 from ptm_ros.smoothing import smooth_topology
 from ptm_ros.visits import Visit
 
@@ -114,6 +114,7 @@ def topology_trajectory(
     scans: ScanLog | None = None,
     refinement: RefinementConfig | None = None,
     laser: LaserConfig | None = None,
+    mapper: Mapper = map,
 ) -> FloatArray:
     """The odometry ``poses (T, 3)`` at ``stamps`` smoothed for a topology (thesis Fig. 50/52): the visit
     poses optimised under odometry, the topology's laser registrations (each visit against the previous
@@ -121,7 +122,8 @@ def topology_trajectory(
     coincidence, the path between deformed to fit (:func:`ptm_ros.smoothing.smooth_topology`). Without a
     ``registration`` (or with ``model.use_laser`` off) only odometry and places constrain the poses. With
     ``scans`` and an enabled ``refinement``, keyframe scan matches along revisited passages refine the
-    result (:func:`ptm_ros.refinement.refine_trajectory`; ``laser`` configures the scans and the matching).
+    result (:func:`ptm_ros.refinement.refine_trajectory`; ``laser`` configures the scans and the matching,
+    ``mapper`` runs the registrations of each round).
     The visits must sit on odometry samples (their stamps among ``stamps``)."""
     loops: tuple[RelativePose, ...] = ()
     if registration is not None and model.use_laser and len(visits) > 1:
@@ -142,6 +144,7 @@ def topology_trajectory(
         loops=loops,
         laser=lcfg,
         config=refinement,
+        mapper=mapper,
     )
     return res.trajectory
 

@@ -1580,19 +1580,44 @@ class McmcSampler:
         )
 
 
+def _advance(
+    sampler: McmcSampler, target: int, max_seconds: float, progress: Callable[[int, int], None] | None
+) -> int:
+    """Every chain to ``target`` sweeps within ``max_seconds`` of the sampler's time (in tenths of the way
+    when ``progress`` hears of each); the sweeps every chain has done."""
+    if progress is None:
+        remaining = max_seconds - sampler.wall_s
+        return sampler.advance(target, remaining) if remaining > 0.0 else sampler.iterations
+    reached = sampler.iterations
+    step = max(1, -(-(target - reached) // 10))
+    while reached < target:
+        remaining = max_seconds - sampler.wall_s
+        if remaining <= 0.0:
+            break
+        goal = min(target, reached + step)
+        reached = sampler.advance(goal, remaining)
+        progress(reached, target)
+        if reached < goal:  # the time cap
+            break
+    return reached
+
+
 def run_mcmc(
     model: PosteriorModel,
     config: McmcConfig | None = None,
     rng: np.random.Generator | int | None = None,
     *,
     initial: Sequence[int] | Sequence[Sequence[int]] | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> McmcResult:
     """The PTM of ``model`` by MCMC with sample doubling until converged or capped (module docstring).
 
     ``rng``: a generator or an integer seed (each chain gets an independent child stream); the result
     is a function of the seed unless ``config.max_seconds`` ends the run. ``initial`` overrides
     ``config.initial``: one topology for every chain, or a sequence of topologies (chain ``c`` starts
-    from the ``c``-th, cycled).
+    from the ``c``-th, cycled). ``progress(sweeps, target)`` (e.g. a progress bar) hears of the sweeps
+    every chain has done and of the round's target, ten times a round: the chains then advance in
+    tenths of a round, which changes nothing in the result (each chain has its own random stream).
     """
     cfg = config or McmcConfig()
     with McmcSampler(model, cfg, rng, initial=initial) as sampler:
@@ -1600,8 +1625,7 @@ def run_mcmc(
         target = cfg.min_iterations
         reason = "max_iterations"
         while True:
-            remaining = cfg.max_seconds - sampler.wall_s
-            reached = sampler.advance(target, remaining) if remaining > 0.0 else sampler.iterations
+            reached = _advance(sampler, target, cfg.max_seconds, progress)
             check = sampler.check()
             history.append(check)
             if check.converged(cfg.tolerance) and reached >= cfg.min_iterations:

@@ -39,8 +39,9 @@ simulated worlds: see ``bench/results.md`` (``ate_smoothed_m``) and the closing 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -65,6 +66,35 @@ from ptm_ros.visits import Visit
 FloatArray = NDArray[np.float64]
 
 _NUMERIC_VARIANCE = 1e-6  # m², rad²: keeps a zero-travel odometry factor finite
+
+
+class RegistrationJob(NamedTuple):
+    """One submap registration of a refinement round (the arguments of
+    :func:`ptm_ros.laser.register_patches`); picklable, for a process pool."""
+
+    source: FloatArray
+    target: FloatArray
+    initial: FloatArray
+    laser: LaserConfig
+    slide_axis: bool
+
+
+def register_job(job: RegistrationJob) -> Registration | None:
+    """The registration of a job, or None when a submap is too small to register."""
+    try:
+        return register_patches(job.source, job.target, job.initial, job.laser, slide_axis=job.slide_axis)
+    except RegistrationError:
+        return None
+
+
+class Mapper(Protocol):
+    """``mapper(register_job, jobs)``: the outcomes of the jobs, in order. The builtin ``map`` (one after
+    the other) or a process pool's ``map``: the registrations of a round are independent of each other,
+    so the refinement is the same either way."""
+
+    def __call__(
+        self, fn: Callable[[RegistrationJob], Registration | None], jobs: Iterable[RegistrationJob], /
+    ) -> Iterable[Registration | None]: ...
 
 
 @dataclass(frozen=True)
@@ -240,13 +270,15 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
     laser: LaserConfig | None = None,
     config: RefinementConfig | None = None,
     smoothing: SmoothingConfig | None = None,
+    mapper: Mapper = map,
 ) -> Refinement:
     """The odometry trajectory ``(T, 3)`` of a topology refined by keyframe scan matches (module docstring).
 
     ``odom_poses`` are the poses the visits' poses come from (the visits sit on odometry samples);
     ``scan_points`` are the scans' points in the robot frame (:func:`ptm_ros.laser.scan_to_points`),
     taken at ``scan_stamps`` (increasing); ``labels``, ``visits``, ``odometry`` and ``loops`` are those of
-    :func:`ptm_ros.smoothing.robust_visit_poses`.
+    :func:`ptm_ros.smoothing.robust_visit_poses`. ``mapper`` runs each round's registrations
+    (:class:`Mapper`).
 
     Raises:
         ModelError: mismatched inputs, visits off the odometry samples, or what
@@ -301,6 +333,8 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
         rounds += 1
         new = 0
         kx = x[key_node]
+        pairs: list[tuple[int, int]] = []
+        jobs: list[RegistrationJob] = []
         for i in range(len(keys)):
             d = np.hypot(kx[:, 0] - kx[i, 0], kx[:, 1] - kx[i, 1])
             cand = np.flatnonzero((d <= cfg.search_radius) & (key_travel - key_travel[i] >= cfg.min_travel))
@@ -309,17 +343,17 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
                 if (i, j) in seen or source is None or target is None:
                     continue
                 seen.add((i, j))
-                tried += 1
-                guess = between(kx[i], kx[j])
-                try:
-                    reg = register_patches(source, target, guess, lcfg, slide_axis=cfg.corridors)
-                except RegistrationError:
-                    continue
-                cov = _closure_cov(reg, cfg)
-                if cov is not None and math.hypot(*(reg.mean[:2] - guess[:2])) <= cfg.max_shift:
-                    found.append((int(key_node[i]), int(key_node[j]), reg.mean, cov))
-                    axes.append(reg.slide_axis)  # None for a valid (sharp) match
-                    new += 1
+                pairs.append((i, int(j)))
+                jobs.append(RegistrationJob(source, target, between(kx[i], kx[j]), lcfg, cfg.corridors))
+        tried += len(jobs)
+        for (i, j), job, reg in zip(pairs, jobs, mapper(register_job, jobs), strict=True):
+            if reg is None:
+                continue
+            cov = _closure_cov(reg, cfg)
+            if cov is not None and math.hypot(*(reg.mean[:2] - job.initial[:2])) <= cfg.max_shift:
+                found.append((int(key_node[i]), int(key_node[j]), reg.mean, cov))
+                axes.append(reg.slide_axis)  # None for a valid (sharp) match
+                new += 1
         if new == 0:
             break
         g = _graph(odo, visit_node, canon, loops, closures=found, config=odometry)

@@ -13,8 +13,9 @@
   posterior, and the masses.
 * ``ptm_surprise.png`` (only with a surprise trace) — the landmark detector's Bayesian surprise (thesis
   Ch. 4.7.3, Fig. 62): actual surprise per measurement against time, the predicted surprise mean with
-  its band ``mean ± k·std`` shaded (the upper edge is the detector's threshold), the measurements that
-  fired a landmark marked.
+  its band ``mean ± k·std`` shaded (the upper edge is the detector's threshold), the surprise maxima
+  that fired a landmark ringed (above the band, by the detector's rule) and the landmarks as declared
+  (dotted lines: a laser detector places each at the most open scan near its maximum).
 * ``ptm_srq.png`` (only when ``ptm.inference[SRQ_KEY]`` holds MCMC cold-chain states) — the scaled
   regeneration quantile plot of every chain (thesis Ch. 3.6, Fig. 42; :mod:`ptm_ros.convergence`), all
   chains at one atom: the state most visited over all chains.
@@ -37,10 +38,11 @@ PTMs stay quick because bars, tables and panels are capped and points/lines are 
 from __future__ import annotations
 
 import html
+import json
 import math
 import shutil
 from collections.abc import Hashable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -50,6 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from ptm_ros.convergence import most_visited, srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import Score
+from ptm_ros.figures import ess_fraction, sig
 from ptm_ros.partitions import IntSequence, num_places
 from ptm_ros.ptm import Ptm, Topology
 
@@ -66,10 +69,19 @@ SURPRISE = "ptm_surprise.png"
 SRQ = "ptm_srq.png"
 REPORT_MD = "report.md"
 REPORT_HTML = "report.html"
-#: Key of ``Ptm.inference`` holding the MCMC cold-chain states drawn as the SRQ plot (module docstring).
+#: Key of ``Ptm.inference`` holding the MCMC cold-chain states drawn as the SRQ plot (module docstring):
+#: in memory, and in a ptm.json written before issue #25; ``ptm-run`` moves them to :data:`TRACE`.
 SRQ_KEY = "cold_chain_states"
 #: Key of ``Ptm.inference`` holding the thinning stride of those states (sweeps per kept state).
 SRQ_THIN_KEY = "cold_chain_thin"
+#: Key of ``Ptm.inference`` holding the topology (labels) of each state id in :data:`SRQ_KEY` (in memory).
+SRQ_LABELS_KEY = "cold_chain_labels"
+#: Key of ``Ptm.inference`` holding the summary of the cold chains that ptm.json keeps
+#: (:func:`split_chain_trace`).
+CHAINS_KEY = "cold_chains"
+#: The file of the full cold-chain states beside ptm.json (``ptm-run --trace``) and its schema tag.
+TRACE = "mcmc_trace.json"
+TRACE_SCHEMA = "ptm_ros.mcmc_trace/1"
 #: Caption of the occupancy map figure.
 MAP_CAPTION = "Occupancy grid of the scans along the smoothed trajectory of the most probable topology"
 
@@ -296,21 +308,34 @@ def draw_scores(score: Score, path: Path, *, config: ReportConfig) -> Path:
 def fired_indices(trace: SurpriseTrace) -> NDArray[np.intp]:
     """``(L,)`` indices of the trace's measurements at which its landmarks were declared.
 
-    A landmark's stamp is that of its surprise maximum (:class:`ptm_ros.surprise.BandTrigger`); among
-    measurements sharing that stamp the most surprising one is taken.
+    Among measurements sharing a landmark's stamp the most surprising one is taken.
 
     Raises:
         DataError: a landmark stamp that is not the stamp of any measurement of the trace.
     """
+    return _indices(trace, trace.landmarks, "landmark")
+
+
+def trigger_indices(trace: SurpriseTrace) -> NDArray[np.intp]:
+    """Indices of the trace's measurements whose surprise fired a landmark: the maxima above the band
+    (:class:`ptm_ros.surprise.BandTrigger`, ``trace.triggers``); the landmarks' own measurements for a
+    trace without triggers. Raises :class:`DataError` as :func:`fired_indices` does."""
+    if trace.triggers is None:
+        return fired_indices(trace)
+    return _indices(trace, trace.triggers, "trigger")
+
+
+def _indices(trace: SurpriseTrace, at: ArrayLike, what: str) -> NDArray[np.intp]:
     stamps = np.asarray(trace.stamps, dtype=float)
     surprise = np.asarray(trace.surprise, dtype=float)
-    out = np.empty(len(trace.landmarks), dtype=np.intp)
-    for k, stamp in enumerate(np.asarray(trace.landmarks, dtype=float).tolist()):
+    wanted = np.asarray(at, dtype=float).reshape(-1)
+    out = np.empty(len(wanted), dtype=np.intp)
+    for k, stamp in enumerate(wanted.tolist()):
         tol = 1e-9 * max(1.0, abs(stamp))
         lo = int(np.searchsorted(stamps, stamp - tol, side="left"))
         hi = int(np.searchsorted(stamps, stamp + tol, side="right"))
         if hi <= lo:
-            msg = f"landmark stamp {stamp:.9f} is not the stamp of a measurement of the surprise trace"
+            msg = f"{what} stamp {stamp:.9f} is not the stamp of a measurement of the surprise trace"
             raise DataError(msg)
         out[k] = lo + int(np.argmax(surprise[lo:hi]))
     return out
@@ -346,10 +371,15 @@ def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
     """The surprise figure (thesis Fig. 62) of a detector's trace, not yet saved.
 
     Time runs from the first measurement. The band is ``[max(0, mean - k·std), mean + k·std]``; its top
-    (dashed) is the detector's threshold. On a log axis (:attr:`ReportConfig.surprise_log_scale`)
-    values are floored at half the smallest positive one. Artists carry ids for inspection (``gid``):
-    ``"surprise"`` (actual), ``"predicted_mean"``, ``"upper"``, ``"band"`` and ``"landmarks"`` (a
-    scatter at ``(time, surprise)`` of :func:`fired_indices`).
+    (dashed) is the detector's threshold. The detector's rule (:class:`ptm_ros.surprise.BandTrigger`):
+    a landmark fires at the first maximum of each run of measurements above the band; these maxima are
+    ringed (so every ring lies above the band). A laser detector then places the landmark at the most
+    open scan within ``localize_distance`` of travel (usually inside the band): dotted vertical lines
+    at the declared landmarks (through the rings when nothing was moved). On a log axis
+    (:attr:`ReportConfig.surprise_log_scale`) values are floored at half the smallest positive one.
+    Artists carry ids for inspection (``gid``): ``"surprise"`` (actual), ``"predicted_mean"``,
+    ``"upper"``, ``"band"``, ``"triggers"`` (a scatter at ``(time, surprise)`` of
+    :func:`trigger_indices`) and ``"landmarks"`` (vertical lines at the times of :func:`fired_indices`).
     """
     _check_trace(trace)
     stamps = np.asarray(trace.stamps, dtype=float)
@@ -357,7 +387,9 @@ def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
     mean = np.asarray(trace.predicted_mean, dtype=float)
     upper = np.asarray(trace.upper, dtype=float)
     lower = 2.0 * mean - upper  # mean - k·std
-    fired = fired_indices(trace)
+    placed = fired_indices(trace)
+    fired = trigger_indices(trace)
+    moved = placed.shape != fired.shape or bool(np.any(stamps[placed] != stamps[fired]))
     t = stamps - stamps[0]
     positive = np.concatenate([surprise, mean, upper])
     positive = positive[np.isfinite(positive) & (positive > 0.0)]
@@ -367,7 +399,7 @@ def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
     def shown(v: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.maximum(v, floor)
 
-    fig = _new_figure(10.0, 4.2)
+    fig = _new_figure(10.0, 4.4)
     ax = fig.add_subplot()
     k = _band_sigmas(trace)
     band = "band: predicted mean ± " + (f"{k:.3g}σ" if k is not None else "k·σ")
@@ -386,15 +418,17 @@ def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
         t, shown(mean), color="tab:orange", lw=1.0, label="predicted surprise (mean)", gid="predicted_mean"
     )
     ax.plot(t, shown(surprise), color="tab:blue", lw=0.8, label="actual surprise", gid="surprise")
-    if fired.size:
-        ax.vlines(
-            t[fired],
-            floor if log_scale else 0.0,
-            shown(surprise[fired]),
-            color="tab:red",
-            lw=0.5,
-            alpha=0.5,
-        )
+    top = float(shown(np.concatenate([surprise, upper])).max())
+    ax.vlines(
+        t[placed],
+        floor if log_scale else 0.0,
+        top,
+        color="tab:red",
+        lw=0.8,
+        ls=":",
+        label=f"landmarks ({placed.size})" + (": where placed" if moved else ""),
+        gid="landmarks",
+    )
     ax.scatter(
         t[fired],
         shown(surprise[fired]),
@@ -404,8 +438,8 @@ def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
         edgecolors="tab:red",
         linewidths=1.2,
         zorder=5,
-        label=f"landmarks ({fired.size})",
-        gid="landmarks",
+        label=f"surprise maxima that fired ({fired.size})",
+        gid="triggers",
     )
     if log_scale:
         ax.set_yscale("log")
@@ -415,10 +449,12 @@ def surprise_figure(trace: SurpriseTrace, *, config: ReportConfig) -> Figure:
     ax.set_xlim(float(t[0]), float(t[-1]) if t[-1] > t[0] else float(t[0]) + 1.0)
     ax.set_xlabel(f"time [s] since the first measurement (stamp {stamps[0]:.3f})")
     ax.set_ylabel("surprise KL(after ‖ before) [nats]")
-    fig.legend(loc="outside lower center", ncols=5, fontsize=8)
+    fig.legend(loc="outside lower center", ncols=3, fontsize=8)
+    rule = "a landmark fires at the first maximum of each run above the band (rings)"
+    if moved:
+        rule += ",\nthen is placed at the most open scan nearby (dotted lines: the landmarks)"
     ax.set_title(
-        f"Bayesian surprise (thesis Fig. 62): {len(t)} measurements, {fired.size} landmarks\n"
-        "a landmark fires at the first maximum of each run above the band",
+        f"Bayesian surprise (thesis Fig. 62): {len(t)} measurements, {placed.size} landmarks\n{rule}",
         fontsize=9,
     )
     return fig
@@ -487,15 +523,16 @@ def _hashable(state: Any) -> Hashable:
     return tuple(state) if isinstance(state, list) else state
 
 
-def chain_states(ptm: Ptm) -> list[list[Hashable]] | None:
-    """The MCMC cold-chain states of ``ptm.inference[SRQ_KEY]`` (one list per chain), None if absent.
+def chain_states(ptm: Ptm, trace: Mapping[str, Any] | None = None) -> list[list[Hashable]] | None:
+    """The MCMC cold-chain states (one list per chain) of ``trace`` (:func:`load_chain_trace`) when given,
+    else of ``ptm.inference[SRQ_KEY]``; None if absent.
 
     Label lists become tuples (hashable); numpy arrays are accepted as from an in-memory result.
 
     Raises:
-        DataError: the key holds something other than non-empty sequences of states, one per chain.
+        DataError: the states are something other than non-empty sequences of states, one per chain.
     """
-    raw = ptm.inference.get(SRQ_KEY)
+    raw = trace["chains"] if trace is not None else ptm.inference.get(SRQ_KEY)
     if raw is None:
         return None
     rows = raw.tolist() if isinstance(raw, np.ndarray) else raw
@@ -527,20 +564,182 @@ def chain_srq(chains: Sequence[Sequence[Hashable]]) -> tuple[dict[str, SrqPoints
     return points, missing
 
 
+def split_chain_trace(ptm: Ptm, *, trace_file: str | None = None) -> tuple[Ptm, dict[str, Any] | None]:
+    """``(ptm, trace)``: the PTM whose ``inference`` keeps only a summary of MCMC's cold chains, and the
+    chains' full states as a trace document (None when ``ptm`` holds none).
+
+    The summary (:data:`CHAINS_KEY`) holds ``chains``, ``states`` (kept per chain), ``thin`` (sweeps per
+    kept state), ``srq_max_deviation`` (per chain, the SRQ plot's ``max |y − x|`` at the atom most
+    visited over all chains; null for a chain that never visits it) and ``trace`` (``trace_file``: where
+    the caller writes the trace, null when nowhere). The trace (:data:`TRACE_SCHEMA`) holds ``thin``,
+    ``chains`` (the states, one list per chain: topology ids, or label lists) and ``topologies`` (the
+    labels of each id, when known).
+
+    Raises:
+        DataError: malformed states (:func:`chain_states`).
+    """
+    inf = dict(ptm.inference)
+    chains = chain_states(ptm)
+    if chains is None:
+        return ptm, None
+    raw = inf.pop(SRQ_KEY)
+    rows = raw.tolist() if isinstance(raw, np.ndarray) else [list(np.asarray(c).tolist()) for c in raw]
+    thin = int(inf.pop(SRQ_THIN_KEY, 1))
+    labels = inf.pop(SRQ_LABELS_KEY, None)
+    points, _ = chain_srq(chains)
+    devs = [points.get(f"chain {k}") for k in range(len(chains))]
+    inf[CHAINS_KEY] = {
+        "chains": len(chains),
+        "states": [len(c) for c in chains],
+        "thin": thin,
+        "srq_max_deviation": [None if p is None else srq_deviation(*p) for p in devs],
+        "trace": trace_file,
+    }
+    trace = {"schema": TRACE_SCHEMA, "thin": thin, "chains": rows, "topologies": labels}
+    return replace(ptm, inference=inf), trace
+
+
+def save_chain_trace(trace: Mapping[str, Any], path: str | Path) -> Path:
+    """Write a trace document (:func:`split_chain_trace`) as compact JSON; returns the path."""
+    path = Path(path)
+    path.write_text(json.dumps(trace, separators=(",", ":")), encoding="utf-8")
+    return path
+
+
+def load_chain_trace(path: str | Path, ptm: Ptm) -> dict[str, Any]:
+    """The trace document at ``path``, checked against ``ptm``'s chain summary (:data:`CHAINS_KEY`: the
+    same number of chains, states per chain and thinning).
+
+    Raises:
+        DataError: not a trace, malformed, or the trace of another run.
+        OSError: the file cannot be read.
+    """
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        msg = f"{path} is not a JSON document: {err}"
+        raise DataError(msg) from err
+    if not isinstance(doc, dict) or doc.get("schema") != TRACE_SCHEMA:
+        msg = f"{path} is not an MCMC trace (schema {TRACE_SCHEMA})"
+        raise DataError(msg)
+    summary = ptm.inference.get(CHAINS_KEY)
+    chains = chain_states(ptm, doc)
+    got = {"states": [len(c) for c in chains or ()], "thin": doc.get("thin")}
+    if not isinstance(summary, Mapping) or {k: summary.get(k) for k in got} != got:
+        msg = f"{path} is the trace of another run (its chains do not match the PTM's {CHAINS_KEY})"
+        raise DataError(msg)
+    return doc
+
+
+def find_chain_trace(ptm: Ptm, directory: str | Path) -> dict[str, Any] | None:
+    """The trace that ``ptm``'s chain summary names (``trace``, a file in ``directory``, the directory of
+    its ptm.json), loaded and checked (:func:`load_chain_trace`); None when it names none or the file is
+    missing."""
+    summary = ptm.inference.get(CHAINS_KEY)
+    name = summary.get("trace") if isinstance(summary, Mapping) else None
+    if not isinstance(name, str) or not (Path(directory) / name).is_file():
+        return None
+    return load_chain_trace(Path(directory) / name, ptm)
+
+
+def srq_summary_line(summary: Mapping[str, Any]) -> str:
+    """The report line of a chain summary (:data:`CHAINS_KEY`) without the states: the SRQ figures, and
+    that the plot needs the trace."""
+    devs = summary.get("srq_max_deviation") or []
+    shown = [f"chain {k} {'–' if d is None else f'{d:.3f}'}" for k, d in enumerate(devs)]
+    trapped = [str(k) for k, d in enumerate(devs) if d is None]
+    line = f"SRQ max |y − x| (0 = ideal mixing): {', '.join(shown)}" if shown else "SRQ"
+    if trapped:
+        line += f"; atom never visited by chain {', '.join(trapped)}"
+    return line + f"; the SRQ plot needs the chains' states: run ptm-run with --trace (they go to {TRACE})"
+
+
 def _fmt(v: float | None) -> str:
     return "—" if v is None else f"{v:.3f}"
 
 
-def _summary(ptm: Ptm, notes: Sequence[str] = ()) -> list[str]:
-    inf = dict(ptm.inference)
+#: The scalar figures of ``ptm.inference`` that :func:`inference_line` shows, per method, in words:
+#: key -> (label, unit). MCMC's convergence figures have their own line (``ptm-run``'s inference notes).
+INFERENCE_WORDS: dict[str, dict[str, tuple[str, str]]] = {
+    "rbpf": {
+        "particles": ("particles", ""),
+        "seed": ("seed", ""),
+        "resample": ("resampling", ""),
+        "n_topologies": ("distinct topologies held", ""),
+        "ess": ("ESS", ""),
+        "log_evidence": ("log evidence", " nats"),
+        "update_ms_median": ("update time median", " ms"),
+        "update_ms_p95": ("95th percentile", " ms"),
+    },
+    "exact": {"n_topologies_evaluated": ("topologies enumerated", "")},
+    "mcmc": {"seed": ("seed", ""), "estimate": ("estimate", ""), "samples": ("samples", "")},
+}
+#: One sentence on the consistent mass, wherever it is shown.
+CONSISTENT_MASS_MEANING = (
+    "consistent mass = the posterior mass of the topologies that put no scored visit pair wrong; on long "
+    "real runs it is often 0, because every listed topology gets at least one of hundreds of pairs wrong, "
+    "even at an F1 of 0.98"
+)
+
+
+def _value(value: Any) -> str:
+    """A scalar for a reader: yes/no, whole numbers as they are, other numbers to 3 significant digits."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int | np.integer):
+        return str(int(value))
+    if isinstance(value, float | np.floating):
+        return sig(float(value))
+    return str(value)
+
+
+def inference_line(inference: Mapping[str, Any]) -> str:
+    """``method: rbpf (particles 100, seed 0, …, ESS 1.00/100, log evidence 278.9 nats, …)``: the estimator
+    with its scalar figures (:data:`INFERENCE_WORDS` for the known methods, every scalar for others),
+    rounded for reading (:func:`ptm_ros.figures.sig`; the ESS as a share of the topologies held)."""
+    inf = dict(inference)
     method = str(inf.pop("method", "unknown"))
-    details = ", ".join(f"{k} {v}" for k, v in inf.items() if isinstance(v, (int, float, str, bool)))
-    top = ptm.topologies[0] if ptm.topologies else None
-    lines = [
-        f"method: {method}" + (f" ({details})" if details else ""),
+    words = INFERENCE_WORDS.get(method)
+    if words is None:
+        words = {
+            k: (k.replace("_", " "), "") for k, v in inf.items() if isinstance(v, int | float | str | bool)
+        }
+    parts = []
+    for key, (label, unit) in words.items():
+        v = inf.get(key)
+        if v is None or not isinstance(v, int | float | str | bool):
+            continue
+        if key == "ess" and isinstance(inf.get("n_topologies"), int):
+            text = ess_fraction(float(v), inf["n_topologies"])
+        elif key == "log_evidence":
+            text = f"{float(v):.1f}"
+        else:
+            text = _value(v)
+        parts.append(f"{label} {text}{unit}")
+    return f"method: {method}" + (f" ({', '.join(parts)})" if parts else "")
+
+
+def visits_line(ptm: Ptm, declared: int | None = None) -> str:
+    """``visits: 10; topologies listed: 50, listed mass 1.000``, and how the visits reconcile with the
+    landmarks the detector declared (``declared``, else the drops counted in ``diagnostics.skipped``:
+    :func:`ptm_ros.landmarks.landmark_accounting`)."""
+    from ptm_ros.landmarks import landmark_accounting
+
+    line = (
         f"visits: {len(ptm.landmarks)}; topologies listed: {len(ptm.topologies)}, "
-        f"listed mass {sum(t.probability for t in ptm.topologies):.3f}",
-    ]
+        f"listed mass {sum(t.probability for t in ptm.topologies):.3f}"
+    )
+    diag = ptm.extra.get("diagnostics")
+    skipped = diag.get("skipped") if isinstance(diag, Mapping) else None
+    accounting = landmark_accounting(
+        len(ptm.landmarks), skipped if isinstance(skipped, Mapping) else {}, declared
+    )
+    return line + (f" ({accounting})" if accounting else "")
+
+
+def _summary(ptm: Ptm, notes: Sequence[str] = (), declared: int | None = None) -> list[str]:
+    top = ptm.topologies[0] if ptm.topologies else None
+    lines = [inference_line(ptm.inference), visits_line(ptm, declared)]
     if top is not None:
         lines.append(f"most probable topology: p = {top.probability:.3f}, {num_places(top.labels)} places")
     wall = ptm.timing.get("wall_s")
@@ -562,7 +761,7 @@ def _score_rows(score: Score) -> list[tuple[str, str, str]]:
 
 def _score_notes(score: Score) -> list[str]:
     return [
-        f"consistent mass (no scored pair wrong): {score.consistent_mass:.3f}",
+        f"consistent mass: {score.consistent_mass:.3f} ({CONSISTENT_MASS_MEANING.split(' = ', 1)[1]})",
         f"mass of the exactly-true topology: {_fmt(score.true_topology_mass)}",
         f"mass-weighted mean F1: {score.mean_f1:.3f}",
         f"scored pairs: {score.n_scored_pairs} of {score.n_pairs} ({score.n_same_pairs} same, "
@@ -602,9 +801,10 @@ def _markdown(
     config: ReportConfig,
     *,
     notes: Sequence[str] = (),
+    declared: int | None = None,
 ) -> str:
     out = [f"# {title}", ""]
-    out += [f"- {line}" for line in _summary(ptm, notes)]
+    out += [f"- {line}" for line in _summary(ptm, notes, declared)]
     if score is not None:
         out += ["", "## Ground truth", "", "| | MAP topology | posterior |", "|---|---|---|"]
         out += [f"| {a} | {b} | {c} |" for a, b, c in _score_rows(score)]
@@ -626,6 +826,7 @@ def _html(
     config: ReportConfig,
     *,
     notes: Sequence[str] = (),
+    declared: int | None = None,
 ) -> str:
     e = html.escape
     out = [
@@ -636,7 +837,7 @@ def _html(
         "table{border-collapse:collapse}td,th{border:1px solid #999;padding:2px 8px}"
         "img{max-width:100%}code{font-size:90%}</style></head><body>",
         f"<h1>{e(title)}</h1>",
-        "<ul>" + "".join(f"<li>{e(line)}</li>" for line in _summary(ptm, notes)) + "</ul>",
+        "<ul>" + "".join(f"<li>{e(line)}</li>" for line in _summary(ptm, notes, declared)) + "</ul>",
     ]
     if score is not None:
         out.append("<h2>Ground truth</h2><table><tr><th></th><th>MAP topology</th><th>posterior</th></tr>")
@@ -682,15 +883,18 @@ def write_report(
     notes: Sequence[str] = (),
     title: str = "Probabilistic topological map",
     config: ReportConfig | None = None,
+    chain_trace: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` into ``out_dir``; returns the HTML path.
 
     ``trajectory`` ``(T, 3)`` (or ``(T, 2)``) odometry or smoothed poses drawn under the topologies;
     ``score`` from :func:`ptm_ros.evaluation.score_ptm` on this PTM; ``surprise_trace`` the landmark
     detector's :attr:`~ptm_ros.surprise.LaserSurpriseDetector.trace` (drawn unless empty); the SRQ plot
-    is drawn when ``ptm.inference`` holds :data:`SRQ_KEY`; ``occupancy_map`` an image of the metric map
-    (shown with :data:`MAP_CAPTION`) and ``extra_figures`` image files to include (both copied into
-    ``out_dir`` unless already there); ``notes`` extra summary lines.
+    is drawn from ``chain_trace`` (:func:`load_chain_trace`) or, without it, from the states in
+    ``ptm.inference[SRQ_KEY]``; a PTM with only the chains' summary (:data:`CHAINS_KEY`) gets its SRQ
+    figures as a line and a note that the plot needs ``ptm-run --trace``; ``occupancy_map`` an image of
+    the metric map (shown with :data:`MAP_CAPTION`) and ``extra_figures`` image files to include (both
+    copied into ``out_dir`` unless already there); ``notes`` extra summary lines.
     """
     config = config or ReportConfig()
     if not ptm.topologies:
@@ -710,7 +914,7 @@ def write_report(
             f"this PTM has {len(ptm.landmarks)} and {len(ptm.topologies)})"
         )
         raise DataError(msg)
-    chains = chain_states(ptm)
+    chains = chain_states(ptm, chain_trace)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figures = [
@@ -723,7 +927,9 @@ def write_report(
     if score is not None:
         figures.append(("Scores against ground truth", draw_scores(score, out / SCORES, config=config).name))
     notes = list(notes)
+    declared = None
     if surprise_trace is not None and len(surprise_trace.stamps):
+        declared = len(surprise_trace.landmarks)
         draw_surprise(surprise_trace, out / SURPRISE, config=config)
         figures.append(("Bayesian surprise of the landmark detector (thesis Fig. 62)", SURPRISE))
         notes.append(
@@ -740,11 +946,15 @@ def write_report(
         figures.append(("Scaled regeneration quantiles of the MCMC chains (thesis Fig. 42)", SRQ))
         devs = ", ".join(f"{name} {srq_deviation(x, y):.3f}" for name, (x, y) in points.items())
         notes.append(f"SRQ max |y − x| (0 = ideal mixing): {devs}" + (f"; atom {trapped}" if trapped else ""))
+    elif isinstance(summary := ptm.inference.get(CHAINS_KEY), Mapping):
+        notes.append(srq_summary_line(summary))
     taken = {HISTOGRAM, TOPOLOGIES, SCORES, SURPRISE, SRQ, REPORT_MD, REPORT_HTML}
     if occupancy_map is not None:
         figures.append((MAP_CAPTION, _place_extra(occupancy_map, out, taken, "map")))
     figures += [(Path(f).stem, _place_extra(f, out, taken, f"extra{k}")) for k, f in enumerate(extra_figures)]
-    (out / REPORT_MD).write_text(_markdown(title, ptm, score, figures, config, notes=notes), encoding="utf-8")
+    md = _markdown(title, ptm, score, figures, config, notes=notes, declared=declared)
+    (out / REPORT_MD).write_text(md, encoding="utf-8")
     html_path = out / REPORT_HTML
-    html_path.write_text(_html(title, ptm, score, figures, config, notes=notes), encoding="utf-8")
+    page = _html(title, ptm, score, figures, config, notes=notes, declared=declared)
+    html_path.write_text(page, encoding="utf-8")
     return html_path

@@ -440,13 +440,15 @@ def infer(
     session: FilterSession | None = None,
     registrar: Registrar | None = None,
     progress: Progress | None = None,
+    sweeps: Callable[[int, int], None] | None = None,
 ) -> Inference:
     """Run the configured estimator over a visit sequence.
 
     ``rbpf`` feeds ``session`` (a fresh one fitted to ``visits`` when None, registering with
     ``registrar`` or, without one and with ``model.use_laser``, its own; a restored one continues) the
     visits it has not seen; ``exact`` and ``mcmc`` score topologies with the batch model, laser pairs
-    from ``registrar`` (none without one).
+    from ``registrar`` (none without one). ``progress`` wraps the filter's visits and the enumeration's
+    topologies; ``sweeps`` hears of MCMC's sweeps (:func:`ptm_ros.mcmc.run_mcmc`'s ``progress``).
 
     Raises:
         DataError: no visits.
@@ -489,7 +491,7 @@ def infer(
                 inference=replace(inf, method="rbpf", top=inf.particles),
             )
             ensemble = infer(visits, every, registrar=model.registrar, progress=progress).probabilities
-        return _infer_mcmc(model, config, ensemble)
+        return _infer_mcmc(model, config, ensemble, sweeps)
     msg = f"inference method {inf.method!r} is not available"
     raise ConfigError(msg)
 
@@ -505,7 +507,10 @@ def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[L
 
 
 def _infer_mcmc(
-    model: PosteriorModel, config: PtmConfig, ensemble: Mapping[Labels, float] | None = None
+    model: PosteriorModel,
+    config: PtmConfig,
+    ensemble: Mapping[Labels, float] | None = None,
+    sweeps: Callable[[int, int], None] | None = None,
 ) -> Inference:
     """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
     particle filter's ``ensemble`` (``initial: rbpf``, or ``auto`` on a long run), chain c starts from
@@ -514,7 +519,7 @@ def _infer_mcmc(
 
     inf = config.inference
     starts = None if ensemble is None else list(ensemble)[: inf.mcmc.chains]
-    res = run_mcmc(model, inf.mcmc, inf.seed, initial=starts)
+    res = run_mcmc(model, inf.mcmc, inf.seed, initial=starts, progress=sweeps)
     ranked = dict(top_k(res.probabilities, inf.top))
     d = res.diagnostics
     versus = {} if ensemble is None else {VERSUS_KEY: compare_to_filter(model, res.probabilities, ensemble)}
@@ -584,11 +589,17 @@ def _json_state(state: Any) -> Any:
 
 def cold_chain_details(res: Any) -> dict[str, Any]:
     """The cold-chain states of an MCMC result for the report's SRQ plot (``ptm_ros.report.SRQ_KEY``),
-    one list per chain, and their thinning stride; nothing when the result holds none."""
+    one list per chain, their thinning stride and the topology of each state id (when known); nothing
+    when the result holds none. ``ptm-run`` keeps only their summary in ptm.json
+    (:func:`ptm_ros.report.split_chain_trace`)."""
     chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
     if not chains:
         return {}
-    return {
+    out = {
         "cold_chain_states": [[_json_state(s) for s in c] for c in chains],
         "cold_chain_thin": int(getattr(res, "cold_thin", 1)),
     }
+    labels = getattr(res, "state_labels", None)
+    if labels:
+        out["cold_chain_labels"] = [_json_state(lab) for lab in labels]
+    return out

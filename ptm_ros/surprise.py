@@ -738,7 +738,10 @@ class SurpriseTrace:
     """What a surprise detector saw, for the thesis Fig. 62 figure (all ``(T,)`` except ``landmarks``).
 
     ``upper`` is the band edge ``predicted_mean + k·predicted_std``; ``landmarks`` the stamps of the
-    declared landmarks (the surprise maxima), ``(L,)``.
+    declared landmarks, ``(L,)``; ``triggers`` the stamps of the surprise maxima above the band that
+    fired them (:class:`BandTrigger`), in order. A landmark is declared at its trigger unless the
+    detector localises it (:attr:`LaserSurpriseConfig.localize_distance`: the most open scan near the
+    maximum, usually inside the band); None: the triggers are the landmarks.
     """
 
     stamps: FloatArray
@@ -747,6 +750,7 @@ class SurpriseTrace:
     predicted_std: FloatArray
     upper: FloatArray
     landmarks: FloatArray
+    triggers: FloatArray | None = None
 
 
 class _SurpriseDetector(Detector):
@@ -758,6 +762,7 @@ class _SurpriseDetector(Detector):
         self._trigger = BandTrigger(band_sigmas, warmup, min_travel)
         self._rows: deque[tuple[float, float, float, float, float]] = deque()
         self._landmarks: deque[float] = deque()
+        self._triggers: deque[float] = deque()
         self._last_stamp: float | None = None
         self._travel_at_last = 0.0
         self.last_landmark_stamp: float | None = None
@@ -792,6 +797,8 @@ class _SurpriseDetector(Detector):
         fired = self._trigger.step(stamp, step, travel)
         upper = self._trigger.upper(step)
         self._rows.append((stamp, step.surprise, step.predicted_mean, step.predicted_std, upper))
+        if fired is not None:
+            self._triggers.append(fired)
         return fired
 
     def _declare(self, stamp: float) -> None:
@@ -819,6 +826,7 @@ class _SurpriseDetector(Detector):
             raise ConfigError(msg)
         self._rows = deque(self._rows, maxlen=rows)
         self._landmarks = deque(self._landmarks, maxlen=rows)
+        self._triggers = deque(self._triggers, maxlen=rows)
 
     @property
     def trace(self) -> SurpriseTrace:
@@ -831,6 +839,7 @@ class _SurpriseDetector(Detector):
             predicted_std=rows[:, 3].copy(),
             upper=rows[:, 4].copy(),
             landmarks=np.array(self._landmarks, dtype=float),
+            triggers=np.array(self._triggers, dtype=float),
         )
 
 

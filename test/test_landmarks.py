@@ -8,12 +8,19 @@ import numpy as np
 import pytest
 
 from ptm_ros.appearance import AppearanceConfig, panorama_signature
-from ptm_ros.detectors import EquidistantConfig, EquidistantDetector
+from ptm_ros.detectors import Detector, EquidistantConfig, EquidistantDetector
 from ptm_ros.errors import DataError
 from ptm_ros.geometry import between, interpolate_poses, path_length, wrap_angle
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
-from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, visit_from_json, visit_to_json
+from ptm_ros.landmarks import (
+    LANDMARK_DROPS,
+    ExtractorConfig,
+    VisitExtractor,
+    landmark_accounting,
+    visit_from_json,
+    visit_to_json,
+)
 from ptm_ros.laser import LaserConfig
 from ptm_ros.laser_odometry import LaserOdometryConfig
 
@@ -288,3 +295,45 @@ def test_visit_json_round_trip(sim):
         visit_from_json('{"schema": "other"}')
     with pytest.raises(DataError, match="malformed"):
         visit_from_json('{"schema": "ptm_ros.visit/1", "index": 0}')
+
+
+class EveryScan(Detector):
+    """Declares a landmark at every scan (a detector firing faster than the odometry is sampled)."""
+
+    def on_scan(self, stamp, ranges, *, angle_min, angle_increment, range_min, range_max):
+        return True
+
+
+def test_landmarks_on_one_odometry_sample_become_one_visit_and_are_accounted_for():
+    """Two landmarks nearest to the same odometry sample make one visit; the drop is counted by reason and
+    :func:`landmark_accounting` says how many landmarks became visits and why the rest did not."""
+    ext = VisitExtractor(EveryScan(), config=ExtractorConfig(use_scans=False, use_images=False))
+    out = []
+    for k in range(4):  # odometry at 1 Hz, scans at 4 Hz: four landmarks per odometry sample
+        out += ext.on_odometry(float(k), (2.0 * k, 0.0, 0.0))
+        for j in range(4):
+            out += ext.on_scan(k + 0.25 * j + 0.1, [1.0, 1.0], 0.0, 0.1, 0.0, 10.0)
+    out += ext.flush()
+    skipped = ext.diagnostics.skipped
+    declared = 16
+    assert len(out) + skipped["landmark-at-same-odometry-sample"] == declared
+    line = landmark_accounting(len(out), skipped)
+    assert line == (
+        f"the detector declared {declared} landmarks and {len(out)} became visits: {declared - len(out)} "
+        f"dropped ({declared - len(out)} {LANDMARK_DROPS['landmark-at-same-odometry-sample']} "
+        "(landmark-at-same-odometry-sample))"
+    )
+
+
+def test_landmark_accounting():
+    assert landmark_accounting(10, {}) is None
+    assert landmark_accounting(10, {"scan-malformed": 3}) is None  # input messages, not landmarks
+    assert landmark_accounting(10, {}, declared=10) is None
+    two = landmark_accounting(10, {"visit-invalid": 1, "landmark-at-same-odometry-sample": 1})
+    assert two is not None and two.startswith(
+        "the detector declared 12 landmarks and 10 became visits: 2 dropped"
+    )
+    assert "1 had unusable odometry" in two
+    more = landmark_accounting(10, {"visit-invalid": 1}, declared=13)
+    assert more is not None and more.endswith("; 2 for no recorded reason)")
+    assert "declared 11 landmarks" in str(landmark_accounting(10, {"visit-invalid": 1}, declared=5))

@@ -430,6 +430,20 @@ def test_deterministic_under_a_seed(model6):
     assert gen.histogram == run_mcmc(model6, cfg, np.random.default_rng(11)).histogram
 
 
+def test_progress_hears_of_the_sweeps_and_changes_nothing(model6):
+    """``run_mcmc(progress=...)`` (ptm-run's bar) advances the chains in tenths of a round: the same
+    result as without, the sweeps reported rising to each round's target (rounds double)."""
+    cfg = McmcConfig(min_iterations=100, max_iterations=400, tolerance=1e-9, chains=2)
+    heard: list[tuple[int, int]] = []
+    with_bar = run_mcmc(model6, cfg, 7, progress=lambda done, target: heard.append((done, target)))
+    plain = run_mcmc(model6, cfg, 7)
+    assert with_bar.histogram == plain.histogram and with_bar.visited == plain.visited
+    assert with_bar.cold_states == plain.cold_states
+    assert with_bar.diagnostics.proposals == plain.diagnostics.proposals
+    assert [d for d, _ in heard] == sorted(d for d, _ in heard) and heard[-1] == (400, 400)
+    assert {t for _, t in heard} == {100, 200, 400} and heard[:2] == [(10, 100), (20, 100)]
+
+
 def test_worker_processes_give_the_same_result(model6):
     cfg = McmcConfig(min_iterations=300, max_iterations=300, chains=2)
     inline = run_mcmc(model6, cfg, 7)

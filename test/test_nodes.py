@@ -32,6 +32,7 @@ from ptm_ros.nodes.topology_filter import (
     ensemble_markers,
     graph_document,
     topology_alpha,
+    visit_line,
 )
 from ptm_ros.occupancy import load_map, to_ros_data, trinary
 from ptm_ros.partitions import enumerate_partitions
@@ -421,6 +422,26 @@ def random_ptm(rng, n=5, k=12):
     landmarks = [Landmark(i, 10.0 + i, (float(rng.normal()), float(rng.normal()), 0.3 * i)) for i in range(n)]
     positions = {tuple(lab): rng.normal(size=(max(lab) + 1, 2)) for lab in chosen}
     return make_ptm(landmarks, dict(zip(map(tuple, chosen), w, strict=True)), positions=positions)
+
+
+def test_visit_log_line_gives_the_ess_as_a_share_of_the_particles():
+    """The filter node's line after a visit: ``1/Σw²`` over the particles held, with their number, and the
+    mass of the most probable topology that explains an ESS near 1 (issue #25: every line said "ESS 1.0"
+    although the figure is a share of 100 particles)."""
+    from ptm_ros.rbpf import FilterState
+
+    peaked = FilterState(n_visits=8, n_topologies=100, ess=1.45554, log_evidence_increment=0.0, update_s=0.05)
+    line = visit_line(7, peaked, 0.805802, how="updated", ms=56.3)
+    assert line == (
+        "visit 7: ESS 1.46/100 particles (each a distinct topology; the most probable holds 0.806), "
+        "updated in 56 ms"
+    )
+    spread = replace(peaked, ess=37.24, n_topologies=52)
+    assert "ESS 37.2/52 particles" in visit_line(4, spread, 0.12, how="replayed", ms=1700.0)
+    assert "replayed in 1700 ms" in visit_line(4, spread, 0.12, how="replayed", ms=1700.0)
+    sure = replace(peaked, ess=1.0000039)
+    assert "ESS 1.00/100 particles" in visit_line(9, sure, 0.999998, how="updated", ms=3.0)
+    assert "holds 1.000" in visit_line(9, sure, 0.999998, how="updated", ms=3.0)
 
 
 def test_edge_probabilities_against_adjacency_sums():

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import math
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -24,7 +24,7 @@ from ptm_ros.map_quality import ClassGrid
 from ptm_ros.occupancy import FREE, OCCUPIED, load_map
 from ptm_ros.partitions import bell, num_places
 from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
-from ptm_ros.report import SRQ, SRQ_KEY, SURPRISE
+from ptm_ros.report import CHAINS_KEY, SRQ, SRQ_KEY, SURPRISE, TRACE, find_chain_trace
 from ptm_ros.routes import RouteConfig, crossing_segments
 from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
@@ -344,27 +344,50 @@ def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tm
 
 
 def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_path):
-    """A surprise detector's trace is drawn in the report; MCMC's cold-chain states (when
-    ``McmcResult`` carries them) give the SRQ plot."""
-    from ptm_ros.mcmc import McmcResult
-
+    """A surprise detector's trace is drawn in the report. MCMC's cold-chain states go to
+    ``mcmc_trace.json`` with ``write_trace`` (``ptm-run --trace``), and the report draws their SRQ plot;
+    ptm.json keeps a summary of the chains either way (issue #25)."""
     over = {
         "model": {"use_laser": False},
         "inference": {"method": "mcmc"},
         "detector": {"kind": "laser-surprise"},
     }
     cfg = load_config(None, over)
-    result = run_offline(tjunction_bag, tmp_path, cfg)
+    result = run_offline(tjunction_bag, tmp_path, cfg, write_trace=True)
     assert result.ptm.extra["detector"] == "laser-surprise"
     md = (tmp_path / "report.md").read_text()
     assert (tmp_path / SURPRISE).is_file() and f"({SURPRISE})" in md
     assert inference_notes(result.ptm.inference)[0] in md
-    has_states = "cold_states" in {f.name for f in dataclasses.fields(McmcResult)}
-    assert (SRQ_KEY in result.ptm.inference) == has_states
-    assert (tmp_path / SRQ).is_file() == has_states
-    if has_states:
-        chains = load_ptm(tmp_path / "ptm.json").inference[SRQ_KEY]
-        assert len(chains) == result.ptm.inference["chains"] and all(len(c) > 0 for c in chains)
+    saved = load_ptm(tmp_path / "ptm.json")
+    assert SRQ_KEY not in saved.inference and SRQ_KEY not in result.ptm.inference
+    summary = saved.inference[CHAINS_KEY]
+    assert summary["chains"] == saved.inference["chains"] and summary["trace"] == TRACE
+    assert result.files["mcmc_trace"] == tmp_path / TRACE
+    trace = find_chain_trace(saved, tmp_path)
+    assert trace is not None and [len(c) for c in trace["chains"]] == summary["states"]
+    assert all(len(lab) == len(saved.landmarks) for lab in trace["topologies"])
+    assert max(max(c) for c in trace["chains"]) < len(trace["topologies"])  # ids index the topologies
+    assert (tmp_path / SRQ).is_file() and f"({SRQ})" in md
+    # ptm-eval's report finds the trace the summary names beside ptm.json, and says how MCMC ended
+    report = tmp_path / "eval"
+    argv = [str(tmp_path / "ptm.json"), "--ground-truth", str(tjunction_bag), "--report", str(report)]
+    assert eval_main([*argv, "--no-topologies"]) == 0
+    assert (report / SRQ).is_file() and inference_notes(saved.inference)[0] in (
+        report / "report.md"
+    ).read_text()
+
+
+def test_mcmc_without_trace_keeps_the_summary_only(tjunction_bag, tmp_path):
+    cfg = load_config(None, {"model": {"use_laser": False}, "inference": {"method": "mcmc"}})
+    result = run_offline(tjunction_bag, tmp_path, cfg, write_map=False)
+    assert not (tmp_path / TRACE).exists() and "mcmc_trace" not in result.files
+    summary = load_ptm(tmp_path / "ptm.json").inference[CHAINS_KEY]
+    assert summary["trace"] is None and len(summary["srq_max_deviation"]) == summary["chains"]
+    md = (tmp_path / "report.md").read_text()
+    assert (
+        not (tmp_path / SRQ).exists()
+        and "the SRQ plot needs the chains' states: run ptm-run with --trace" in md
+    )
 
 
 def testcold_chain_details_become_json_values():
@@ -374,6 +397,10 @@ def testcold_chain_details_become_json_values():
     assert json.loads(json.dumps(got)) == got
     assert cold_chain_details(SimpleNamespace()) == {}  # an McmcResult without the fields
     assert cold_chain_details(SimpleNamespace(cold_states=[[], []], cold_thin=1)) == {}
+    labelled = SimpleNamespace(
+        cold_states=[np.array([0, 1])], cold_thin=1, state_labels=((0, 0), (0, np.int64(1)))
+    )
+    assert cold_chain_details(labelled)["cold_chain_labels"] == [[0, 0], [0, 1]]
 
 
 @pytest.mark.parametrize(
@@ -395,3 +422,39 @@ def test_ptm_json_with_non_finite_or_misshapen_values_is_refused(edit, match):
     edit(bad)
     with pytest.raises(DataError, match=f"invalid ptm.json: .*{match}"):
         from_json_dict(bad)
+
+
+DEMO_BAG = Path(__file__).resolve().parents[1] / "bags" / "demo"
+#: The phases of ptm-run on the demo bag (a particle filter, a map, a ground truth, a report), in order.
+DEMO_PHASES = (
+    "reading the bag",
+    "landmark visits",
+    "particle filter",
+    "smoothing",
+    "map",
+    "map quality",
+    "route graph",
+    "report",
+)
+
+
+@pytest.mark.slow
+def test_ptm_run_shows_every_phase_on_stderr_unless_quiet(tmp_path, capsys):
+    """Issue #25: a named progress bar per phase on stderr (stdout keeps the summary), none with --quiet;
+    the summary's figures rounded, the consistent mass explained, the ESS a share of the particles."""
+    assert run_cli.main([str(DEMO_BAG), "--out", str(tmp_path / "loud")]) == 0
+    loud = capsys.readouterr()
+    bars = [ln.split(":")[0] for ln in loud.err.replace("\r", "\n").splitlines() if "%|" in ln]
+    shown = list(dict.fromkeys(bars))  # each bar redraws itself: its first line, in order
+    assert shown == list(DEMO_PHASES), loud.err
+    assert "%|" not in loud.out
+    assert run_cli.main([str(DEMO_BAG), "--out", str(tmp_path / "quiet"), "--quiet"]) == 0
+    quiet = capsys.readouterr()
+    assert all(ln.startswith("ptm-run: ") for ln in quiet.err.splitlines()), quiet.err  # notes only
+    assert "%|" not in quiet.err
+    assert not [ln for ln in quiet.err.splitlines() for p in DEMO_PHASES if ln.startswith(f"{p}:")]
+    same = [ln for ln in quiet.out.splitlines() if ln.startswith("  #")]  # the topologies
+    assert same and same == [ln for ln in loud.out.splitlines() if ln.startswith("  #")]
+    out = quiet.out
+    assert re.findall(r"\d\.\d{5,}", out) == []  # no float printed in full
+    assert "ESS 1.00/100" in out and "(consistent mass = the posterior mass of the topologies" in out

@@ -144,3 +144,21 @@ def test_inputs_are_checked(multi_loop_run):
     moved = [replace(v, stamp=v.stamp + 1e-4) for v in visits]
     with pytest.raises(ModelError, match="odometry stamps"):
         refine_trajectory(stamps, odom, stamps[:2], pts, labels, moved, odo)
+
+
+def test_worker_processes_refine_exactly_as_one(multi_loop_run):
+    """The registrations of a round are independent: a pool of worker processes (ptm-run --jobs) gives the
+    same refinement, bit for bit, as one after the other."""
+    from ptm_ros.tools.pipeline import RegistrationPool
+
+    run, config, visits, odom, labels, _ = multi_loop_run
+    stamps, points = scan_points(run.scans, config.laser)
+    args = (run.odometry.stamps, odom, stamps, points, labels, visits, config.model.odometry)
+    alone = refine_trajectory(*args, laser=config.laser)
+    with RegistrationPool(2, min_batch=1) as pool:
+        pooled = refine_trajectory(*args, laser=config.laser, mapper=pool)
+        assert pool._pool is not None  # the workers did the matching
+    assert pooled.tried == alone.tried > 0 and len(pooled.closures) == len(alone.closures) > 0
+    assert np.array_equal(pooled.trajectory, alone.trajectory)
+    for a, b in zip(alone.closures, pooled.closures, strict=True):
+        assert (a.a, a.b) == (b.a, b.b) and np.array_equal(a.mean, b.mean) and np.array_equal(a.cov, b.cov)

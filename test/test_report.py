@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from functools import cache
 from html.parser import HTMLParser
 from pathlib import Path
@@ -19,6 +20,8 @@ from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import score_ptm
 from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
 from ptm_ros.report import (
+    CHAINS_KEY,
+    CONSISTENT_MASS_MEANING,
     HISTOGRAM,
     MAP_CAPTION,
     REPORT_HTML,
@@ -26,19 +29,28 @@ from ptm_ros.report import (
     SCORES,
     SRQ,
     SRQ_KEY,
+    SRQ_LABELS_KEY,
     SRQ_THIN_KEY,
     SURPRISE,
     TOPOLOGIES,
+    TRACE,
+    TRACE_SCHEMA,
     ReportConfig,
     chain_srq,
     chain_states,
     draw_srq,
+    find_chain_trace,
     fired_indices,
+    inference_line,
     label_string,
+    load_chain_trace,
     place_edges,
     place_positions,
+    save_chain_trace,
+    split_chain_trace,
     srq_figure,
     surprise_figure,
+    trigger_indices,
     write_report,
 )
 from ptm_ros.surprise import LaserSurpriseConfig, LaserSurpriseDetector, SurpriseTrace
@@ -103,6 +115,55 @@ def test_report_files_exist_are_valid_and_links_resolve(tmp_path: Path) -> None:
     assert "| 2 | 0.2000 | 8 | 0.000 | no | `01234567` |" in md
     assert "| precision | 1.000 |" in md
     assert "loop &lt;x&gt;" in html_path.read_text(encoding="utf-8")  # title escaped in HTML
+
+
+#: A filter's ptm.json ``inference`` as it was written before issue #25.
+RBPF_INFERENCE = {
+    "method": "rbpf",
+    "particles": 100,
+    "seed": 0,
+    "resample": "optimal",
+    "n_topologies": 100,
+    "ess": 13.306258008956153,
+    "log_evidence": 278.8545398789153,
+    "update_ms_median": 175.50218549999386,
+    "update_ms_p95": 200.7758070496491,
+}
+
+
+def test_the_report_speaks_plainly(tmp_path: Path) -> None:
+    """Issue #25: rounded figures (no "ess 13.306258008956153"), the consistent mass explained where it is
+    shown, and the visits reconciled with the landmarks the detector declared."""
+    assert inference_line(RBPF_INFERENCE) == (
+        "method: rbpf (particles 100, seed 0, resampling optimal, distinct topologies held 100, "
+        "ESS 13.3/100, log evidence 278.9 nats, update time median 176 ms, 95th percentile 201 ms)"
+    )
+    mcmc = {"method": "mcmc", "seed": 3, "estimate": "visited", "samples": 8000, "doubling_tv": 0.00123456}
+    assert inference_line(mcmc) == "method: mcmc (seed 3, estimate visited, samples 8000)"  # TVs: own line
+    other = {"method": "magic", "tv": 0.123456789, "done": True, "states": [1, 2]}
+    assert inference_line(other) == "method: magic (tv 0.123, done yes)"
+    base = loop_ptm()
+    skipped = {"landmark-at-same-odometry-sample": 2, "scan-malformed": 5}
+    ptm = replace(base, inference=RBPF_INFERENCE, extra={"diagnostics": {"skipped": skipped}})
+    score = score_ptm(ptm, TRUE_XY, true_places=TRUTH)
+    write_report(tmp_path, ptm, score=score)
+    md = (tmp_path / REPORT_MD).read_text(encoding="utf-8")
+    assert re.findall(r"\d\.\d{5,}", md) == []  # no float printed in full
+    assert "ESS 13.3/100" in md and "update time median 176 ms" in md
+    assert (
+        "- visits: 8; topologies listed: 4, listed mass 0.950 (the detector declared 10 landmarks and 8 "
+        "became visits: 2 dropped (2 fell on the odometry sample of the visit before"
+    ) in md
+    assert (
+        f"consistent mass: {score.consistent_mass:.3f} (the posterior mass of the topologies that put no "
+        in md
+    )
+    assert CONSISTENT_MASS_MEANING.split(" = ", 1)[1] in md
+    trace = step_trace()  # two landmarks declared by surprise, fewer than the 8 visits: no accounting
+    write_report(tmp_path / "t", base, surprise_trace=trace)
+    md = (tmp_path / "t" / REPORT_MD).read_text(encoding="utf-8")
+    assert "the detector declared 8 landmarks" not in md  # 2 declared < 8 visits: another run's trace
+    assert "- visits: 8; topologies listed: 4, listed mass 0.950\n" in md
 
 
 def test_without_score_no_score_figure_and_deterministic(tmp_path: Path) -> None:
@@ -230,7 +291,7 @@ def test_fired_indices() -> None:
         upper=np.full(4, 0.8),
         landmarks=np.array([1.0]),
     )
-    assert fired_indices(dup).tolist() == [2]
+    assert fired_indices(dup).tolist() == [2] == trigger_indices(dup).tolist()  # no triggers: the landmarks
     bad = SurpriseTrace(
         dup.stamps, dup.surprise, dup.predicted_mean, dup.predicted_std, dup.upper, np.array([1.5])
     )
@@ -249,12 +310,14 @@ def test_surprise_figure_draws_the_trace_band_and_landmarks() -> None:
     assert line.get_ydata() == pytest.approx(trace.surprise)
     assert artist(ax, "predicted_mean").get_ydata() == pytest.approx(trace.predicted_mean)
     assert artist(ax, "upper").get_ydata() == pytest.approx(trace.upper)
-    # the landmark markers sit on the surprise at the measurements whose stamps the detector declared
+    # the rings sit on the surprise at the maxima that fired; unlocalised, the landmarks are those maxima
     idx = np.flatnonzero(np.isin(trace.stamps, trace.landmarks))
-    assert idx.tolist() == [200, 400]
-    offsets = np.asarray(artist(ax, "landmarks").get_offsets())
+    assert idx.tolist() == [200, 400] == trigger_indices(trace).tolist()
+    offsets = np.asarray(artist(ax, "triggers").get_offsets())
     assert offsets == pytest.approx(np.column_stack([t[idx], trace.surprise[idx]]))
     assert np.all(trace.surprise[idx] > trace.upper[idx])  # they fired above the band
+    assert landmark_times(ax) == pytest.approx(t[idx])
+    assert "placed" not in ax.get_title()
     # the band: top = the detector's threshold, bottom = max(0, mean - k·std) floored on the log axis
     band = np.concatenate([p.vertices for p in artist(ax, "band").get_paths()])
     assert band[:, 1].max() == pytest.approx(trace.upper.max())
@@ -263,6 +326,48 @@ def test_surprise_figure_draws_the_trace_band_and_landmarks() -> None:
     assert "5σ" in artist(ax, "band").get_label()
     linear = surprise_figure(trace, config=ReportConfig(surprise_log_scale=False))
     assert linear.axes[0].get_yscale() == "linear"
+
+
+def landmark_times(ax: Axes) -> list[float]:
+    """The times of the dotted landmark lines of a surprise figure."""
+    return [float(seg[0, 0]) for seg in artist(ax, "landmarks").get_segments()]
+
+
+@cache
+def localised_trace() -> SurpriseTrace:
+    """A laser surprise detector that localises its landmarks (the default ``localize_distance``): driving
+    0.1 m per scan, a step of the statistic at scan 200, the most open scans 8-10 scans (~1 m) later."""
+    rng = np.random.default_rng(1)
+    detector = LaserSurpriseDetector(LaserSurpriseConfig(samples=200))
+    for i in range(400):
+        stamp = 1000.0 + 0.1 * i
+        detector.on_odometry(stamp, [0.1 * i, 0.0, 0.0])
+        z = rng.normal(0.0, 0.01, 3) + (0.2 if i >= 200 else 0.0)
+        detector.on_statistic(stamp, z, openness=1.0 if 208 <= i <= 210 else 0.0)
+    detector.flush()
+    return detector.trace
+
+
+def test_surprise_figure_rings_the_maxima_above_the_band_and_marks_where_landmarks_were_placed() -> None:
+    """Issue #25: the landmarks of a localising detector lie inside the band, where the caption's rule
+    (fire at the first maximum above the band) does not put them. The rings mark the maxima that fired,
+    above the band as the rule says; dotted lines mark where the landmarks were placed."""
+    trace = localised_trace()
+    assert trace.triggers is not None and trace.triggers.tolist() == pytest.approx([1020.0])
+    assert trace.landmarks.tolist() == pytest.approx([1020.9])  # the middle of the most open scans
+    placed, fired = fired_indices(trace), trigger_indices(trace)
+    assert placed.tolist() == [209] and fired.tolist() == [200]
+    assert trace.surprise[placed[0]] < trace.upper[placed[0]]  # the landmark's own scan: inside the band
+    fig = surprise_figure(trace, config=ReportConfig())
+    (ax,) = fig.axes
+    t = trace.stamps - trace.stamps[0]
+    rings = np.asarray(artist(ax, "triggers").get_offsets())
+    assert rings == pytest.approx(np.column_stack([t[fired], trace.surprise[fired]]))
+    assert np.all(rings[:, 1] > trace.upper[fired])  # every ring above the band, as the caption says
+    assert landmark_times(ax) == pytest.approx(t[placed])
+    title = ax.get_title()
+    assert "first maximum of each run above the band (rings)" in title and "placed at the most open" in title
+    assert "where placed" in artist(ax, "landmarks").get_label()
 
 
 def test_report_with_surprise_trace(tmp_path: Path) -> None:
@@ -359,6 +464,60 @@ def test_draw_srq_writes_a_file(tmp_path: Path) -> None:
     x, y = srq_points([0, 1, 0, 0, 1, 0])
     path = draw_srq({"chain 0": (x, y)}, tmp_path / "srq.png", config=ReportConfig(dpi=50))
     assert path == tmp_path / "srq.png" and imread(path).shape[0] == 300  # 6 in at 50 dpi
+
+
+def test_ptm_json_keeps_a_chain_summary_and_the_trace_file_the_states(tmp_path: Path) -> None:
+    """Issue #25: the cold chains' states leave ptm.json (a summary stays) for a trace file, from which
+    the report draws the SRQ plot; without the trace the report gives the SRQ figures and says the plot
+    needs ``--trace``; a trace of another run is refused."""
+    rng = np.random.default_rng(4)
+    good = rng.integers(0, 3, 600).tolist()
+    stuck = [5] * 300 + rng.integers(0, 3, 300).tolist()
+    labels = [[0, 1, 2, 0], [0, 1, 0, 1], [0, 0, 0, 0], [0, 1, 2, 3], [0, 0, 1, 1], [0, 1, 1, 0]]
+    full = mcmc_ptm([good, stuck], **{SRQ_THIN_KEY: 4, SRQ_LABELS_KEY: labels})
+    ptm, trace = split_chain_trace(full, trace_file=TRACE)
+    assert trace is not None and not {SRQ_KEY, SRQ_THIN_KEY, SRQ_LABELS_KEY} & set(ptm.inference)
+    summary = ptm.inference[CHAINS_KEY]
+    points, _ = chain_srq(chain_states(full) or [])
+    devs = [srq_deviation(*points[f"chain {k}"]) for k in (0, 1)]
+    assert summary == {
+        "chains": 2,
+        "states": [600, 600],
+        "thin": 4,
+        "srq_max_deviation": devs,
+        "trace": TRACE,
+    }
+    assert trace == {"schema": TRACE_SCHEMA, "thin": 4, "chains": [good, stuck], "topologies": labels}
+    saved = save_ptm(ptm, tmp_path / "run" / "ptm.json")
+    save_chain_trace(trace, tmp_path / "run" / TRACE)
+    before = save_ptm(full, tmp_path / "before.json")
+    assert SRQ_KEY not in saved.read_text() and saved.stat().st_size + 2000 < before.stat().st_size
+    loaded = load_ptm(saved)
+    again = find_chain_trace(loaded, tmp_path / "run")
+    assert again == trace
+    write_report(tmp_path / "with", loaded, chain_trace=again)
+    md = (tmp_path / "with" / REPORT_MD).read_text(encoding="utf-8")
+    assert (tmp_path / "with" / SRQ).is_file() and f"chain 0 {devs[0]:.3f}, chain 1 {devs[1]:.3f}" in md
+    write_report(tmp_path / "without", loaded)
+    md = (tmp_path / "without" / REPORT_MD).read_text(encoding="utf-8")
+    assert not (tmp_path / "without" / SRQ).exists()
+    assert f"chain 0 {devs[0]:.3f}, chain 1 {devs[1]:.3f}" in md and "run ptm-run with --trace" in md
+    assert (
+        find_chain_trace(
+            replace(loaded, inference={**loaded.inference, CHAINS_KEY: {**summary, "trace": None}}),
+            tmp_path / "run",
+        )
+        is None
+    )
+    _, other_trace = split_chain_trace(mcmc_ptm([good[:500], stuck]), trace_file=TRACE)
+    assert other_trace is not None
+    save_chain_trace(other_trace, tmp_path / "run" / TRACE)
+    with pytest.raises(DataError, match="the trace of another run"):
+        find_chain_trace(loaded, tmp_path / "run")
+    (tmp_path / "run" / TRACE).write_text("{}")
+    with pytest.raises(DataError, match="not an MCMC trace"):
+        load_chain_trace(tmp_path / "run" / TRACE, loaded)
+    assert split_chain_trace(loop_ptm()) == (loop_ptm(), None)  # no chains: unchanged
 
 
 def test_report_shows_the_occupancy_map_and_notes(tmp_path: Path) -> None:

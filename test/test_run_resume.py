@@ -266,6 +266,7 @@ def test_other_methods_and_bad_options_are_refused(bag, params, tmp_path, capsys
         ["--method", "exact", "--resume"],
         ["--autosave", "0"],
         ["--state-file", str(tmp_path / "s.npz")],
+        ["--jobs", "0"],
     ):
         assert run_cli.main([*base, *extra]) == 2, extra
         err = capsys.readouterr().err.strip()

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Callable, Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
 from functools import cache
@@ -580,6 +580,7 @@ def read_run(
     image_topic: str | None = "/panorama",
     require: Sequence[str] = (),
     appearance: AppearanceConfig | None = None,
+    progress: Callable[[Iterable[Any], int], Iterable[Any]] | None = None,
 ) -> RunData:
     """Load odometry, scans and images of a rosbag2 into arrays (stamps from the message headers).
 
@@ -591,7 +592,8 @@ def read_run(
     encodings, panoramas too small for ``appearance``), and stamps out of order on their topic (only the
     longest strictly increasing run is kept: :func:`ptm_ros.io.validation.stamp_order`). Every stream of
     the result therefore has strictly increasing stamps. Images with an encoding outside
-    :data:`IMAGE_ENCODINGS` are also counted by encoding in ``ImageData.skipped``.
+    :data:`IMAGE_ENCODINGS` are also counted by encoding in ``ImageData.skipped``. ``progress`` (e.g. a
+    progress bar) wraps the messages read: it receives their iterator and their number.
     """
     bag = Path(path)
     wanted = {
@@ -620,7 +622,10 @@ def read_run(
         if conns:
             store = typestore()
             try:
-                for conn, _, raw in reader.messages(connections=conns):
+                messages: Iterable[Any] = reader.messages(connections=conns)
+                if progress is not None:
+                    messages = progress(messages, sum(c.msgcount for c in conns))
+                for conn, _, raw in messages:
                     try:
                         rows[conn.topic].append(store.deserialize_cdr(raw, conn.msgtype))
                     except _reader_errors():

@@ -97,6 +97,7 @@ from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
 from ptm_ros.doubts import doubt_lines, find_doubts
 from ptm_ros.errors import ConfigError, DataError, PtmError
+from ptm_ros.figures import ess_fraction
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
     STREAM_QOS,
@@ -268,6 +269,21 @@ def newest_doubt(ptm: Ptm | None) -> str | None:
     if not doubts.visits or doubts.visits[-1].visit != last:
         return None
     return doubt_lines(replace(doubts, visits=doubts.visits[-1:]))[-1]
+
+
+def visit_line(index: int, state: FilterState, map_mass: float, *, how: str, ms: float) -> str:
+    """The log line after a visit: the effective sample size ``1/Σw²`` as a share of the particles it is
+    computed over (each particle a distinct topology, so it is near 1 whenever one topology holds nearly
+    all the mass: the line says how much), and the update's time.
+
+    ``visit_line(7, state, 0.806, how="updated", ms=56.3)`` →
+    ``"visit 7: ESS 1.46/100 particles (each a distinct topology; the most probable holds 0.806),
+    updated in 56 ms"``.
+    """
+    return (
+        f"visit {index}: ESS {ess_fraction(state.ess, state.n_topologies)} particles (each a distinct "
+        f"topology; the most probable holds {map_mass:.3f}), {how} in {ms:.0f} ms"
+    )
 
 
 # ----------------------------------------------------------------------------------------------- node
@@ -458,10 +474,10 @@ class TopologyFilterNode(Node):
             return
         self._last_stamp = visit.stamp
         how = "replayed" if self.session.replays > replays else "updated"
-        self.get_logger().info(
-            f"visit {visit.index}: {state.n_topologies} topologies, ESS {state.ess:.1f}, "
-            f"{how} in {(self.session.wall_s - wall) * 1e3:.0f} ms"
-        )
+        flt = self.session.filter
+        map_mass = max(flt.ptm_weights().values(), default=0.0) if flt is not None else 0.0
+        ms = (self.session.wall_s - wall) * 1e3
+        self.get_logger().info(visit_line(visit.index, state, map_mass, how=how, ms=ms))
         self._maybe_autosave()
         ptm = self._publish()
         doubt = newest_doubt(ptm)
@@ -676,7 +692,10 @@ class TopologyFilterNode(Node):
             self._diag_pub,
             "RBPF",
             hardware_id=NODE_NAME,
-            message=f"{values['visits']} visits, {values['particles']} topologies, ESS {values['ess']:.1f}",
+            message=(
+                f"{values['visits']} visits, {values['particles']} topologies, "
+                f"ESS {ess_fraction(values['ess'], values['particles'])}"
+            ),
             values=values,
             warn=bad > 0,
         )

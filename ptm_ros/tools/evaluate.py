@@ -421,7 +421,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_truth_covers(score)
         quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
-            from ptm_ros.report import write_report
+            from ptm_ros.report import find_chain_trace, write_report
+            from ptm_ros.tools.pipeline import inference_notes
 
             write_report(
                 args.report,
@@ -429,6 +430,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 trajectory=truth.poses_raw,  # raw odometry (CARMEN), the frame of the landmark poses
                 score=score,
                 title=f"{args.ptm} vs {args.ground_truth.name}",
+                chain_trace=find_chain_trace(ptm, Path(args.ptm).parent),
+                notes=inference_notes(ptm.inference),  # MCMC's convergence, as ptm-run's report has it
             )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)

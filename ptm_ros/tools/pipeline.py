@@ -18,6 +18,8 @@ tools write one set of outputs, issue #24):
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
 * ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector);
+* ``mcmc_trace.json`` — with ``write_trace`` (``ptm-run --trace``) and MCMC: the cold chains' full
+  states (:func:`ptm_ros.report.split_chain_trace`; ``ptm.json`` keeps their summary);
 * ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
   (:func:`run_offline`);
@@ -41,8 +43,10 @@ from __future__ import annotations
 
 import functools
 import heapq
+import multiprocessing
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -63,9 +67,12 @@ from ptm_ros.io.groundtruth import (
     with_placed_landmarks,
 )
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
+from ptm_ros.laser import Registration
 from ptm_ros.occupancy import MAP_STEM
 from ptm_ros.partitions import Labels
 from ptm_ros.ptm import Ptm, save_ptm
+from ptm_ros.refinement import Mapper, RegistrationJob
+from ptm_ros.report import save_chain_trace, split_chain_trace
 from ptm_ros.session import (
     SESSION_STATE_SCHEMA,
     VERSUS_KEY,
@@ -77,6 +84,7 @@ from ptm_ros.session import (
     require_rbpf,
 )
 from ptm_ros.surprise import surprise_trace
+from ptm_ros.tools.progress import Phases
 from ptm_ros.visits import Visit
 
 if TYPE_CHECKING:
@@ -95,6 +103,7 @@ OUTPUT_FILES = {
     "map_png": f"{MAP_STEM}.png",
     "state": "filter_state.npz",
     "ground_truth": "ground_truth.json",
+    "mcmc_trace": "mcmc_trace.json",
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
 TRAJECTORY_ERROR_KEY = "trajectory_error"
@@ -192,18 +201,24 @@ def detect_visits(
     diagnostics: dict[str, Any] | None = None,
     *,
     extractor: VisitExtractor | None = None,
+    progress: Progress | None = None,
 ) -> list[Visit]:
     """Landmark visits of a recorded run, with their appearance signatures and laser patches.
 
     Feeds the run's messages in stamp order through :class:`ptm_ros.landmarks.VisitExtractor`, the same
     object the detector node uses (``extractor``, a fresh one, else :func:`run_extractor`; pass one to
-    read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters.
+    read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters;
+    ``progress`` wraps the messages (it receives their iterator and number).
     """
     odom = run_odometry(run)
     if extractor is None:
         extractor = run_extractor(run, config)
     visits: list[Visit] = []
-    for _, topic, k in merged_messages(run):
+    messages: Iterable[tuple[float, int, int]] = merged_messages(run)
+    if progress is not None:
+        total = sum(len(d.stamps) for d in (run.odometry, run.scans, run.images) if d is not None)
+        messages = progress(messages, total)
+    for _, topic, k in messages:
         if topic == ODOM:
             visits += extractor.on_odometry(odom.stamps[k], odom.poses[k])
         elif topic == SCAN:
@@ -400,10 +415,14 @@ def run_offline(
     write_map: bool = True,
     checkpoint: RunCheckpoint | None = None,
     log: Callable[[str], None] | None = None,
+    write_trace: bool = False,
+    phases: Phases | None = None,
+    jobs: int = 1,
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
-    occupancy map files.
+    occupancy map files. ``jobs`` > 1: the refinement's scan matches run in that many worker processes
+    (:class:`RegistrationPool`; the same files).
 
     ``checkpoint`` (RBPF only) saves the filter's state along the way and/or resumes from it: the state
     is the filter session's (:meth:`ptm_ros.session.FilterSession.state_dict`: the filter, the
@@ -413,8 +432,18 @@ def run_offline(
     the filter with the visits not yet seen: the same ``ptm.json`` but for the timings. ``log`` receives
     progress notes (resumed, started afresh) and the route graph's rerouted and dropped edges
     (:func:`route_notes`).
+
+    ``phases`` (:class:`ptm_ros.tools.progress.Phases`) shows a progress bar per phase: reading the bag,
+    the landmark visits, the inference (the filter's visits or the enumeration's topologies, and MCMC's
+    sweeps), the smoothing, the scores, the map, the route graph and the report; ``progress``, when
+    given, replaces its bar over the filter's visits.
+
+    MCMC's cold chains: ``ptm.json`` keeps their summary (:func:`ptm_ros.report.split_chain_trace`);
+    ``write_trace`` also writes their full states to ``mcmc_trace.json``, from which the report draws the
+    SRQ plot.
     """
     t0 = time.perf_counter()
+    ph = phases if phases is not None else Phases(quiet=True)
     bag = Path(bag)
     out = Path(out_dir)
     if checkpoint is not None:
@@ -428,6 +457,7 @@ def run_offline(
         image_topic=topics.panorama,
         require=(topics.odom,),
         appearance=config.model.appearance,
+        progress=ph.wrap("reading the bag", "msg"),
     )
     gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
@@ -442,7 +472,14 @@ def run_offline(
         check_state_config(saved[1], used, checkpoint.path)
     diag: dict[str, Any] = {}
     extractor = run_extractor(run, config, schedule)
-    visits = detect_visits(run, config, diag, extractor=extractor)
+    visits = detect_visits(run, config, diag, extractor=extractor, progress=ph.wrap("landmark visits", "msg"))
+    method = config.inference.method
+    if progress is None:
+        name, unit = {
+            "exact": ("enumeration", "topology"),
+            "mcmc": ("particle filter (MCMC's starts)", "visit"),
+        }.get(method, ("particle filter", "visit"))
+        progress = ph.wrap(name, unit)
     session, resumed = None, 0
     if config.inference.method == "rbpf":
         session = FilterSession(config, fitted_to=visits)
@@ -456,7 +493,8 @@ def run_offline(
             filter_visits(session, visits, progress=progress, save=save, every=max(checkpoint.every, 1))
     else:
         registrar = cached(make_registrar(visits, config, diag)) if config.model.use_laser else None
-    result = infer(visits, config, session=session, registrar=registrar, progress=progress)
+    with ph.counter("MCMC sweeps", "sweep") as sweeps:
+        result = infer(visits, config, session=session, registrar=registrar, progress=progress, sweeps=sweeps)
     wall = time.perf_counter() - t0
     frame_id = run.odometry.frame_id if run.odometry is not None else "odom"
     ptm = build_ptm(
@@ -468,20 +506,27 @@ def run_offline(
         **provenance(bag, used),
         diagnostics=diag,
     )
+    ptm, chain_trace = split_chain_trace(ptm, trace_file=OUTPUT_FILES["mcmc_trace"] if write_trace else None)
+    if write_trace and chain_trace is None and log is not None:
+        log(f"--trace: method {config.inference.method} has no MCMC chains: no {OUTPUT_FILES['mcmc_trace']}")
     want_map = write_map and sensors["has_scans"]
     timing = dict(ptm.timing)
     traj = None
     if write_report or want_map or truth is not None:
         t1 = time.perf_counter()
-        base = corrected_odometry(run, extractor)
-        traj = map_trajectory(run, visits, ptm.map_topology.labels, config, registrar, odometry=base)
+        with ph.step("smoothing"), RegistrationPool(jobs) as mapper:
+            base = corrected_odometry(run, extractor)
+            traj = map_trajectory(
+                run, visits, ptm.map_topology.labels, config, registrar, odometry=base, mapper=mapper
+            )
         timing["smoothing_s"] = time.perf_counter() - t1
     map_files: dict[str, Path] = {}
     walls = None  # the map's classes, for the map's quality and the route graph
     if want_map and traj is not None:
         t1 = time.perf_counter()
-        grid = occupancy_grid(run, traj, config)
-        map_files = write_occupancy_map(run, traj, out, config, grid=grid)
+        with ph.step("map"):
+            grid = occupancy_grid(run, traj, config)
+            map_files = write_occupancy_map(run, traj, out, config, grid=grid)
         timing["map_s"] = time.perf_counter() - t1
         walls = class_grid(grid, config) if grid is not None else None
     extra = dict(ptm.extra)
@@ -500,6 +545,8 @@ def run_offline(
         write_report=write_report,
         title=f"PTM of {bag.name}",
         log=log,
+        chain_trace=chain_trace if write_trace else None,
+        phases=ph,
     )
     files = dict(written.files)
     if checkpoint is not None and checkpoint.every:
@@ -565,6 +612,8 @@ def write_outputs(
     write_report: bool = True,
     title: str,
     log: Callable[[str], None] | None = None,
+    chain_trace: Mapping[str, Any] | None = None,
+    phases: Phases | None = None,
 ) -> RunResult:
     """Everything ``ptm-run`` and ``ptm-bringup`` write beside a PTM, from the PTM, the configuration
     ``used``, the recorded run and the run's metric map (files of the module docstring):
@@ -579,8 +628,13 @@ def write_outputs(
       (:func:`ptm_ros.surprise.surprise_trace`), the map image and the notes (doubts, trajectory errors,
       map quality, inference), the trajectory drawn under the topologies (the raw odometry without one).
 
+    * ``mcmc_trace.json``: the MCMC ``chain_trace`` (:func:`ptm_ros.report.split_chain_trace`), if given,
+      from which the report draws its SRQ plot.
+
+    ``phases`` shows the map quality, the route graph and the report as progress bars (none by default).
     ``RunResult.diagnostics`` is ``ptm.extra["diagnostics"]`` (callers with the extractor's replace it).
     """
+    ph = phases if phases is not None else Phases(quiet=True)
     extra = dict(ptm.extra)
     traj, walls = metric.trajectory, metric.walls
     if truth is not None and traj is not None:
@@ -588,21 +642,25 @@ def write_outputs(
         if ate is not None:
             extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(truth_file)}
             if walls is not None:
-                quality = map_quality_against(run, walls, truth, ate["alignment"], used)
+                with ph.step("map quality"):
+                    quality = map_quality_against(run, walls, truth, ate["alignment"], used)
                 if quality is not None:
                     extra[MAP_QUALITY_KEY] = quality
     ptm = replace(ptm, extra=extra)
     files = dict(metric.files)
     files["ptm"] = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
-    files["route_graph"] = write_route_graph(
-        ptm,
-        out / OUTPUT_FILES["route_graph"],
-        grid=walls,
-        trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
-        config=used.routes,
-        log=log,
-    )
+    if chain_trace is not None:
+        files["mcmc_trace"] = save_chain_trace(chain_trace, out / OUTPUT_FILES["mcmc_trace"])
+    with ph.step("route graph"):
+        files["route_graph"] = write_route_graph(
+            ptm,
+            out / OUTPUT_FILES["route_graph"],
+            grid=walls,
+            trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
+            config=used.routes,
+            log=log,
+        )
     if save_truth and truth is not None:
         files["ground_truth"] = save_sim_gt(truth, out / OUTPUT_FILES["ground_truth"])
     score = score_against(ptm, truth) if truth is not None else None
@@ -610,19 +668,21 @@ def write_outputs(
     if write_report:
         from ptm_ros.report import write_report as _write_report
 
-        report = _write_report(
-            out,
-            ptm,
-            trajectory=traj if traj is not None else run.odometry.poses,
-            score=score,
-            surprise_trace=surprise,
-            occupancy_map=files.get("map_png"),
-            notes=doubt_lines(find_doubts(ptm))
-            + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
-            + map_quality_notes(extra.get(MAP_QUALITY_KEY))
-            + inference_notes(ptm.inference),
-            title=title,
-        )
+        with ph.step("report"):
+            report = _write_report(
+                out,
+                ptm,
+                trajectory=traj if traj is not None else run.odometry.poses,
+                score=score,
+                surprise_trace=surprise,
+                occupancy_map=files.get("map_png"),
+                notes=doubt_lines(find_doubts(ptm))
+                + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
+                + map_quality_notes(extra.get(MAP_QUALITY_KEY))
+                + inference_notes(ptm.inference),
+                title=title,
+                chain_trace=chain_trace,
+            )
     return RunResult(
         ptm=ptm,
         ptm_path=files["ptm"],
@@ -891,6 +951,7 @@ def map_trajectory(
     registrar: Registrar | None,
     *,
     odometry: np.ndarray | None = None,
+    mapper: Mapper = map,
 ) -> np.ndarray:
     """The odometry trajectory smoothed for a topology and refined by the run's scans
     (:func:`ptm_ros.mapping.topology_trajectory`, the function the map publisher's online map calls; the
@@ -910,7 +971,42 @@ def map_trajectory(
         scans=run.scans,
         refinement=config.refinement,
         laser=config.laser,
+        mapper=mapper,
     )
+
+
+class RegistrationPool:
+    """A :class:`~ptm_ros.refinement.Mapper` over ``jobs`` worker processes, started on the first batch of
+    at least ``min_batch`` registrations (smaller batches, and ``jobs`` <= 1, run here: a pool's start-up
+    costs more than they do). Outcomes come back in order, computed by the same function, so the
+    refinement is identical whatever ``jobs``. Workers come from a fork server that has imported
+    :mod:`ptm_ros.refinement` once (forking this process could copy a held lock of its threads)."""
+
+    def __init__(self, jobs: int, min_batch: int = 32) -> None:
+        self.jobs = jobs
+        self.min_batch = min_batch
+        self._pool: ProcessPoolExecutor | None = None
+
+    def __call__(
+        self, fn: Callable[[RegistrationJob], Registration | None], jobs: Iterable[RegistrationJob], /
+    ) -> Iterable[Registration | None]:
+        batch = list(jobs)
+        if self.jobs <= 1 or len(batch) < self.min_batch:
+            return map(fn, batch)
+        if self._pool is None:
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload(["ptm_ros.refinement"])
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context)
+        chunk = max(1, len(batch) // (4 * self.jobs))
+        return self._pool.map(fn, batch, chunksize=chunk)
+
+    def __enter__(self) -> RegistrationPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
 
 
 def score_against(ptm: Ptm, ground_truth: str | Path | GroundTruthTrajectory) -> Any:

@@ -25,6 +25,7 @@ it needs the ground truth, scores the mass on the true topology, and writes ``DI
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -92,7 +93,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
     p.add_argument("--no-report", action="store_true", help="skip the figures and report")
     p.add_argument("--no-map", action="store_true", help="skip the occupancy map (map.pgm/.yaml/.png)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (one per phase, on stderr)")
+    p.add_argument(
+        "--trace",
+        action="store_true",
+        help="mcmc: also write the cold chains' full states to DIR/mcmc_trace.json, for the report's SRQ "
+        "plot (default: off; ptm.json keeps their summary)",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="worker processes for the map's scan matches (default: the machine's CPUs); the same results",
+    )
     p.add_argument(
         "--autosave",
         type=int,
@@ -131,6 +144,22 @@ def _overrides(args: argparse.Namespace) -> dict:
     return out
 
 
+def jobs_of(args: argparse.Namespace) -> int:
+    """``--jobs``, or the machine's CPUs.
+
+    Raises:
+        ConfigError: ``--jobs`` below 1.
+    """
+    from ptm_ros.errors import ConfigError
+
+    if args.jobs is None:
+        return os.cpu_count() or 1
+    if args.jobs < 1:
+        msg = f"--jobs N needs N >= 1 (worker processes), got {args.jobs}"
+        raise ConfigError(msg)
+    return int(args.jobs)
+
+
 def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
     """The :class:`~ptm_ros.tools.pipeline.RunCheckpoint` of ``--autosave/--resume/--state-file``, or None.
 
@@ -152,30 +181,22 @@ def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
     return RunCheckpoint(path, every=args.autosave or 0, resume=args.resume)
 
 
-def _progress(quiet: bool):
-    if quiet:
-        return None
-    from tqdm import tqdm
-
-    def wrap(it, total):
-        return tqdm(it, total=total, desc="ptm", mininterval=0.5, file=sys.stderr)
-
-    return wrap
-
-
 def format_summary(result, top: int, total_s: float | None = None) -> str:
     """Human-readable lines: visits, the most probable topologies, the score if any, and (``total_s``)
     the run's whole wall time with its phases."""
     from ptm_ros.doubts import doubt_lines, find_doubts
-    from ptm_ros.report import label_string
+    from ptm_ros.landmarks import landmark_accounting
+    from ptm_ros.report import CONSISTENT_MASS_MEANING, inference_line, label_string
     from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, inference_notes, map_quality_notes
 
     ptm = result.ptm
-    lines = [
-        f"{len(ptm.landmarks)} landmark visits, method {ptm.inference.get('method')}, "
-        f"{ptm.timing.get('wall_s', 0.0):.2f} s",
-        "most probable topologies:",
-    ]
+    lines = [f"{len(ptm.landmarks)} landmark visits, {ptm.timing.get('wall_s', 0.0):.2f} s to the PTM"]
+    diag = result.diagnostics or ptm.extra.get("diagnostics")
+    skipped = diag.get("skipped") if isinstance(diag, dict) else None
+    accounting = landmark_accounting(len(ptm.landmarks), skipped if isinstance(skipped, dict) else {})
+    if accounting:
+        lines.append(accounting)
+    lines += [inference_line(ptm.inference), "most probable topologies:"]
     for rank, t in enumerate(ptm.topologies[:top]):
         places = len(set(t.labels))
         lines.append(f"  #{rank + 1} p = {t.probability:.4f}  places = {places:3d}  {label_string(t.labels)}")
@@ -186,6 +207,7 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
             "posterior F1 = {posterior_f1:.3f}, consistent mass = {consistent_mass:.3f}, "
             "true places = {n_true_places}".format(**s)
         )
+        lines.append(f"  ({CONSISTENT_MASS_MEANING})")
         if s.get("true_topology_mass") is not None:
             lines.append(f"mass on the true topology = {s['true_topology_mass']:.3f}")
     ate = result.trajectory_error
@@ -215,21 +237,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ptm_ros.errors import PtmError
     from ptm_ros.tools.paths import output_dir
     from ptm_ros.tools.pipeline import run_offline
+    from ptm_ros.tools.progress import Phases
 
+    phases = Phases(quiet=args.quiet)
     try:
         config = load_config(args.params, _overrides(args))
         checkpoint = checkpoint_of(args)
+        jobs = jobs_of(args)
         output_dir(args.out)  # fails now, not after the inference
         result = run_offline(
             args.bag,
             args.out,
             config,
             ground_truth=args.ground_truth,
-            progress=_progress(args.quiet),
+            phases=phases,
             write_report=not args.no_report,
             write_map=not args.no_map,
             checkpoint=checkpoint,
-            log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
+            log=lambda note: phases.note(f"{PROG}: {note}"),
+            write_trace=args.trace,
+            jobs=jobs,
         )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
@@ -244,7 +271,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 def skipped_warning(diagnostics: dict) -> str:
     """One line naming the input messages the extractor skipped, by reason (``''`` when none): bad input
     is reported, never dropped silently (the counts are also in ptm.json's ``diagnostics``)."""
-    skipped = {k: int(v) for k, v in (diagnostics.get("skipped") or {}).items() if v}
+    from ptm_ros.landmarks import LANDMARK_DROPS
+
+    items = (diagnostics.get("skipped") or {}).items()
+    skipped = {k: int(v) for k, v in items if v and k not in LANDMARK_DROPS}  # landmarks: in the summary
     if not skipped:
         return ""
     reasons = ", ".join(f"{k} {v}" for k, v in sorted(skipped.items()))
