@@ -138,6 +138,7 @@ ROS_ONLY_PARAMETERS = frozenset(
         "jump_confirm",
         "max_speed",
         "silence_s",
+        "trace_rows",
         "state_file",
         "autosave_every",
         "resume",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, MutableMapping, Sequence
+from dataclasses import replace
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.detectors import Detector, EquidistantDetector, ScheduledDetector
@@ -33,6 +34,13 @@ def detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) -> st
     if has_scans and config.model.use_laser:
         return "laser-surprise"
     return "equidistant"
+
+
+def with_detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) -> PtmConfig:
+    """``config`` with ``detector.kind`` set to :func:`detector_kind`'s choice: the configuration a run
+    used, as ``ptm-run`` and ``ptm-bringup`` save it (``config.yaml``)."""
+    kind = detector_kind(config, has_scans=has_scans, has_images=has_images)
+    return replace(config, detector=replace(config.detector, kind=kind))
 
 
 def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Detector:

@@ -31,7 +31,7 @@ from array import array
 from bisect import bisect_right
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -94,6 +94,13 @@ class MappingConfig:
         if isinstance(v, bool) or not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
             msg = f"MappingConfig.max_speed must be a finite number > 0 (m/s), got {v!r}"
             raise ConfigError(msg)
+
+
+def every_sample(config: MappingConfig) -> MappingConfig:
+    """``config`` with the detector's stream and the keyframes thinned by nothing (``keyframe_*``,
+    ``pose_*`` 0): the map publisher then draws from every odometry sample and every scan the detector
+    used, the inputs of ``ptm-run``'s map, so the two maps are the same (``ptm-bringup`` on a bag)."""
+    return replace(config, keyframe_xy=0.0, keyframe_yaw=0.0, pose_xy=0.0, pose_yaw=0.0, pose_interval=0.0)
 
 
 def topology_trajectory(

@@ -66,6 +66,8 @@ FREE = 0
 UNKNOWN = -1
 PIXEL_OCCUPIED = 0
 PIXEL_FREE = 254
+#: Names of the map files :func:`save_map_files` writes (``map.pgm``, ``map.yaml``, ``map.png``).
+MAP_STEM = "map"
 
 
 @dataclass(frozen=True)
@@ -563,3 +565,16 @@ def save_png(
     ax.set_title(title or f"occupancy grid ({grid.resolution:g} m cells, {grid.scans} scans)", fontsize=9)
     fig.savefig(path, dpi=dpi)
     return path
+
+
+def save_map_files(
+    grid: OccupancyGrid, out_dir: str | Path, config: OccupancyConfig, *, trajectory: ArrayLike | None = None
+) -> tuple[Path, Path, Path]:
+    """The map files of a run in ``out_dir``: ``map.pgm`` + ``map.yaml`` (:func:`save_map`) and ``map.png``
+    (:func:`save_png`, with the ``(T, >=2)`` ``trajectory`` the scans were placed along drawn over it).
+    ``ptm-run`` and the map publisher both write their maps with it; returns the three paths."""
+    out = Path(out_dir)
+    pgm, yml = save_map(grid, out / MAP_STEM, config)
+    title = f"occupancy grid ({grid.resolution:g} m cells, {grid.scans} scans), smoothed MAP trajectory"
+    png = save_png(grid, out / f"{MAP_STEM}.png", trajectory=trajectory, title=title)
+    return pgm, yml, png

@@ -63,6 +63,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -1273,3 +1274,58 @@ class AppearanceSurpriseDetector(_SurpriseDetector):
         step = gaussian_surprise_step(self._ng_prior, before_g, v, self._rng, cfg.samples)
         self._stats = before_g.add(v)
         return self._record(stamp, step)
+
+
+# ------------------------------------------------------------------------------------- the trace out
+
+#: ``schema`` of a trace document (:func:`trace_to_dict`; the detector node's ``~/surprise_trace`` answer).
+TRACE_SCHEMA = "ptm_ros.surprise_trace/1"
+_TRACE_SERIES = ("stamps", "surprise", "predicted_mean", "predicted_std", "upper")  # the (T,) ones
+
+
+def surprise_trace(detector: Detector) -> SurpriseTrace | None:
+    """The Bayesian surprise trace of a surprise detector (thesis Fig. 62), None for other detectors."""
+    return detector.trace if isinstance(detector, _SurpriseDetector) else None
+
+
+def limit_surprise_trace(detector: Detector, rows: int) -> None:
+    """Bound a surprise detector's trace to its latest ``rows`` measurements (:meth:`limit_trace`); other
+    detectors keep no trace."""
+    if isinstance(detector, _SurpriseDetector):
+        detector.limit_trace(rows)
+
+
+def trace_to_dict(trace: SurpriseTrace) -> dict[str, Any]:
+    """A trace as a JSON-able document (schema :data:`TRACE_SCHEMA`; floats exact through ``json``)."""
+    doc: dict[str, Any] = {"schema": TRACE_SCHEMA}
+    for name in (*_TRACE_SERIES, "landmarks"):
+        doc[name] = np.asarray(getattr(trace, name), dtype=float).tolist()
+    return doc
+
+
+def trace_from_dict(doc: Any) -> SurpriseTrace:
+    """The trace of a :func:`trace_to_dict` document.
+
+    Raises:
+        DataError: another schema, a missing or non-numeric series, or series of unequal lengths.
+    """
+    if not isinstance(doc, dict) or doc.get("schema") != TRACE_SCHEMA:
+        schema = doc.get("schema") if isinstance(doc, dict) else type(doc).__name__
+        msg = f"not a surprise trace document (schema {schema!r}, not {TRACE_SCHEMA!r})"
+        raise DataError(msg)
+    series: dict[str, FloatArray] = {}
+    for name in (*_TRACE_SERIES, "landmarks"):
+        try:
+            values = np.asarray(doc[name], dtype=float)
+        except (KeyError, TypeError, ValueError) as err:
+            msg = f"surprise trace: missing or non-numeric {name!r} ({type(err).__name__}: {err})"
+            raise DataError(msg) from err
+        if values.ndim != 1:
+            msg = f"surprise trace: {name!r} must be a list of numbers, got shape {values.shape}"
+            raise DataError(msg)
+        series[name] = values
+    lengths = {len(series[name]) for name in _TRACE_SERIES}
+    if len(lengths) != 1:
+        msg = f"surprise trace: the series have unequal lengths {sorted(lengths)}"
+        raise DataError(msg)
+    return SurpriseTrace(**series)

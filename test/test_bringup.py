@@ -4,11 +4,15 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import time
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
+from jsonschema import Draft202012Validator
 from ros_helpers import (
     BRINGUP,
     BringupProcess,
@@ -18,16 +22,23 @@ from ros_helpers import (
     processes_mentioning,
 )
 
-from ptm_ros.config import PtmConfig
+from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.mapping import every_sample
 from ptm_ros.occupancy import OCCUPIED, UNKNOWN, load_map
 from ptm_ros.occupancy import aligned_windows as aligned
-from ptm_ros.ptm import load_ptm
+from ptm_ros.ptm import load_ptm, ptm_schema
 from ptm_ros.tools import bringup
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.pipeline import detect_visits
+
+REPO = Path(__file__).resolve().parents[1]
+#: What only ptm-bringup writes into DIR: the nodes' parameter file (ptm-run has no nodes).
+BRINGUP_ONLY_FILES = {"params.yaml"}
+#: Keys only the node suite's ptm.json has: the filter's graph document (``ptm_ros.ptm_graph/1``).
+GRAPH_ONLY_KEYS = {"graph_schema", "edges", "stream"}
 
 
 @pytest.fixture(scope="module")
@@ -160,6 +171,17 @@ def test_bad_input_fails_before_anything_starts(sim_bag, tmp_path, capsys):
     assert bringup.main(["--bag", str(sim_bag), "--params", str(odd), "--out", str(tmp_path / "o")]) == 2
     assert "no odometry topic /wheel_odom" in capsys.readouterr().err
     assert bringup.main(["--rate", "-2"]) == 2
+    truth = tmp_path / "truth.json"
+    truth.write_text("{}\n")
+    assert (
+        bringup.main(["--bag", str(sim_bag), "--ground-truth", str(truth), "--out", str(tmp_path / "o")]) == 2
+    )
+    assert "expected schema 'ptm_ros.ground_truth/1'" in capsys.readouterr().err
+    assert (
+        bringup.main(["--ground-truth", str(sim_bag / "ground_truth.json"), "--out", str(tmp_path / "o")])
+        == 2
+    )
+    assert "--ground-truth needs --bag" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
@@ -191,7 +213,102 @@ def test_fault_options_plan_autosave_and_resume(sim_bag, tmp_path, capsys):
     assert plan.restart_command("landmark_detector") == plan.nodes["landmark_detector"]
     plain = bringup.make_plan(bringup.build_parser().parse_args(["--out", str(out)]))
     assert plain.respawn == 0 and not any("state_file" in a for a in plain.nodes["topology_filter"])
+    # a bag replay maps like ptm-run (every sample and scan, the whole surprise trace, its detector); live
+    # input keeps the configured thinning and lets the detector node pick
+    assert (
+        plan.config.mapping == every_sample(PtmConfig().mapping)
+        and plain.config.mapping == PtmConfig().mapping
+    )
+    assert (
+        "trace_rows:=0" in plan.nodes["landmark_detector"]
+        and "trace_rows:=0" not in plain.nodes["landmark_detector"]
+    )
+    assert plan.config.detector.kind == "laser-surprise" and plain.config.detector.kind is None
+    assert load_config(out / "config.yaml") == plain.config
+    assert plan.truth == sim_bag / "ground_truth.json" and plain.truth is None
     for flag in ("--respawn", "--autosave"):
         assert bringup.main([flag, "-1", "--out", str(tmp_path / "never")]) == 2
         assert f"{flag} must be >= 0, got -1" in capsys.readouterr().err
     assert not (tmp_path / "never").exists()
+
+
+def route_ids(path: Path) -> tuple[list[int], list[tuple[int, int, int]], np.ndarray]:
+    """A route graph's node ids, its edges as (id, startid, endid) and every coordinate in file order."""
+    features = json.loads(path.read_text())["features"]
+    nodes = [f["properties"]["id"] for f in features if "startid" not in f["properties"]]
+    edges = [
+        (f["properties"]["id"], f["properties"]["startid"], f["properties"]["endid"])
+        for f in features
+        if "startid" in f["properties"]
+    ]
+    coords = np.concatenate([np.reshape(f["geometry"]["coordinates"], (-1, 2)) for f in features])
+    return nodes, edges, coords
+
+
+@pytest.mark.dds
+@pytest.mark.slow
+def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path):
+    """Issue #24, one set of outputs wherever the map was made: ``make demo``'s ptm-bringup and ptm-run on
+    the bundled bag write the same files, with the same PTM, map, route graph, trajectory errors and
+    figures (ptm-bringup: from what the nodes published; the same writer functions)."""
+    bag = tmp_path / "demo"  # a copy: the orphan check below looks for processes naming this path only
+    shutil.copytree(REPO / "bags" / "demo", bag)
+    params = REPO / "config" / "demo.yaml"
+    up, off = tmp_path / "bringup", tmp_path / "run"
+    cmd = [*BRINGUP, "--bag", str(bag), "--rate", "0", "--params", str(params), "--out", str(up)]
+    try:
+        proc = subprocess.run(
+            cmd, env=dds_env(next_domain_id()), capture_output=True, text=True, timeout=300, check=False
+        )
+    finally:
+        assert_no_orphans(str(up), str(bag))
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
+    assert run_cli.main([str(bag), "--out", str(off), "--params", str(params), "--quiet"]) == 0
+
+    # the same files (ptm-run's report figures include the surprise trace and the map)
+    written = {p.name for p in up.iterdir()}
+    assert written - BRINGUP_ONLY_FILES == {p.name for p in off.iterdir()}
+    assert {"route_graph.geojson", "map.pgm", "map.png", "ptm_surprise.png", "report.html"} <= written
+    for d in (up, off):
+        html = (d / "report.html").read_text()
+        assert "ptm_surprise.png" in html and "map.png" in html and "absolute trajectory error" in html
+
+    # the same PTM: at the end of a bag the filter node's ensemble is ptm-run's (exact replay, seeded)
+    online, offline = load_ptm(up / "ptm.json"), load_ptm(off / "ptm.json")
+    assert online.landmarks == offline.landmarks and len(online.landmarks) == 10
+    assert [t.labels for t in online.topologies] == [t.labels for t in offline.topologies]
+    p_on = np.array([t.probability for t in online.topologies])
+    p_off = np.array([t.probability for t in offline.topologies])
+    assert np.max(np.abs(p_on - p_off)) <= 1e-9
+    doc_on, doc_off = (json.loads((d / "ptm.json").read_text()) for d in (up, off))
+    assert set(doc_on) - set(doc_off) == GRAPH_ONLY_KEYS and set(doc_off) <= set(doc_on)
+    assert (doc_on["bag"], doc_on["detector"]) == (doc_off["bag"], doc_off["detector"])
+    assert doc_on["doubts"] == doc_off["doubts"]
+    assert [e.message for e in Draft202012Validator(ptm_schema()).iter_errors(doc_on)] == []
+    # scored the same way, on the same trajectory (the map publisher's, at every odometry sample)
+    ate_on, ate_off = doc_on["trajectory_error"], doc_off["trajectory_error"]
+    assert ate_on["poses"] == ate_off["poses"] and ate_on["ground_truth"] == ate_off["ground_truth"]
+    for key in ("ate_smoothed_m", "ate_odometry_m"):
+        assert ate_on[key] == pytest.approx(ate_off[key], abs=1e-6)
+    assert doc_on["map_quality"] == pytest.approx(doc_off["map_quality"], abs=1e-3)
+    assert "trajectory error (ATE" in proc.stdout and "score vs ground truth" in proc.stdout
+
+    # the same map: the map publisher draws every odometry sample and scan (mapping.every_sample), with
+    # the function ptm-run uses. Byte for byte equal so far; the 0.1 % allows for scan matches (kiss-icp
+    # reduces over threads) whose float sums come out in another order and flip a cell on a wall's edge.
+    on_map, off_map = load_map(up / "map.yaml"), load_map(off / "map.yaml")
+    assert (on_map.origin, on_map.resolution) == (off_map.origin, off_map.resolution)
+    assert on_map.data.shape == off_map.data.shape
+    assert np.mean(on_map.data == off_map.data) >= 0.999
+    assert np.sum(off_map.data == OCCUPIED) > 1000
+
+    # the same route graph: node and edge ids, and (to a cell) every coordinate
+    nodes_on, edges_on, xy_on = route_ids(up / "route_graph.geojson")
+    nodes_off, edges_off, xy_off = route_ids(off / "route_graph.geojson")
+    assert nodes_on == nodes_off and edges_on == edges_off and len(edges_on) > len(nodes_on)
+    np.testing.assert_allclose(xy_on, xy_off, atol=off_map.resolution)
+
+    # the same configuration, but for the map publisher's thinning, which ptm-run does not read
+    conf_on, conf_off = (load_config(d / "config.yaml") for d in (up, off))
+    assert conf_on.mapping == every_sample(conf_off.mapping) != conf_off.mapping
+    assert replace(conf_on, mapping=conf_off.mapping) == conf_off

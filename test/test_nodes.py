@@ -659,7 +659,8 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         sc = run.scans
         for msg in scan_msgs(sc):
             scan_pub.publish(msg)
-        wait_for(lambda: mp.online.counters.scans == len(sc.stamps), timeout=30.0)
+        counters = mp.online.counters  # every sample received: the map drawn next is the last one
+        wait_for(lambda: (counters.poses, counters.scans) == (len(odom), len(sc.stamps)), timeout=30.0)
         reply = ros.call(probe, Trigger, "/map_publisher/save_map")  # draws everything received
         info = json.loads(reply.message)
         assert reply.success and info["complete"] is False  # no bag player announced the scans
@@ -675,7 +676,9 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         assert np.sum(expected == 100) > 100 and np.sum(expected == 0) > 1000  # walls, free
         saved = load_map(tmp_path / "map.yaml")  # the map_server files: the map's trinary classes
         assert np.array_equal(saved.data, trinary(mp.map.grid))
-        wait_for(lambda: trajectory.last() is not None and len(trajectory.last().poses) == info["scans"])
+        # the smoothed trajectory the map was drawn along: a pose per odometry sample
+        assert info["trajectory"] == len(odom)
+        wait_for(lambda: trajectory.last() is not None and len(trajectory.last().poses) == len(odom))
 
         reply = ros.call(probe, Trigger, "/topology_filter/save_ptm")
         assert reply.success and load_config(tmp_path / "filter" / "config.yaml") == config

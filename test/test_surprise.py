@@ -5,6 +5,7 @@ detectors' behaviour on repeated, stepped and stationary measurements and on the
 from __future__ import annotations
 
 import itertools
+import json
 import math
 
 import numpy as np
@@ -32,11 +33,15 @@ from ptm_ros.surprise import (
     gamma_kl,
     gaussian_kl,
     gaussian_surprise_step,
+    limit_surprise_trace,
     niw_kl,
     niw_posterior,
     niw_surprise,
     normal_gamma_kl,
     scan_statistic,
+    surprise_trace,
+    trace_from_dict,
+    trace_to_dict,
 )
 
 # ----------------------------------------------------------------------------------------- Gaussian KLs
@@ -728,3 +733,32 @@ def test_limit_trace_keeps_the_latest_rows_and_detects_the_same():
     np.testing.assert_array_equal(short.landmarks, tail.landmarks[-7:])
     with pytest.raises(ConfigError, match="trace rows"):
         bounded.limit_trace(-1)
+
+
+def test_a_trace_crosses_json_exactly_and_bad_documents_are_refused():
+    """The detector node's ``~/surprise_trace`` answer: the trace of a surprise detector through JSON, bit for
+    bit; other detectors have none (and nothing to bound)."""
+    from ptm_ros.detectors import EquidistantDetector
+
+    rng = np.random.default_rng(3)
+    det = LaserSurpriseDetector(LaserSurpriseConfig(localize_distance=0.0))
+    z = np.concatenate([rng.normal(0.0, 0.05, (50, 3)), rng.normal(2.0, 0.05, (30, 3))])
+    for t, v in enumerate(z):
+        det.on_statistic(1000.0 + 0.1 * t, v)
+    trace = surprise_trace(det)
+    assert trace is not None and len(trace.stamps) == len(z) and len(trace.landmarks) >= 1
+    back = trace_from_dict(json.loads(json.dumps(trace_to_dict(trace))))
+    for name in ("stamps", "surprise", "predicted_mean", "predicted_std", "upper", "landmarks"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(trace, name))
+    limit_surprise_trace(det, 5)
+    assert len(surprise_trace(det).stamps) == 5
+    plain = EquidistantDetector()
+    limit_surprise_trace(plain, 5)  # no trace: nothing to do
+    assert surprise_trace(plain) is None
+    doc = trace_to_dict(trace)
+    with pytest.raises(DataError, match="not a surprise trace"):
+        trace_from_dict({**doc, "schema": "other/1"})
+    with pytest.raises(DataError, match="missing or non-numeric 'upper'"):
+        trace_from_dict({k: v for k, v in doc.items() if k != "upper"})
+    with pytest.raises(DataError, match="unequal lengths"):
+        trace_from_dict({**doc, "surprise": doc["surprise"][1:]})

@@ -507,6 +507,24 @@ def pose_msg(x: float, y: float, yaw: float, z: float = 0.0) -> Pose:
     return pose
 
 
+def path_arrays(msg: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(stamps (K,), poses (K, 3))`` of a ``nav_msgs/Path`` (the inverse of :func:`pose_msg` and
+    :func:`time_msg` per pose; the poses' own header stamps)."""
+    stamps = np.array([header_stamp(ps.header) for ps in msg.poses], dtype=float)
+    poses = np.array(
+        [
+            (ps.pose.position.x, ps.pose.position.y, quaternion_to_yaw(*_xyzw(ps.pose.orientation)))
+            for ps in msg.poses
+        ],
+        dtype=float,
+    ).reshape(-1, 3)
+    return stamps, poses
+
+
+def _xyzw(q: Any) -> tuple[float, float, float, float]:
+    return float(q.x), float(q.y), float(q.z), float(q.w)
+
+
 def key_values(values: Mapping[str, Any], prefix: str = "") -> list[KeyValue]:
     """Flatten a (nested) mapping of counters into ``diagnostic_msgs/KeyValue`` (dotted keys)."""
     out: list[KeyValue] = []

@@ -34,6 +34,12 @@ each of its topics (or ``end_timeout`` s without progress), completes the pendin
 session; K: the keyframe scans sent on ``landmark_scans`` since the node started). Service
 ``~/flush`` (std_srvs/Trigger) does the same on request.
 
+Service ``~/surprise_trace`` (std_srvs/Trigger): the surprise detector's trace of the current session
+(thesis Fig. 62, the report's surprise figure) as JSON (:func:`ptm_ros.surprise.trace_to_dict`, plus
+``session``); ``success: false`` for a detector without one. The node keeps the latest ``trace_rows``
+(default 1000) measurements, so its memory stays bounded on a robot; 0 keeps all (``ptm-bringup``
+sets it on a bag replay, whose report then shows ``ptm-run``'s figure).
+
 Bad input (issue #9). No message stops the node or reaches the extractor unchecked (the checks of
 :mod:`ptm_ros.io.validation`, which ``ptm-run``'s bag reader applies too); each kind of problem is
 logged once (a warning; later ones at debug level) and counted in ``/diagnostics`` under its name:
@@ -145,6 +151,7 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
+from ptm_ros.surprise import limit_surprise_trace, surprise_trace, trace_to_dict
 from ptm_ros.visits import Visit
 
 NODE_NAME = "landmark_detector"
@@ -152,7 +159,7 @@ STREAMS = ("odometry", "scan", "image")  # the extractor's names of the three in
 SUBSCRIPTIONS = {"odom": "odometry", "scan": "scan", "panorama": "image"}
 MAX_WAITING = 200  # scans/panoramas of a newer clock kept until the odometry's clock resets too
 RESYNC_AFTER = 100  # consecutive messages on another clock than the odometry's before adopting its clock
-TRACE_ROWS = 1000  # latest surprise measurements the detector keeps (unread by the node: memory bound)
+TRACE_ROWS = 1000  # default trace_rows: the latest surprise measurements kept (memory bound)
 
 SKIP_REASONS = (
     "odometry-bad-stamp",
@@ -295,6 +302,13 @@ class LandmarkDetectorNode(Node):
             "s (wall) an expected topic may stay silent while others deliver before a warning; 0 = off",
             minimum=0.0,
         )
+        self.trace_rows = declare_node_parameter(
+            self,
+            "trace_rows",
+            TRACE_ROWS,
+            "latest surprise measurements kept for ~/surprise_trace; 0 = all (a bag replay)",
+            minimum=0,
+        )
         self.kind = detector_kind(self.config, has_scans=self._use_scans, has_images=self._use_images)
         self.extractor = self._make_extractor()
         self.stream_guards = {
@@ -341,6 +355,7 @@ class LandmarkDetectorNode(Node):
         self.received = {sub.topic_name: 0 for sub in self._subs.values()}
         self.create_subscription(String, "end_of_input", self._on_end_of_input, LATCHED_QOS)
         self.create_service(Trigger, "~/flush", self._on_flush)
+        self.create_service(Trigger, "~/surprise_trace", self._on_surprise_trace)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0, self._publish_diagnostics, clock=steady)
         self.create_timer(0.2, self._check_end_timer, clock=steady)
@@ -355,8 +370,8 @@ class LandmarkDetectorNode(Node):
         ext.config = replace(
             ext.config, stall_s=self._stall if self._stall > 0.0 else math.inf, stream_poses=True
         )
-        if hasattr(ext.detector, "limit_trace"):  # the surprise trace is for offline reports: bounded here
-            ext.detector.limit_trace(TRACE_ROWS)
+        if self.trace_rows > 0:  # the surprise trace is for reports: bounded on a long-running robot
+            limit_surprise_trace(ext.detector, self.trace_rows)
         return ext
 
     @property
@@ -651,6 +666,16 @@ class LandmarkDetectorNode(Node):
     def _on_flush(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         response.success = True
         response.message = json.dumps({"visits": self.finish()})
+        return response
+
+    @guarded
+    def _on_surprise_trace(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        trace = surprise_trace(self.extractor.detector)
+        if trace is None:
+            response.success, response.message = False, f"detector {self.kind} keeps no surprise trace"
+            return response
+        response.success = True
+        response.message = json.dumps({**trace_to_dict(trace), "session": self.session_id})
         return response
 
     # ------------------------------------------------------------------------------ diagnostics

@@ -20,13 +20,16 @@ publishes
 
 * ``map`` (nav_msgs/OccupancyGrid, reliable + transient local; ``occupancy.*`` parameters): the scans
   drawn along the smoothed trajectory, in the frame of the ensemble (the odometry's);
-* ``ptm_trajectory`` (nav_msgs/Path, reliable + transient local): the smoothed pose of each keyframe.
+* ``ptm_trajectory`` (nav_msgs/Path, reliable + transient local): the smoothed trajectory the scans were
+  drawn along, one pose per odometry sample the map was drawn from (``ptm-bringup`` reads it for the
+  trajectory errors and the route graph).
 
 Service ``~/save_map`` (std_srvs/Trigger) draws the map from everything received and writes
 ``<out_dir>/map.pgm`` + ``map.yaml`` (nav2 map_server format: ``ros2 run nav2_map_server map_server
 --ros-args -p yaml_filename:=map.yaml`` loads it) and ``map.png``; its response message is JSON
-``{"yaml", "pgm", "png", "width", "height", "resolution", "scans", "maps", "map_ms", "complete",
-"input"}`` (maps drawn so far, the time the latest took; ``input``: the map's counters; ``complete``: the
+``{"yaml", "pgm", "png", "width", "height", "resolution", "scans", "trajectory", "maps", "map_ms",
+"complete", "input"}`` (``trajectory``: the poses of the map's ``ptm_trajectory``; maps drawn so far,
+the time the latest took; ``input``: the map's counters; ``complete``: the
 ensemble is complete and every keyframe scan the detector's end marker counts was received, so the map
 covers the whole input). A map needs the visits of the ensemble (matched by stamp) and their session's
 odometry; until both are there it waits. A new detector session (visit 0 of another session id; odometry
@@ -100,7 +103,7 @@ from ptm_ros.nodes.common import (
     valid_stamp,
 )
 from ptm_ros.nodes.messages import parse_visit_envelope
-from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map, save_png, to_ros_data
+from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict
 from ptm_ros.visits import Visit
 
@@ -132,10 +135,10 @@ def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float, config: Occupancy
 
 
 def trajectory_msg(result: MapResult, frame_id: str) -> PathMsg:
-    """The smoothed keyframe poses of a map as a ``nav_msgs/Path``."""
+    """The smoothed trajectory of a map (a pose per odometry sample) as a ``nav_msgs/Path``."""
     path = PathMsg()
     path.header.frame_id = frame_id
-    for t, (x, y, yaw) in zip(result.keyframe_stamps, result.keyframe_poses, strict=True):
+    for t, (x, y, yaw) in zip(result.stamps, result.trajectory, strict=True):
         ps = PoseStamped()
         ps.header.frame_id = frame_id
         ps.header.stamp = time_msg(float(t))
@@ -465,12 +468,8 @@ class MapPublisherNode(Node):
             return response
         out = Path(self.get_parameter("out_dir").value)
         try:
-            pgm, yml = save_map(result.grid, out / "map", self.config.occupancy)
-            png = save_png(
-                result.grid,
-                out / "map.png",
-                trajectory=result.trajectory,
-                title=f"occupancy grid ({result.grid.resolution:g} m cells, {result.grid.scans} scans)",
+            pgm, yml, png = save_map_files(
+                result.grid, out, self.config.occupancy, trajectory=result.trajectory
             )
         except OSError as err:
             response.success, response.message = False, f"cannot write the map to {out}: {err}"
@@ -486,6 +485,7 @@ class MapPublisherNode(Node):
                 "height": grid.height,
                 "resolution": grid.resolution,
                 "scans": grid.scans,
+                "trajectory": len(result.stamps),
                 "maps": self.counters["maps"],
                 "map_ms": round(self.map_ms, 1),
                 "complete": self.complete and self.scans_complete,

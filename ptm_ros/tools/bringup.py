@@ -4,8 +4,10 @@ Starts ``map_publisher``, ``topology_filter`` and ``landmark_detector`` as separ
 over DDS (each in its own process group, logs streamed with a ``[node]`` prefix), waits until their
 services are discovered, then — with ``--bag`` — starts ``ptm-bag-player`` (``use_sim_time`` on every
 node). Every node gets the same parameters: ``DIR/params.yaml``, the full configuration (defaults, then
-``--params``) in ROS parameter-file form; then the bringup's settings for an exact replay (the
-detector's ``stall_s: 0``, the filter's ``refit_max_visits: 0``, ``use_sim_time`` with a bag); then
+``--params``; with a bag, the detector ``ptm-run`` would pick and the map drawn from every odometry
+sample and scan, :func:`ptm_ros.mapping.every_sample`) in ROS parameter-file form, saved as
+``DIR/config.yaml`` too; then the bringup's settings for an exact replay (the detector's ``stall_s: 0``
+and ``trace_rows: 0``, the filter's ``refit_max_visits: 0``, ``use_sim_time`` with a bag); then
 ``--params`` itself when it is a ROS parameter file, so its per-node sections apply and may override
 those (e.g. ``landmark_detector: ros__parameters: sensor_qos: sensor_data``).
 The bag's ``topics.odom`` / ``scan`` / ``panorama`` are remapped onto the detector's ``odom`` / ``scan`` /
@@ -15,7 +17,15 @@ End of a bag: the player announces it, the detector completes its last visits, t
 them and marks its ensemble complete; ``ptm-bringup`` asks the map publisher (``/map_publisher/save_ptm``)
 to write ``DIR/ptm.json`` — the ensemble it received over DDS — as soon as that ensemble is complete,
 and then the occupancy map it drew online along the MAP topology's smoothed trajectory
-(``/map_publisher/save_map``: ``DIR/map.yaml``, ``map.pgm``, ``map.png``).
+(``/map_publisher/save_map``: ``DIR/map.yaml``, ``map.pgm``, ``map.png``), and takes that trajectory
+(``ptm_trajectory``) and the detector's surprise trace (``/landmark_detector/surprise_trace``) before
+the nodes stop. From these and the bag's odometry and scans it then writes what ``ptm-run`` writes, with
+``ptm-run``'s own writers (:func:`ptm_ros.tools.pipeline.write_outputs`, issue #24): ``ptm.json`` gains
+``bag``, ``detector`` and, with a ground truth (``--ground-truth``, else the bag's own), the trajectory
+errors and the map's quality; ``route_graph.geojson`` (on the map's walls and trajectory) and the report
+with ``ptm-run``'s figures (unless ``--no-report``). On the bundled bag every file but ``params.yaml``
+(the nodes' parameters) and ``config.yaml``'s ``mapping`` section (unused by ``ptm-run``) has
+``ptm-run``'s content, timings and counters aside (tested).
 On SIGINT / SIGTERM it stops the player, has the detector complete its pending visits (``~/flush``),
 gives the filter up to 30 s to map them (a second SIGINT skips the wait) and writes whatever the map
 publisher has (nothing when it holds no visit). Then it stops every process: SIGINT to
@@ -31,10 +41,9 @@ transient-local history, so the map ends exactly as without the fault (without `
 rebuilds everything from that history). A respawned detector starts a new detector session from the
 bag position it then sees (it never receives what was replayed while it was down), so the filter starts
 a new map of the rest of the run; the player's reliable writers wait for a killed reader until DDS
-declares it gone. After a bag it writes ``ptm-run``'s report with figures beside ptm.json
-(unless ``--no-report``) and prints the most probable topologies, scored against the bag's ground truth
-when it has one. Exit codes: 0 written, 1 a node failed / nothing to write / timeout, 2 bad arguments,
-parameters or bag.
+declares it gone. After a bag it prints ``ptm-run``'s summary: the most probable topologies, scored
+against the ground truth when there is one. Exit codes: 0 written, 1 a node failed / nothing to write
+/ timeout, 2 bad arguments, parameters, ground truth or bag.
 """
 
 from __future__ import annotations
@@ -49,9 +58,12 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
+
+if TYPE_CHECKING:
+    from ptm_ros.config import PtmConfig
 
 PROG = "ptm-bringup"
 NODES = ("map_publisher", "topology_filter", "landmark_detector")
@@ -59,6 +71,7 @@ STOP_TIMEOUTS = (5.0, 3.0, 2.0)  # s after SIGINT, after SIGTERM, after SIGKILL
 SIGINT_GRACE_S = 30.0  # s the filter gets to map the last visits after SIGINT (a second SIGINT skips)
 STATE_FILE = "topology_filter/state.npz"  # the filter's saved state, relative to --out
 MAP_TIMEOUT_S = 120.0  # s the map publisher gets, after the ensemble is complete, to draw every keyframe
+REPLY_TIMEOUT_S = 30.0  # s to wait for the map's trajectory and for the detector's surprise trace
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,6 +105,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=600.0,
         help="s to wait for the map after the bag ended (default: %(default)s)",
+    )
+    p.add_argument(
+        "--ground-truth",
+        type=Path,
+        default=None,
+        help="with --bag, score against this ground truth: a CARMEN *-gt-*.txt file or a ground_truth.json "
+        "(default: the bag's own ground_truth.json, if any)",
     )
     p.add_argument("--no-report", action="store_true", help="skip the report and figures (with --bag)")
     p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
@@ -254,15 +274,18 @@ def node_command(name: str, ros_args: Sequence[str]) -> list[str]:
 
 @dataclass(frozen=True)
 class Plan:
-    """What to start: the node commands in start order, the player's command (with ``--bag``), timeouts."""
+    """What to start: the node commands in start order, the player's command (with ``--bag``), timeouts,
+    the configuration and the ground truth of a bag's outputs."""
 
     out: Path
     nodes: dict[str, list[str]]
     player: list[str] | None
     wait: float
     timeout: float
+    config: PtmConfig  # the configuration the nodes run with (config.yaml)
     respawn: int = 0
     scans: bool = True  # the input has scans (an occupancy map is drawn)
+    truth: Path | None = None  # the ground truth a bag's outputs are scored against
 
     def restart_command(self, name: str) -> list[str]:
         """The command of a respawned node: the filter resumes from its saved state (if any)."""
@@ -277,9 +300,13 @@ def make_plan(args: argparse.Namespace) -> Plan:
         PtmError: bad parameters or bag (nothing has been started).
     """
     from ptm_ros.config import ros_parameters_yaml, save_config
-    from ptm_ros.errors import BagError
+    from ptm_ros.errors import BagError, ConfigError
+    from ptm_ros.factories import with_detector_kind
+    from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.mapping import every_sample
     from ptm_ros.nodes.bag_player import bag_topics
     from ptm_ros.tools.paths import output_dir
+    from ptm_ros.tools.pipeline import find_ground_truth
 
     config, params_is_ros = load_parameters(args.params)
     t = config.topics
@@ -287,6 +314,21 @@ def make_plan(args: argparse.Namespace) -> Plan:
     if args.bag is not None and t.odom not in topics:
         msg = f"bag {args.bag} has no odometry topic {t.odom} (topics: {sorted(topics)})"
         raise BagError(msg)
+    if args.ground_truth is not None and args.bag is None:
+        msg = "--ground-truth needs --bag (the score comes with the outputs written after a bag)"
+        raise ConfigError(msg)
+    truth = args.ground_truth
+    if truth is None and args.bag is not None:
+        truth = find_ground_truth(args.bag)  # a simulated bag's own, as ptm-run finds it
+    if truth is not None:
+        load_ground_truth(truth)  # a bad file fails now, not after the run
+    present = {
+        name: topic in topics and topics[topic].count > 0
+        for name, topic in (("scans", t.scan), ("images", t.panorama))
+    }
+    if args.bag is not None:  # ptm-run's map (every sample and scan) and the detector ptm-run picks
+        config = with_detector_kind(config, has_scans=present["scans"], has_images=present["images"])
+        config = replace(config, mapping=every_sample(config.mapping))
     frame = odometry_frame(args.bag, t.odom) if args.bag is not None else "odom"
     out: Path = output_dir(args.out.resolve())
     out.mkdir(parents=True, exist_ok=True)
@@ -300,10 +342,9 @@ def make_plan(args: argparse.Namespace) -> Plan:
     users = ["--params-file", str(args.params.resolve())] if params_is_ros else []
     detector = [*mine, "-r", f"odom:={t.odom}", "-r", f"scan:={t.scan}", "-r", f"panorama:={t.panorama}"]
     if args.bag is not None:  # wait for the streams the bag has (as ptm-run does), however late they come
-        for name, topic in (("use_scans", t.scan), ("use_images", t.panorama)):
-            present = topic in topics and topics[topic].count > 0
-            detector += ["-p", f"{name}:={str(present).lower()}"]
-        detector += ["-p", "stall_s:=0.0"]
+        for name in ("scans", "images"):
+            detector += ["-p", f"use_{name}:={str(present[name]).lower()}"]
+        detector += ["-p", "stall_s:=0.0", "-p", "trace_rows:=0"]  # the whole surprise trace, as ptm-run
     filt = [*mine, "-p", "refit_max_visits:=0", "-p", f"frame_id:={frame}"]
     state = out / STATE_FILE
     state.unlink(missing_ok=True)  # a previous run's state must never be resumed by this one
@@ -322,7 +363,6 @@ def make_plan(args: argparse.Namespace) -> Plan:
         replay = [x for x in (t.odom, t.scan, t.panorama) if x in topics]
         player = [sys.executable, "-m", "ptm_ros.nodes.bag_player", str(args.bag.resolve())]
         player += ["--rate", f"{args.rate:g}", "--wait", f"{args.wait:g}", "--topics", *replay]
-    has_scans = args.bag is None or (t.scan in topics and topics[t.scan].count > 0)
     return Plan(
         out=out,
         nodes=nodes,
@@ -330,8 +370,21 @@ def make_plan(args: argparse.Namespace) -> Plan:
         wait=args.wait,
         timeout=args.timeout,
         respawn=args.respawn,
-        scans=has_scans,
+        scans=args.bag is None or present["scans"],
+        config=config,
+        truth=truth,
     )
+
+
+@dataclass(frozen=True)
+class NodeOutputs:
+    """What the nodes made beside ptm.json, collected before they stop: the map publisher's map files
+    (keys of ``pipeline.OUTPUT_FILES``) and the trajectory it drew them along (``(stamps, poses)``), the
+    detector's surprise trace (None: none)."""
+
+    map_files: dict[str, Path] = field(default_factory=dict)
+    trajectory: tuple[Any, Any] | None = None
+    surprise: Any | None = None
 
 
 class Bringup:
@@ -339,6 +392,7 @@ class Bringup:
 
     def __init__(self, plan: Plan) -> None:
         import rclpy
+        from nav_msgs.msg import Path as PathMsg
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
         from std_msgs.msg import String
@@ -360,8 +414,12 @@ class Bringup:
             self.node.create_client(Trigger, "/landmark_detector/flush"),
             self.node.create_client(Trigger, "/map_publisher/save_map"),
         ]
+        self.trace_client = self.node.create_client(Trigger, "/landmark_detector/surprise_trace")
         self.graph_complete = False  # the filter's latest ensemble covers a finished input
         self.node.create_subscription(String, "/ptm_graph", self._on_graph, LATCHED_QOS)
+        self.trajectory: Any = None  # the map publisher's latest ptm_trajectory (nav_msgs/Path)
+        self.node.create_subscription(PathMsg, "/ptm_trajectory", self._on_trajectory, LATCHED_QOS)
+        self.outputs = NodeOutputs()  # what the nodes made, for the outputs written after a bag
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
@@ -371,6 +429,9 @@ class Bringup:
         except (json.JSONDecodeError, AttributeError):
             return
         self.graph_complete = bool(isinstance(stream, dict) and stream.get("complete"))
+
+    def _on_trajectory(self, msg: Any) -> None:
+        self.trajectory = msg
 
     def log(self, text: str) -> None:
         with _PRINT_LOCK:
@@ -494,16 +555,19 @@ class Bringup:
 
     def announce(self, reply: dict[str, Any]) -> int:
         self.log(f"wrote {reply['path']}: {reply['visits']} visits, {reply['topologies']} topologies")
-        self.save_map()
+        info = self.save_map()
+        if self.plan.player is not None and not self.stop_requested:  # a bag's end: ptm-run's outputs follow
+            self.outputs = self.collect(info)
         return 0
 
-    def save_map(self) -> None:
+    def save_map(self) -> dict[str, Any] | None:
         """Ask the map publisher to write the occupancy map (``DIR/map.yaml`` + ``map.pgm`` + ``map.png``);
         with a bag, until the map covers every keyframe scan the detector sent (at most
-        :data:`MAP_TIMEOUT_S`). A bag without scans has no map (logged, not an error)."""
+        :data:`MAP_TIMEOUT_S`). A bag without scans has no map (logged, not an error). Returns the map
+        publisher's answer (the files, the trajectory's length), None without a map."""
         if not self.plan.scans:
             self.log("no occupancy map: the input has no scans")
-            return
+            return None
         deadline = time.monotonic() + MAP_TIMEOUT_S
         while True:
             result = self.call(self._clients[3], timeout=60.0)
@@ -522,6 +586,45 @@ class Bringup:
                 f"wrote {info['yaml']}: {info['width']} x {info['height']} cells, {info['scans']} scans "
                 f"(map {info['maps']} drawn online, {info['map_ms']:.0f} ms; input {info['input']})"
             )
+        return info
+
+    def collect(self, info: dict[str, Any] | None) -> NodeOutputs:
+        """At a bag's end, before the nodes stop: what the outputs written after it need from them (the
+        saved map of ``info``, its trajectory, the detector's surprise trace)."""
+        if info is None:
+            return NodeOutputs(surprise=self.surprise_trace())
+        files = {f"map_{kind}": Path(info[kind]) for kind in ("pgm", "yaml", "png")}
+        return NodeOutputs(files, self.map_trajectory(info), self.surprise_trace())
+
+    def map_trajectory(self, info: dict[str, Any]) -> tuple[Any, Any] | None:
+        """``(stamps, poses)`` of the trajectory the saved map was drawn along (the map publisher's
+        ``ptm_trajectory`` of ``info["trajectory"]`` poses), waiting up to :data:`REPLY_TIMEOUT_S` for it;
+        None (logged) when it does not come."""
+        from ptm_ros.nodes.common import path_arrays
+
+        deadline = time.monotonic() + REPLY_TIMEOUT_S
+        while time.monotonic() < deadline and not self.stop_requested:
+            msg = self.trajectory
+            if msg is not None and len(msg.poses) == info["trajectory"]:
+                return path_arrays(msg)
+            self.executor.spin_once(timeout_sec=0.1)
+        self.log("warning: the map's trajectory did not arrive: no trajectory error, route graph off the map")
+        return None
+
+    def surprise_trace(self) -> Any | None:
+        """The detector's surprise trace (``~/surprise_trace``), None (logged) for a detector without one."""
+        from ptm_ros.errors import DataError
+        from ptm_ros.surprise import trace_from_dict
+
+        result = self.call(self.trace_client, timeout=REPLY_TIMEOUT_S)
+        if result is None or not result.success:
+            self.log(f"no surprise trace: {result.message if result else 'the detector did not answer'}")
+            return None
+        try:
+            return trace_from_dict(json.loads(result.message))
+        except (json.JSONDecodeError, DataError) as err:
+            self.log(f"no surprise trace: {err}")
+            return None
 
     def write_what_we_have(self) -> int:
         """Have the map publisher write whatever it has (on SIGINT or after an error)."""
@@ -543,27 +646,35 @@ class Bringup:
         return codes
 
 
-def report(args: argparse.Namespace, ptm_path: Path) -> str:
-    """After a bag: the report with figures beside ptm.json (``ptm-run``'s), scored against the bag's
-    ground truth when it has one; returns ``ptm-run``'s summary lines."""
+def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
+    """After a bag: ``ptm-run``'s outputs from what the nodes made (``pipeline.write_outputs`` on the map
+    publisher's ptm.json, map and trajectory, the detector's surprise trace and the bag's odometry and
+    scans): ptm.json with the trajectory errors and the map's quality when a ground truth is known,
+    config.yaml, route_graph.geojson and (unless ``--no-report``) the report; returns ``ptm-run``'s
+    summary lines."""
     from ptm_ros.io.bag import read_run
+    from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.ptm import load_ptm
-    from ptm_ros.tools.pipeline import RunResult, find_ground_truth, score_against
+    from ptm_ros.tools.pipeline import OUTPUT_FILES, provenance, saved_map, write_outputs
     from ptm_ros.tools.run import format_summary
 
-    ptm = load_ptm(ptm_path)
-    truth = find_ground_truth(args.bag)
-    score = score_against(ptm, truth) if truth is not None else None
-    html = None
-    if not args.no_report:
-        from ptm_ros.report import write_report
-
-        config, _ = load_parameters(args.params)
-        odom = read_run(args.bag, odom_topic=config.topics.odom, scan_topic=None, image_topic=None).odometry
-        trajectory = None if odom is None else odom.poses
-        title = f"PTM of {args.bag.name} (node suite over DDS)"
-        html = write_report(ptm_path.parent, ptm, trajectory=trajectory, score=score, title=title)
-    result = RunResult(ptm=ptm, ptm_path=ptm_path, report_path=html, score=score, diagnostics={})
+    ptm = load_ptm(plan.out / OUTPUT_FILES["ptm"])
+    ptm = replace(ptm, extra={**provenance(args.bag, plan.config), **ptm.extra})
+    t = plan.config.topics
+    run = read_run(args.bag, odom_topic=t.odom, scan_topic=t.scan, image_topic=None, require=(t.odom,))
+    result = write_outputs(
+        plan.out,
+        ptm,
+        plan.config,
+        run,
+        saved_map(run, outputs.map_files, outputs.trajectory),
+        truth=load_ground_truth(plan.truth) if plan.truth is not None else None,
+        truth_file=plan.truth,
+        surprise=outputs.surprise,
+        write_report=not args.no_report,
+        title=f"PTM of {args.bag.name} (node suite over DDS)",
+        log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
+    )
     return format_summary(result, args.top)
 
 
@@ -592,9 +703,9 @@ def run(args: argparse.Namespace) -> int:
     ptm_path = plan.out / "ptm.json"
     if code == 0 and args.bag is not None and not suite.stop_requested and ptm_path.is_file():
         try:
-            print(report(args, ptm_path), flush=True)
+            print(finish(args, plan, suite.outputs), flush=True)
         except (PtmError, OSError) as err:
-            print(f"{PROG}: error: cannot report on {ptm_path}: {err}", file=sys.stderr)
+            print(f"{PROG}: error: cannot write the outputs beside {ptm_path}: {err}", file=sys.stderr)
             return 1
     return code
 

@@ -6,7 +6,9 @@ this module only loops over a recorded run, times, checkpoints and writes files 
 ``pipeline.py`` plays the same role). The detector and filter nodes drive the same core code on live
 messages.
 
-Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them):
+Files :func:`run_offline` writes into ``DIR`` (:data:`OUTPUT_FILES` names them; all but the map and the
+state through :func:`write_outputs`, which ``ptm-bringup`` calls on what the nodes published, so that both
+tools write one set of outputs, issue #24):
 
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
 * ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
@@ -55,7 +57,7 @@ from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
 from ptm_ros.doubts import doubt_lines, find_doubts
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.factories import cached, detector_kind, make_extractor, make_registrar
+from ptm_ros.factories import cached, detector_kind, make_extractor, make_registrar, with_detector_kind
 from ptm_ros.io.bag import OdometryData, RunData, read_run
 from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
@@ -66,6 +68,7 @@ from ptm_ros.io.groundtruth import (
 )
 from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
 from ptm_ros.laser import Registration
+from ptm_ros.occupancy import MAP_STEM
 from ptm_ros.partitions import Labels
 from ptm_ros.ptm import Ptm, save_ptm
 from ptm_ros.refinement import Mapper, RegistrationJob
@@ -80,6 +83,7 @@ from ptm_ros.session import (
     infer,
     require_rbpf,
 )
+from ptm_ros.surprise import surprise_trace
 from ptm_ros.tools.progress import Phases
 from ptm_ros.visits import Visit
 
@@ -87,15 +91,16 @@ if TYPE_CHECKING:
     from ptm_ros.geometry import Registrar
     from ptm_ros.map_quality import ClassGrid
     from ptm_ros.routes import RouteConfig
+    from ptm_ros.surprise import SurpriseTrace
 
 #: Names of the files :func:`run_offline` writes (keys of :attr:`RunResult.files`).
 OUTPUT_FILES = {
     "ptm": "ptm.json",
     "config": "config.yaml",
     "route_graph": "route_graph.geojson",
-    "map_pgm": "map.pgm",
-    "map_yaml": "map.yaml",
-    "map_png": "map.png",
+    "map_pgm": f"{MAP_STEM}.pgm",
+    "map_yaml": f"{MAP_STEM}.yaml",
+    "map_png": f"{MAP_STEM}.png",
     "state": "filter_state.npz",
     "ground_truth": "ground_truth.json",
     "mcmc_trace": "mcmc_trace.json",
@@ -386,6 +391,11 @@ def _load_run_state(
     return load_filter_state(checkpoint.path)
 
 
+def provenance(bag: Path, used: PtmConfig) -> dict[str, str]:
+    """What ``ptm.json`` says about where its run came from: the bag (as given) and the detector used."""
+    return {"bag": str(bag), "detector": str(used.detector.kind)}
+
+
 def find_ground_truth(bag: Path) -> Path | None:
     """The simulator's ground truth stored beside or inside the bag directory, if any."""
     for cand in (bag / "ground_truth.json", bag.parent / f"{bag.name}.ground_truth.json"):
@@ -452,7 +462,7 @@ def run_offline(
     gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
     truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
     sensors = run_sensors(run)
-    used = replace(config, detector=replace(config.detector, kind=detector_kind(config, **sensors)))
+    used = with_detector_kind(config, **sensors)
     schedule = None
     if used.detector.kind == "ground-truth":
         odom_stamps = run_odometry(run).stamps
@@ -493,8 +503,7 @@ def run_offline(
         used,
         frame_id=frame_id or "odom",
         wall_s=wall,
-        bag=str(bag),
-        detector=used.detector.kind,
+        **provenance(bag, used),
         diagnostics=diag,
     )
     ptm, chain_trace = split_chain_trace(ptm, trace_file=OUTPUT_FILES["mcmc_trace"] if write_trace else None)
@@ -502,7 +511,6 @@ def run_offline(
         log(f"--trace: method {config.inference.method} has no MCMC chains: no {OUTPUT_FILES['mcmc_trace']}")
     want_map = write_map and sensors["has_scans"]
     timing = dict(ptm.timing)
-    extra = dict(ptm.extra)
     traj = None
     if write_report or want_map or truth is not None:
         t1 = time.perf_counter()
@@ -512,32 +520,137 @@ def run_offline(
                 run, visits, ptm.map_topology.labels, config, registrar, odometry=base, mapper=mapper
             )
         timing["smoothing_s"] = time.perf_counter() - t1
-    if truth is not None and traj is not None:
-        ate = trajectory_errors(run, traj, truth)
-        if ate is not None:
-            extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(gt)}
-    files: dict[str, Path] = {}
+    map_files: dict[str, Path] = {}
     walls = None  # the map's classes, for the map's quality and the route graph
     if want_map and traj is not None:
         t1 = time.perf_counter()
         with ph.step("map"):
             grid = occupancy_grid(run, traj, config)
-            files |= write_occupancy_map(run, traj, out, config, grid=grid)
+            map_files = write_occupancy_map(run, traj, out, config, grid=grid)
         timing["map_s"] = time.perf_counter() - t1
         walls = class_grid(grid, config) if grid is not None else None
-        ate = extra.get(TRAJECTORY_ERROR_KEY)
-        if walls is not None and truth is not None and ate is not None:
-            with ph.step("map quality"):
-                quality = map_quality_against(run, walls, truth, ate["alignment"], config)
-            if quality is not None:
-                extra[MAP_QUALITY_KEY] = quality
+    extra = dict(ptm.extra)
     if session is not None:  # the laser registrations' counters, after the smoothing's registrations
         extra["diagnostics"] = {**diag, **session.registrations}
-    ptm = replace(ptm, timing=timing, extra=extra)
-    ptm_path = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
-    files["ptm"] = ptm_path
+    written = write_outputs(
+        out,
+        replace(ptm, timing=timing, extra=extra),
+        used,
+        run,
+        MetricMap(trajectory=traj, walls=walls, files=map_files),
+        truth=truth,
+        truth_file=gt,
+        save_truth=schedule is not None,  # what ptm-eval needs for the true-topology mass
+        surprise=surprise_trace(extractor.detector),
+        write_report=write_report,
+        title=f"PTM of {bag.name}",
+        log=log,
+        chain_trace=chain_trace if write_trace else None,
+        phases=ph,
+    )
+    files = dict(written.files)
+    if checkpoint is not None and checkpoint.every:
+        files["state"] = checkpoint.path
+    return replace(written, diagnostics=diag, files=files, resumed_visits=resumed)
+
+
+@dataclass(frozen=True)
+class MetricMap:
+    """The metric map that goes with a PTM, however it was made (``ptm-run`` draws it from the bag, the
+    map publisher online from what the detector sent it).
+
+    Attributes:
+        trajectory: ``(T, 3)`` the smoothed MAP trajectory at the run's odometry stamps
+            (:func:`map_trajectory`); None when none was drawn.
+        walls: the classes of ``map.pgm`` (:func:`class_grid`, :func:`map_classes`); None without a map.
+        files: the map files written (keys ``map_pgm``, ``map_yaml``, ``map_png`` of :data:`OUTPUT_FILES`).
+    """
+
+    trajectory: np.ndarray | None = None
+    walls: ClassGrid | None = None
+    files: Mapping[str, Path] = field(default_factory=dict)
+
+
+def saved_map(
+    run: RunData, files: Mapping[str, Path], trajectory: tuple[np.ndarray, np.ndarray] | None
+) -> MetricMap:
+    """The :class:`MetricMap` of a map drawn elsewhere (the map publisher's, saved by its ``~/save_map``):
+    its ``files`` (keys ``map_pgm``, ``map_yaml``, ``map_png``; none without a map), the classes of
+    ``map.yaml`` read back (:func:`map_classes`), and the ``trajectory`` ``(stamps (K,), poses (K, 3))``
+    it was drawn along at the run's odometry stamps (:func:`ptm_ros.geometry.interpolate_poses`: exact
+    where the run's stamps are among the trajectory's, as when the map was drawn from every sample)."""
+    from ptm_ros.geometry import interpolate_poses
+
+    traj = None
+    if trajectory is not None and len(trajectory[0]):
+        traj = interpolate_poses(trajectory[0], trajectory[1], run_odometry(run).stamps)
+    walls = map_classes(files["map_yaml"]) if "map_yaml" in files else None
+    return MetricMap(trajectory=traj, walls=walls, files=dict(files))
+
+
+def map_classes(yaml_path: Path) -> ClassGrid:
+    """The classes of a saved map (``map.yaml`` + ``map.pgm``, :func:`ptm_ros.occupancy.load_map`): the
+    :func:`class_grid` of the grid it was saved from."""
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.occupancy import load_map
+
+    saved = load_map(yaml_path)
+    return ClassGrid(saved.data, saved.origin, saved.resolution)
+
+
+def write_outputs(
+    out: Path,
+    ptm: Ptm,
+    used: PtmConfig,
+    run: RunData,
+    metric: MetricMap,
+    *,
+    truth: GroundTruthTrajectory | None = None,
+    truth_file: Path | None = None,
+    save_truth: bool = False,
+    surprise: SurpriseTrace | None = None,
+    write_report: bool = True,
+    title: str,
+    log: Callable[[str], None] | None = None,
+    chain_trace: Mapping[str, Any] | None = None,
+    phases: Phases | None = None,
+) -> RunResult:
+    """Everything ``ptm-run`` and ``ptm-bringup`` write beside a PTM, from the PTM, the configuration
+    ``used``, the recorded run and the run's metric map (files of the module docstring):
+
+    * with a ground truth ``truth`` (read from ``truth_file``) and a trajectory, ``ptm.extra`` gains
+      :data:`TRAJECTORY_ERROR_KEY` (:func:`trajectory_errors`) and, with a map, :data:`MAP_QUALITY_KEY`
+      (:func:`map_quality_against`);
+    * ``ptm.json``, ``config.yaml``, ``route_graph.geojson`` (:func:`write_route_graph`, on the map's
+      walls and trajectory when there is a map), ``ground_truth.json`` when ``save_truth`` (the
+      ``ground-truth`` detector's landmarks);
+    * with ``write_report``, the report: the score against ``truth``, the detector's ``surprise`` trace
+      (:func:`ptm_ros.surprise.surprise_trace`), the map image and the notes (doubts, trajectory errors,
+      map quality, inference), the trajectory drawn under the topologies (the raw odometry without one).
+
+    * ``mcmc_trace.json``: the MCMC ``chain_trace`` (:func:`ptm_ros.report.split_chain_trace`), if given,
+      from which the report draws its SRQ plot.
+
+    ``phases`` shows the map quality, the route graph and the report as progress bars (none by default).
+    ``RunResult.diagnostics`` is ``ptm.extra["diagnostics"]`` (callers with the extractor's replace it).
+    """
+    ph = phases if phases is not None else Phases(quiet=True)
+    extra = dict(ptm.extra)
+    traj, walls = metric.trajectory, metric.walls
+    if truth is not None and traj is not None:
+        ate = trajectory_errors(run, traj, truth)
+        if ate is not None:
+            extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(truth_file)}
+            if walls is not None:
+                with ph.step("map quality"):
+                    quality = map_quality_against(run, walls, truth, ate["alignment"], used)
+                if quality is not None:
+                    extra[MAP_QUALITY_KEY] = quality
+    ptm = replace(ptm, extra=extra)
+    files = dict(metric.files)
+    files["ptm"] = save_ptm(ptm, out / OUTPUT_FILES["ptm"])
     files["config"] = save_config(used, out / OUTPUT_FILES["config"])
-    if write_trace and chain_trace is not None:
+    if chain_trace is not None:
         files["mcmc_trace"] = save_chain_trace(chain_trace, out / OUTPUT_FILES["mcmc_trace"])
     with ph.step("route graph"):
         files["route_graph"] = write_route_graph(
@@ -545,13 +658,11 @@ def run_offline(
             out / OUTPUT_FILES["route_graph"],
             grid=walls,
             trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
-            config=config.routes,
+            config=used.routes,
             log=log,
         )
-    if schedule is not None and truth is not None:  # what ptm-eval needs for the true-topology mass
+    if save_truth and truth is not None:
         files["ground_truth"] = save_sim_gt(truth, out / OUTPUT_FILES["ground_truth"])
-    if checkpoint is not None and checkpoint.every:
-        files["state"] = checkpoint.path
     score = score_against(ptm, truth) if truth is not None else None
     report = None
     if write_report:
@@ -561,26 +672,25 @@ def run_offline(
             report = _write_report(
                 out,
                 ptm,
-                trajectory=traj,
+                trajectory=traj if traj is not None else run.odometry.poses,
                 score=score,
-                surprise_trace=surprise_trace(extractor.detector),
+                surprise_trace=surprise,
                 occupancy_map=files.get("map_png"),
                 notes=doubt_lines(find_doubts(ptm))
                 + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
                 + map_quality_notes(extra.get(MAP_QUALITY_KEY))
                 + inference_notes(ptm.inference),
-                title=f"PTM of {bag.name}",
-                chain_trace=chain_trace if write_trace else None,
+                title=title,
+                chain_trace=chain_trace,
             )
     return RunResult(
         ptm=ptm,
-        ptm_path=ptm_path,
+        ptm_path=files["ptm"],
         report_path=report,
         score=score,
-        diagnostics=diag,
+        diagnostics=dict(extra.get("diagnostics") or {}),
         files=files,
         trajectory_error=extra.get(TRAJECTORY_ERROR_KEY),
-        resumed_visits=resumed,
     )
 
 
@@ -608,15 +718,6 @@ def _checkpoint(
         save_filter_state(checkpoint.path, s.state_dict(), meta=meta)
 
     return resumed, (save if checkpoint.every else None)
-
-
-def surprise_trace(detector: Any) -> Any | None:
-    """The Bayesian surprise trace of a surprise detector (thesis Fig. 62), None for other detectors."""
-    from ptm_ros.surprise import AppearanceSurpriseDetector, LaserSurpriseDetector
-
-    if isinstance(detector, LaserSurpriseDetector | AppearanceSurpriseDetector):
-        return detector.trace
-    return None
 
 
 def trajectory_errors(
@@ -787,15 +888,13 @@ def write_occupancy_map(
     """``map.pgm`` + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory`` over
     it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
     run has no usable scan."""
-    from ptm_ros.occupancy import save_map, save_png
+    from ptm_ros.occupancy import save_map_files
 
     if grid is None:
         grid = occupancy_grid(run, trajectory, config)
     if grid is None:
         return {}
-    pgm, yml = save_map(grid, out / Path(OUTPUT_FILES["map_pgm"]).stem, config.occupancy)
-    title = f"occupancy grid ({grid.resolution:g} m cells, {grid.scans} scans), smoothed MAP trajectory"
-    png = save_png(grid, out / OUTPUT_FILES["map_png"], trajectory=trajectory, title=title)
+    pgm, yml, png = save_map_files(grid, out, config.occupancy, trajectory=trajectory)
     return {"map_pgm": pgm, "map_yaml": yml, "map_png": png}
 
 
