@@ -33,15 +33,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from run_all import DATASETS, REAL_RUNS
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
-DATASETS = REPO.parent / "shared" / "datasets"
-RUNS = (
-    ("intel", "intel/intel-raw-910.clf.gz", "intel/intel-gt-910.txt"),
-    ("aces", "aces/aces-raw-440.clf.gz", "aces/aces-gt-440.txt"),
-    ("mit-csail", "mit-csail/mit-csail.clf.gz", "mit-csail/mit-csail-gt-406.txt"),
-)
 SAME_M, DIFFERENT_M = 1.5, 4.0
 QUIET = ("--no-map", "--no-report", "--quiet")
 
@@ -138,7 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     args.work.mkdir(parents=True, exist_ok=True)
     bags, fitness = {}, {}
-    for name, log, gt in RUNS:
+    for name, log, gt in REAL_RUNS:
         bags[name] = args.work / f"{name}.bag"
         if not bags[name].exists():
             convert(DATASETS / log, bags[name])
@@ -146,13 +141,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(
             f"[fitness] {name}: " + ", ".join(f"{k} {len(v)}" for k, v in fitness[name].items()), flush=True
         )
-    names = [r[0] for r in RUNS]
+    names = [r[0] for r in REAL_RUNS]
     fits = {"all three": fitted(fitness, names)}
     rows = []
     for held in names:
         train = [r for r in names if r != held]
         fits[f"without {held}"] = loo = fitted(fitness, train)
-        gt = DATASETS / {r[0]: r[2] for r in RUNS}[held]
+        gt = DATASETS / {r[0]: r[2] for r in REAL_RUNS}[held]
         for seed in args.seeds:
             for label, laser in (("defaults", None), ("leave-one-out", loo)):
                 rec = {

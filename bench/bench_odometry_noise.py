@@ -29,15 +29,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from run_all import DATASETS, REAL_RUNS
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
-DATASETS = REPO.parent / "shared" / "datasets"
-REAL_RUNS = (
-    ("intel", "intel/intel-raw-910.clf.gz", "intel/intel-gt-910.txt"),
-    ("aces", "aces/aces-raw-440.clf.gz", "aces/aces-gt-440.txt"),
-    ("mit-csail", "mit-csail/mit-csail.clf.gz", "mit-csail/mit-csail-gt-406.txt"),
-)
 SIM_WORLDS = ("aliased-ring", "room-row", "twin-rooms")
 CHI2_1_MEDIAN = 0.455
 

@@ -29,14 +29,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from run_all import DATASETS, REAL_RUNS
+
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
-DATASETS = REPO.parent / "shared" / "datasets"
-REAL_RUNS = (
-    ("intel", "intel/intel-raw-910.clf.gz"),
-    ("aces", "aces/aces-raw-440.clf.gz"),
-    ("mit-csail", "mit-csail/mit-csail.clf.gz"),
-)
 
 
 def whole_process_s(bag: Path, out: Path) -> float:
@@ -127,7 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     args.work.mkdir(parents=True, exist_ok=True)
     runs: dict[str, Any] = {}
-    for name, log in REAL_RUNS:
+    for name, log, _ in REAL_RUNS:
         if (args.only and name not in args.only) or not (DATASETS / log).is_file():
             continue
         bag = args.work / f"{name}.bag"
