@@ -55,6 +55,7 @@ from ptm_ros.evaluation import Score
 from ptm_ros.figures import ess_fraction, sig
 from ptm_ros.partitions import IntSequence, num_places
 from ptm_ros.ptm import Ptm, Topology
+from ptm_ros.routes import place_means
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -154,11 +155,9 @@ def place_positions(topology: Topology, visit_xy: NDArray[np.float64]) -> NDArra
     m = num_places(topology.labels)
     if topology.positions is not None and len(topology.positions) == m:
         return np.asarray(topology.positions, dtype=float).reshape(m, 2)
-    labels = np.asarray(topology.labels, dtype=np.intp)
     if m == 0:
         return np.zeros((0, 2))
-    counts = np.bincount(labels, minlength=m).astype(float)
-    return np.stack([np.bincount(labels, visit_xy[:, c], minlength=m) / counts for c in (0, 1)], axis=1)
+    return place_means(topology.labels, visit_xy)
 
 
 def place_edges(labels: IntSequence) -> NDArray[np.intp]:
