@@ -457,7 +457,59 @@ def test_ptm_run_shows_every_phase_on_stderr_unless_quiet(tmp_path, capsys):
     assert same and same == [ln for ln in loud.out.splitlines() if ln.startswith("  #")]
     out = quiet.out
     assert re.findall(r"\d\.\d{5,}", out) == []  # no float printed in full
-    assert "ESS 1.00/100" in out and "(consistent mass = the posterior mass of the topologies" in out
+    assert (
+        re.search(r"ESS \d\.\d\d/100", out)
+        and "(consistent mass = the posterior mass of the topologies" in out
+    )
+
+
+#: What ``make demo``'s bag shows, measured (ptm-run, defaults + config/demo.yaml): the truth's mass after
+#: each visit 1, 1, 1, 1, 0.219, 0.242, 0.463, 0.991; the greedy answer wrong from visit 4 on. The
+#: thresholds leave a margin: the truth below LOW somewhere, split (SPLIT) at two visits or more, above
+#: HIGH at the end.
+DEMO_LOW, DEMO_SPLIT, DEMO_HIGH = 0.5, (0.1, 0.9), 0.9
+
+
+@pytest.mark.slow
+def test_the_demo_bag_splits_the_mass_until_the_robot_returns_while_greedy_commits_wrong(tmp_path, capsys):
+    """Issue #25, ``make demo`` shows why a PTM: on ``bags/demo`` (two junctions alike, told apart only
+    when the robot returns to the first) the filter's PTM after each visit splits its mass between the
+    loop closure and the truth for a stretch of visits and ends on the truth, while the greedy baseline
+    commits to the wrong loop closure and never leaves it."""
+    from ptm_ros.evaluation import first_wrong_visit, timeline_masses
+    from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.report import TIMELINE
+    from ptm_ros.tools.evaluate import score_against_ground_truth
+
+    params = DEMO_BAG.parents[1] / "config" / "demo.yaml"
+    out = tmp_path / "demo"
+    assert (
+        run_cli.main([str(DEMO_BAG), "--out", str(out), "--params", str(params), "--quiet", "--no-map"]) == 0
+    )
+    printed = capsys.readouterr().out
+    ptm = load_ptm(out / "ptm.json")
+    truth = score_against_ground_truth(ptm, load_ground_truth(DEMO_BAG / "ground_truth.json")).true_labels
+    assert truth is not None and len(truth) == len(ptm.landmarks) == 8
+    masses = timeline_masses(ptm_timeline(ptm), truth)
+    assert all(m is not None for m in masses), masses
+    assert min(masses) < DEMO_LOW and masses[-1] > DEMO_HIGH, masses
+    split = [k for k, m in enumerate(masses) if DEMO_SPLIT[0] <= m <= DEMO_SPLIT[1]]
+    assert len(split) >= 2 and split == list(range(split[0], split[-1] + 1)), masses  # a stretch of visits
+    assert ptm.topologies[0].labels == truth and masses[-1] > max(masses[split[0] : split[-1] + 1])
+    greedy = ptm_greedy(ptm)
+    assert greedy is not None and greedy != truth
+    wrong = first_wrong_visit(greedy, truth)
+    assert wrong == split[0]  # greedy commits where the PTM splits, and stays wrong
+    assert greedy[wrong] == greedy[0] != truth[wrong]  # a loop closure onto the first junction
+    assert "greedy baseline" in printed and f"wrong, from visit {wrong} on" in printed
+    rows = [
+        ln.split() for ln in printed.splitlines() if re.match(r"\s+\d+\s+\d\.\d{3}\s+(right|wrong)\s", ln)
+    ]
+    assert [r[0] for r in rows] == [str(k) for k in range(8)]
+    assert [float(r[1]) for r in rows] == pytest.approx(masses, abs=5e-4)
+    assert [r[2] for r in rows] == ["right"] * wrong + ["wrong"] * (8 - wrong)
+    assert (out / TIMELINE).is_file()
 
 
 def demo_like_ptm(n_extra: int = 0) -> tuple[Ptm, tuple[int, ...]]:
