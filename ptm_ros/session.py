@@ -209,12 +209,13 @@ class FilterSession:
         at some visit, and it stopped)."""
         return None if self._greedy is None else self._greedy.labels
 
-    def _decide_greedy(self) -> None:
-        """The greedy baseline's decision on the newest visit; a failure stops the baseline, not the map."""
+    def _decide_greedy(self, visits: Sequence[Visit]) -> None:
+        """The greedy baseline's decision on the last of ``visits`` (the ones it decided, then one more);
+        a failure stops the baseline, not the map."""
         if self._greedy is None:
             return
         try:
-            self._greedy.add(self._visits)
+            self._greedy.add(visits)
         except ModelError:
             self._greedy = None
 
@@ -241,7 +242,7 @@ class FilterSession:
             for key in [k for k in self._pairs if k[1] == n]:
                 del self._pairs[key]
             raise
-        self._decide_greedy()
+        self._decide_greedy(self._visits)
         self.wall_s += time.perf_counter() - start
         return state
 
@@ -338,11 +339,7 @@ class FilterSession:
                     state["filter"], appearance_from_state(state["appearance"])
                 )
             for k in range(len(self._visits)):  # the greedy baseline's decisions, made again
-                self._visits, restored = self._visits[: k + 1], self._visits
-                try:
-                    self._decide_greedy()
-                finally:
-                    self._visits = restored
+                self._decide_greedy(self._visits[: k + 1])
         except (KeyError, IndexError, TypeError, ValueError, PtmError) as err:
             self.reset()
             msg = f"malformed filter session state: {type(err).__name__}: {err}"

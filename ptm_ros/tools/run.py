@@ -206,7 +206,7 @@ def timeline_lines(ptm: Ptm, truth: Labels | None = None) -> list[str]:
     """The printed timeline: after each visit the mass of the most probable topologies of the visits so
     far (``*`` the true one, ``g`` the greedy baseline's answer so far) and, with the true topology
     ``truth``, its mass and whether the greedy answer so far is right; at most :data:`TIMELINE_ROWS` rows
-    (the :func:`eventful` ones when more). None without a timeline in ptm.json."""
+    (the :func:`eventful` ones when more); no lines without a timeline in ptm.json."""
     from ptm_ros.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
     from ptm_ros.ptm import ptm_greedy, ptm_timeline
     from ptm_ros.report import label_string
