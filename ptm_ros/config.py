@@ -71,6 +71,7 @@ class InferenceConfig:
     seed: int = 0
     top: int = 50  # topologies written to ptm.json
     timeline: int = 3  # rbpf: topologies per visit in ptm.json's inference.timeline (0: no timeline)
+    greedy: bool = False  # also run the greedy single-answer baseline (a pose graph per visit: O(N²))
     max_exact_visits: int = 9  # exact enumeration refuses larger N (B_9 = 21 147; B_12 = 4.2 million)
     mcmc: McmcConfig = field(default_factory=McmcConfig)
 

@@ -140,8 +140,9 @@ class FilterSession:
             model of MCMC); default: one over the session's own visits, counting into
             :attr:`registrations`. Either way the session caches its outcomes per pair.
 
-    Beside the filter the session runs the greedy baseline (:class:`ptm_ros.baselines.GreedyAssociation`,
-    odometry only, decisions final) on the same visits, one decision per visit; a restored session
+    With ``inference.greedy``, beside the filter the session runs the greedy baseline
+    (:class:`ptm_ros.baselines.GreedyAssociation`, odometry only, decisions final) on the same visits,
+    one decision per visit; a restored session
     decides the restored visits again (the same answer: it depends on the visits alone).
 
     Raises:
@@ -177,7 +178,8 @@ class FilterSession:
         if inner is None and config.model.use_laser:
             inner = make_registrar(self._visits, config, self.registrations)
         self._registrar = None if inner is None or not config.model.use_laser else cached(inner, self._pairs)
-        self._greedy: GreedyAssociation | None = GreedyAssociation(config.model.odometry, GreedyConfig())
+        self._greedy: GreedyAssociation | None = None
+        self._start_greedy()
 
     def _fit(self, visits: Sequence[Visit]) -> AppearanceModel | None:
         """The appearance priors fitted to ``visits`` (the same model object ``PosteriorModel`` builds)."""
@@ -208,6 +210,11 @@ class FilterSession:
         """The greedy baseline's labels of the visits so far (None: its pose graph could not be solved
         at some visit, and it stopped)."""
         return None if self._greedy is None else self._greedy.labels
+
+    def _start_greedy(self) -> None:
+        """A fresh greedy baseline when ``inference.greedy`` asks for one."""
+        on = self.config.inference.greedy
+        self._greedy = GreedyAssociation(self.config.model.odometry, GreedyConfig()) if on else None
 
     def _decide_greedy(self, visits: Sequence[Visit]) -> None:
         """The greedy baseline's decision on the last of ``visits`` (the ones it decided, then one more);
@@ -296,7 +303,7 @@ class FilterSession:
         self.replays = 0
         self.wall_s = 0.0
         self.registrations.clear()
-        self._greedy = GreedyAssociation(self.config.model.odometry, GreedyConfig())
+        self._start_greedy()
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the session (plain values and arrays, for
@@ -531,7 +538,10 @@ def infer(
 
 
 def _greedy_of(visits: Sequence[Visit], config: PtmConfig) -> Labels | None:
-    """The greedy baseline's answer on a whole run (None: its pose graph could not be solved)."""
+    """The greedy baseline's answer on a whole run (None: not asked for by ``inference.greedy``, or its
+    pose graph could not be solved)."""
+    if not config.inference.greedy:
+        return None
     try:
         return greedy_association(visits, config.model.odometry, GreedyConfig())
     except ModelError:

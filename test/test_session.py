@@ -219,7 +219,9 @@ def test_the_ptm_carries_the_filters_timeline_and_the_greedy_answer(sim_visits, 
     from ptm_ros.baselines import GreedyConfig, greedy_association
     from ptm_ros.ptm import ptm_greedy, ptm_timeline
 
-    config = load_config(None, {"model": {"use_laser": False}, "inference": {"particles": 30, "timeline": 2}})
+    config = load_config(
+        None, {"model": {"use_laser": False}, "inference": {"particles": 30, "timeline": 2, "greedy": True}}
+    )
     offline = FilterSession(config, fitted_to=sim_visits)
     live = FilterSession(config, refit_max_visits=0)
     for n, v in enumerate(sim_visits):
@@ -235,14 +237,18 @@ def test_the_ptm_carries_the_filters_timeline_and_the_greedy_answer(sim_visits, 
     assert ptm.extra["greedy"]["places"] == max(live.greedy) + 1
     assert ptm_timeline(live.to_ptm()) == steps
     assert infer(sim_visits, config).greedy == offline.greedy
-    exact = load_config(None, {"model": {"use_laser": False}, "inference": {"method": "exact"}})
+    exact = load_config(
+        None, {"model": {"use_laser": False}, "inference": {"method": "exact", "greedy": True}}
+    )
     assert infer(sim_visits[:5], exact).greedy == greedy_association(
         sim_visits[:5], config.model.odometry, GreedyConfig()
     )
     assert "timeline" not in infer(sim_visits[:5], exact).details
-    untimed = FilterSession(replace(config, inference=replace(config.inference, timeline=0)))
+    untimed = FilterSession(replace(config, inference=replace(config.inference, timeline=0, greedy=False)))
     untimed.add(sim_visits[0])
     assert ptm_timeline(untimed.to_ptm()) == () and "timeline" not in untimed.to_ptm().inference
+    assert untimed.greedy is None and "greedy" not in untimed.to_ptm().extra  # off by default (O(N²))
+    assert infer(sim_visits[:5], load_config(None, {"model": {"use_laser": False}})).greedy is None
     half = FilterSession(config, refit_max_visits=0)
     for v in sim_visits[:4]:
         half.add(v)
