@@ -9,8 +9,8 @@
    resumable) and corrupted bags through ``ptm-run``/``ptm-eval`` with a larger budget than the test's
    (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities fitted leave one run out
    (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised in ``results.md``) and the model's
-   odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
-   when present.
+   odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``)
+   and ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -68,6 +68,7 @@ COMPONENTS = (
     "bench_fuzz.py",
     "bench_fitness_loo.py",
     "bench_odometry_noise.py",
+    "bench_demo.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (
