@@ -57,7 +57,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -213,18 +213,37 @@ def _stream(name: str, pipe: TextIO, out: TextIO, lock: threading.Lock) -> None:
 _PRINT_LOCK = threading.Lock()
 
 
-def spawn(name: str, cmd: Sequence[str], env: dict[str, str], out: TextIO = sys.stdout) -> Child:
-    """Start ``cmd`` in a new session (its own process group), streaming its output with a prefix."""
-    popen = subprocess.Popen(
-        list(cmd),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        env=env,
-        text=True,
-        bufsize=1,
-        start_new_session=True,
-    )
+@contextlib.contextmanager
+def signals_blocked(signals: Collection[int]) -> Iterator[None]:
+    """Block ``signals`` in this thread for the block (a process started meanwhile inherits the mask)."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def spawn(
+    name: str, cmd: Sequence[str], env: dict[str, str], out: TextIO = sys.stdout, *, node: bool = False
+) -> Child:
+    """Start ``cmd`` in a new session (its own process group), streaming its output with a prefix.
+
+    A ``node`` starts with SIGINT and SIGTERM blocked: its entry point (:func:`ptm_ros.nodes.common.run_node`)
+    unblocks them once it answers them as a stop request, so a stop sent while the node still imports its
+    modules ends it cleanly (exit code 0) instead of interrupting the import."""
+    from ptm_ros.nodes.common import STOP_SIGNALS
+
+    with signals_blocked(STOP_SIGNALS if node else ()):
+        popen = subprocess.Popen(
+            list(cmd),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            text=True,
+            bufsize=1,
+            start_new_session=True,
+        )
     assert popen.stdout is not None
     thread = threading.Thread(target=_stream, args=(name, popen.stdout, out, _PRINT_LOCK), daemon=True)
     thread.start()
@@ -481,7 +500,7 @@ class Bringup:
     def execute(self, env: dict[str, str]) -> int:
         """Start everything, supervise until the map is complete, SIGINT/SIGTERM or a failure."""
         for name, cmd in self.plan.nodes.items():
-            self.children.append(spawn(name, cmd, env))
+            self.children.append(spawn(name, cmd, env, node=True))
         if not self.wait_for_nodes():
             if self.stop_requested:
                 return self.write_what_we_have()
@@ -534,7 +553,8 @@ class Bringup:
             f"({self.respawns[dead.name]} of {self.plan.respawn})"
         )
         stop_all([dead])  # its process group's stray members, its output thread
-        self.children[self.children.index(dead)] = spawn(dead.name, self.plan.restart_command(dead.name), env)
+        restart = self.plan.restart_command(dead.name)
+        self.children[self.children.index(dead)] = spawn(dead.name, restart, env, node=True)
         return True
 
     def end_input(self) -> None:
