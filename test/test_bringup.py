@@ -186,6 +186,34 @@ def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path, proce
     assert not (out / "ptm.json").exists()
 
 
+@pytest.mark.dds
+@pytest.mark.slow
+def test_a_bag_without_a_landmark_visit_is_refused_in_one_line(tmp_path, process_logs):
+    """A bag the detector finds no landmark in (a robot that never moves) is refused as ptm-run refuses it:
+    exit 2, one line on stderr, no ptm.json, as soon as the filter's ensemble of the whole bag is empty
+    (it used to wait for --timeout, the map publisher refusing to save an empty ensemble)."""
+    from ptm_ros.io.bag import BagWriter
+
+    bag, out = tmp_path / "still", tmp_path / "out"
+    ranges = np.full(181, 4.0, dtype=np.float32)  # the same scan throughout: no surprise, no landmark
+    with BagWriter(bag) as w:
+        for k in range(100):
+            w.write_odometry(50.0 + 0.05 * k, (1.0, 2.0, 0.3))
+            if k % 2:
+                w.write_scan(50.0 + 0.05 * k, ranges, -1.57, 0.0174, 0.1, 30.0)
+    cmd = [*BRINGUP, "--bag", str(bag), "--rate", "0", "--out", str(out), "--timeout", "250"]
+    try:
+        proc = run_logged(cmd, process_logs)
+    finally:
+        assert_no_orphans(str(out), str(bag))
+    assert proc.returncode == 2, f"ptm-bringup exited {proc.returncode}"
+    assert [ln for ln in proc.stderr.splitlines() if ln.strip()] == [
+        f"ptm-bringup: error: {bag}: no landmark visits were detected: nothing to map"
+    ]
+    assert "Traceback" not in proc.stdout and not (out / "ptm.json").exists()
+    assert stopped_codes(proc.stdout) == {"map_publisher": 0, "topology_filter": 0, "landmark_detector": 0}
+
+
 def test_bad_input_fails_before_anything_starts(sim_bag, tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("inference: {particles: 0}\n")

@@ -1179,6 +1179,39 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(m
 
 
 @pytest.mark.dds
+def test_detector_rejoins_a_scan_stream_whose_first_messages_were_stamped_ahead(
+    sim_bag, tmp_path, monkeypatch
+):
+    """The bag's first 11 scans stamped 100 s ahead (confirmed as the stream's start), then the scans on
+    the odometry's clock: the stream rejoins the session at once and what the extractor held of the
+    stretch ahead is dropped, so the node's visits are those ptm-run's reader gives (it keeps the longest
+    increasing run of a topic), not none (every later scan skipped as going back in time)."""
+    from bag_corruption import Plan, Stretch, corrupt
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import LaserScan
+
+    bag = corrupt(sim_bag, tmp_path / "ahead", Plan(stretches=(Stretch("/scan", 0.0, 11, 100.0),))).path
+    run = read_run(bag, image_topic=None)  # ptm-run's reader: the 11 scans ahead are skipped
+    expected = detect_visits(run, load_config(None, {"detector": {"kind": "laser-surprise"}}))
+    assert len(expected) >= 3
+    with ros_context(monkeypatch) as ros:
+        node = odometry_detector(ros, use_scans=True, **{"detector.kind": "laser-surprise"})
+        for raw in iter_raw(bag, ["/odom", "/scan"]):
+            if raw.topic == "/odom":
+                node._on_odom(deserialize_message(raw.rawdata, Odometry))
+            else:
+                node._on_scan(deserialize_message(raw.rawdata, LaserScan))
+        node.finish()
+        (got,) = visits_by_session(node)
+        diag = node.diagnostics()
+    assert [v.stamp for v in got] == [v.stamp for v in expected]
+    assert [v.input_pose for v in got] == [v.input_pose for v in expected]
+    assert diag["clock_resets"] == 1 and diag["sessions"] == 1  # the scans came back: no new session
+    assert diag["extractor"]["skipped"]["scan-off-clock"] > 0
+
+
+@pytest.mark.dds
 def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
     with ros_context(monkeypatch) as ros:
         node = odometry_detector(ros, use_scans=True, use_images=True, silence_s=10.0)
