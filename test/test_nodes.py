@@ -357,6 +357,29 @@ def test_stream_guard_confirms_jumps_resets_and_teleports():
     assert adm.outliers == 1 and guard.held == common.StreamGuard.MAX_RUNS
 
 
+def test_stream_guard_keeps_a_good_message_held_with_a_bad_one():
+    """A copy stamped 30 s ahead arrives right after the stream's first message and joins its run (it
+    continues it within stamp_jump_s): the messages that follow continue the first message, not the
+    copy, and their run keeps it, so only the copy is an outlier (ptm-run's reader too keeps the longest
+    increasing run); the same inside a held forward jump."""
+    guard = point_guard(confirm=3)
+    guard.admit(0.0, (0.0, 0.0))
+    guard.admit(30.0, (0.0, 0.0))  # a far copy of the first message
+    assert guard.held == 2
+    assert guard.admit(0.1, (0.05, 0.0)).released == () and guard.held == 3  # the first one shared
+    adm = guard.admit(0.2, (0.1, 0.0))
+    assert adm.event == common.START and adm.outliers == 1
+    assert adm.released == ((0.0, (0.0, 0.0)), (0.1, (0.05, 0.0)), (0.2, (0.1, 0.0)))
+    for s in (0.3, 0.4, 0.5):
+        guard.admit(s, (0.5 * s, 0.0))
+    guard.admit(100.0, (1.0, 0.0))  # a pause: held
+    guard.admit(125.0, (1.0, 0.0))  # a bad copy ahead of it, continuing it
+    guard.admit(100.1, (1.0, 0.0))
+    adm = guard.admit(100.2, (1.0, 0.0))
+    assert adm.event == common.FORWARD_JUMP and [t for t, _ in adm.released] == [100.0, 100.1, 100.2]
+    assert adm.outliers == 1 and guard.held == 0
+
+
 def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
     good = tmp_path / "good.yaml"
     good.write_text("/**:\n  ros__parameters:\n    inference:\n      particles: 3\n")

@@ -660,9 +660,11 @@ class StreamGuard:
       or (with ``position``) farther from it than ``max_speed·Δt + TELEPORT_SLACK_M``, is a *jump* and is
       held, appended to the first
       held run it continues consistently (stamps non-decreasing, steps within ``stamp_jump_s``,
-      plausible speed) or starting a new run (at most :attr:`MAX_RUNS`; the oldest is dropped). The
-      first run to reach ``confirm`` messages is released (the other runs are outliers); a message back
-      on the old timeline drops every run (outliers). A confirmed backward jump is a clock reset.
+      plausible speed), else starting a new run from the longest beginning of a held run it continues
+      (the good messages held before a bad one that came between them), else from nothing (at most
+      :attr:`MAX_RUNS` runs; the oldest is dropped). The first run to reach ``confirm`` messages is
+      released (the messages of no other run in it are outliers); a message back on the old timeline
+      drops every run (outliers). A confirmed backward jump is a clock reset.
     * The stream's first messages are held the same way (event ``start``), so that a lone bad message
       cannot set the timeline.
     * Any other message is released at once (a small step back in time too: the consumer decides).
@@ -713,8 +715,8 @@ class StreamGuard:
 
     @property
     def held(self) -> int:
-        """Messages held for confirmation."""
-        return sum(len(run) for _, run in self._runs)
+        """Messages held for confirmation (each once: runs may share their first messages)."""
+        return len({id(m) for _, run in self._runs for m in run})
 
     @property
     def last_stamp(self) -> float | None:
@@ -762,14 +764,33 @@ class StreamGuard:
         outliers = 0
         run = next((r for _, r in self._runs if self._consistent(r[-1], stamp, payload)), None)
         if run is None:
-            if len(self._runs) >= self.MAX_RUNS:
-                outliers += len(self._runs.pop(0)[1])
-            run = []
-            self._runs.append((event, run))
+            run_event, run = self._fork(stamp, payload)
+            self._runs.append((run_event or event, run))
+            if len(self._runs) > self.MAX_RUNS:
+                _, oldest = self._runs.pop(0)
+                outliers += self._unheld(oldest)
         run.append((stamp, payload))
         if len(run) < self.config.confirm:
             return Admission(outliers=outliers)
         return self._release(run, outliers)
+
+    def _fork(self, stamp: float, payload: Any) -> tuple[str | None, list[tuple[float, Any]]]:
+        """A new run for a message that continues no held run: the longest beginning of a held run it
+        continues (a good message that arrived before a bad one held in the same run, e.g. a copy
+        stamped ahead just after the stream's first message), with that run's event; else empty."""
+        best: tuple[str | None, list[tuple[float, Any]]] = (None, [])
+        for run_event, run in self._runs:
+            for k in range(len(run) - 1, -1, -1):
+                if self._consistent(run[k], stamp, payload):
+                    if k + 1 > len(best[1]):
+                        best = (run_event, run[: k + 1])
+                    break
+        return best
+
+    def _unheld(self, messages: list[tuple[float, Any]]) -> int:
+        """How many of ``messages`` no held run has (runs may share their first messages)."""
+        held = {id(m) for _, run in self._runs for m in run}
+        return sum(id(m) not in held for m in messages)
 
     def _release(self, run: list[tuple[float, Any]], outliers: int = 0) -> Admission:
         event = next(e for e, r in self._runs if r is run)
