@@ -142,11 +142,16 @@ def check_odometry_fits(fit: OdometryFit, *, raw: bool) -> None:
 
     if fit.fits or fit.statistic is None:
         return
+    legacy = (
+        ""
+        if raw
+        else "; one of a real run written without its raw odometry by an older ptm-run: write it again"
+    )
     msg = (
         f"the landmarks' odometry does not move as the ground truth's {'raw odometry' if raw else 'poses'} "
         f"do: relative residual {fit.statistic:.2f} over {fit.window_m:g} m stretches ({fit.quantile:.0%} "
         f"quantile of {fit.windows}; a run's own ground truth stays below {fit.limit:g}): is it another "
-        "run's? (--force scores it anyway)"
+        f"run's?{legacy} (--force scores it anyway)"
     )
     raise DataError(msg)
 
