@@ -82,13 +82,11 @@ rigid motion then matches little more than the centroids). The statistic is the
 slip) yet not blind to a wrong ground truth that is right on half the run (two routes that share their
 straight corridors and differ at the corners).
 A run with no window (fewer than three visits, or too little travel) cannot be judged. Measured
-(``ptm-run`` / the detectors on the real runs and on simulated runs of every world at six odometry noise
-levels; ``README.md``, ``ptm-eval``): a run's own ground truth gives at most 0.02 against CARMEN's raw
-odometry, 0.17 on the simulated runs with twice the model's odometry noise and 0.22 for Intel's raw
-odometry (0.057 rad/m of heading drift) against its corrected poses; another run's ground truth, its
-stamps shifted to overlap, gives at least 0.36 (the 12 m square loop against the 18 m square ring) and
-0.86 on the real runs. Above :data:`ODOMETRY_FIT_LIMIT` (0.28, between the two) ``ptm-eval`` refuses the
-ground truth as another run's.
+(``README.md``, ``ptm-eval``): a run's own ground truth gives at most 0.017 against CARMEN's raw
+odometry and 0.165 on simulated runs with twice the model's odometry noise; another run's ground truth,
+its stamps shifted to overlap, gives at least 0.35 (the 12 m square loop against the 18 m square ring)
+and 0.41 on the real runs. Above :data:`ODOMETRY_FIT_LIMIT` (0.28, between the two) ``ptm-eval``
+refuses the ground truth as another run's.
 
 Calibration (issue #23, "an honest posterior"). Over many runs ``r = 1..R`` with stated MAP probability
 ``p_r`` (the listed probability of the most probable topology) and outcome ``y_r = 1`` when the MAP
