@@ -939,7 +939,7 @@ class StopRequest:
         A process started with the signals blocked (``ptm-bringup`` starts its nodes so) holds a signal
         sent while Python imported the node's modules, and it arrives here, as a stop request, instead of
         as a ``KeyboardInterrupt`` in the middle of an import."""
-        previous = {sig: signal.signal(sig, self) for sig in STOP_SIGNALS}
+        previous: dict[int, Any] = {sig: signal.signal(sig, self) for sig in STOP_SIGNALS}
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
         return previous
 

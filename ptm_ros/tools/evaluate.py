@@ -55,7 +55,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 if TYPE_CHECKING:
     import numpy as np
@@ -129,7 +129,7 @@ def odometry_fit_against(
     odom = np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
     t0, t1 = float(np.min(truth.stamps)), float(np.max(truth.stamps))
     inside = (stamps >= t0 - max_extrapolation) & (stamps <= t1 + max_extrapolation)
-    which = "raw" if truth.poses_raw is not None else "corrected"
+    which: Literal["corrected", "raw"] = "raw" if truth.poses_raw is not None else "corrected"
     ref = interpolate_pose(truth, stamps[inside], which=which, tolerance=max_extrapolation)
     return odometry_fit(odom[inside], ref[:, :2])
 
