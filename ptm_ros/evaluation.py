@@ -68,6 +68,30 @@ first ``n`` entries and made canonical (:func:`timeline_masses`): the mass movin
 visits arrive. A single-answer method whose decisions are final (the greedy baseline) goes wrong at the
 first visit whose cut labels differ from the cut truth (:func:`first_wrong_visit`) and stays wrong.
 
+Odometry fit (issue #25: is this ground truth this run's?). A ground truth of another run can overlap
+this run's clock, and then scores it against the wrong trajectory. The visits' odometry positions
+``o_i`` and the ground truth's positions ``g_i`` at the visits' stamps (its raw odometry when it has
+one, CARMEN's ``x_raw …``, which is the same odometry; else its true poses) must then describe the same
+motion, up to odometry drift. Drift grows with the distance travelled, so the fit is judged over short
+stretches: for every visit ``i``, the window ``W_i = {i, …, j}`` is the shortest run of at least three
+consecutive visits whose true path covers ``L`` metres,
+``Σ_{k=i}^{j-1} ‖g_{k+1} - g_k‖ ≥ L`` (``L`` = :data:`ODOMETRY_FIT_WINDOW_M`); its *relative residual* is
+the RMS distance left after the rigid alignment of the odometry onto the truth (the ATE above, over the
+window alone) divided by the RMS spread of the true positions about their centroid,
+
+.. math::
+    r_i = \\frac{\\text{ATE}(o_{W_i}, g_{W_i})}{\\sqrt{\\tfrac{1}{|W_i|} \\sum_{k \\in W_i}
+        \\lVert g_k - \\bar g_{W_i} \\rVert^2}} \\ge 0,
+
+0 when the stretch moved exactly as the truth says, about 1 or more when the two are unrelated (the best
+rigid motion then matches little more than the centroids). The statistic is the
+:data:`ODOMETRY_FIT_QUANTILE` quantile of the ``r_i``, robust to a few stretches of bad odometry (wheel
+slip) yet not blind to a wrong ground truth that is right on half the run (two routes that share their
+straight corridors and differ at the corners).
+A run with no window (fewer than three visits, or too little travel) cannot be judged. Above
+:data:`ODOMETRY_FIT_LIMIT`, set between what a run's own ground truth and another run's give (measured
+in ``README.md``, ``ptm-eval``), ``ptm-eval`` refuses the ground truth as another run's.
+
 Calibration (issue #23, "an honest posterior"). Over many runs ``r = 1..R`` with stated MAP probability
 ``p_r`` (the listed probability of the most probable topology) and outcome ``y_r = 1`` when the MAP
 topology *is* the ground-truth topology (same partition of the visits as the true place ids), with
@@ -542,6 +566,101 @@ def absolute_trajectory_error(est_xy: ArrayLike, true_xy: ArrayLike) -> float:
     c, s = math.cos(theta), math.sin(theta)
     moved = e @ np.array([[c, s], [-s, c]]) + t
     return float(np.sqrt(np.mean(np.sum((moved - g) ** 2, axis=1))))
+
+
+# --------------------------------------------------------------------------------------------------
+# Odometry fit (module docstring: "Odometry fit")
+
+#: Metres of true path each window of the odometry fit covers (module docstring).
+ODOMETRY_FIT_WINDOW_M = 8.0
+#: The quantile of the windows' relative residuals that is the odometry fit.
+ODOMETRY_FIT_QUANTILE = 0.8
+#: An odometry fit above this is another run's ground truth (measured: README.md, `ptm-eval`).
+ODOMETRY_FIT_LIMIT = 0.28
+
+
+@dataclass(frozen=True)
+class OdometryFit:
+    """How well the visits' odometry fits a ground truth (module docstring: "Odometry fit").
+
+    ``statistic`` is the ``quantile`` of the ``windows`` relative residuals (None: no window, not
+    judged); ``visits`` the visits with a ground-truth position; ``window_m``, ``limit`` the settings.
+    """
+
+    statistic: float | None
+    windows: int
+    visits: int
+    window_m: float = ODOMETRY_FIT_WINDOW_M
+    quantile: float = ODOMETRY_FIT_QUANTILE
+    limit: float = ODOMETRY_FIT_LIMIT
+
+    @property
+    def fits(self) -> bool:
+        """The odometry fits (or cannot be judged): at most ``limit``."""
+        return self.statistic is None or self.statistic <= self.limit
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON values."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__} | {"fits": self.fits}
+
+
+def fit_windows(true_xy: ArrayLike, window_m: float = ODOMETRY_FIT_WINDOW_M) -> list[tuple[int, int]]:
+    """The windows ``(i, j)`` (visits ``i..j`` inclusive) of the odometry fit over the true positions
+    ``true_xy (n, 2)``: for each ``i`` the smallest ``j >= i + 2`` whose true path from ``i`` covers
+    ``window_m`` metres; none for an ``i`` whose path to the last visit is shorter."""
+    g = _xy(true_xy, "true_xy") if len(np.asarray(true_xy)) else np.zeros((0, 2))
+    if not (math.isfinite(window_m) and window_m > 0.0):
+        msg = f"window_m must be finite and > 0, got {window_m}"
+        raise ConfigError(msg)
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(g, axis=0).T))]) if len(g) else np.zeros(0)
+    ends = np.searchsorted(travel, travel + window_m, side="left")
+    return [(i, max(int(j), i + 2)) for i, j in enumerate(ends) if max(int(j), i + 2) < len(g)]
+
+
+def window_residuals(
+    odom_xy: ArrayLike, true_xy: ArrayLike, window_m: float = ODOMETRY_FIT_WINDOW_M
+) -> NDArray[np.float64]:
+    """The relative residual ``r_i`` (module docstring) of every window of :func:`fit_windows`: the ATE of
+    the window's odometry positions ``odom_xy (n, 2)`` against ``true_xy (n, 2)`` over the true positions'
+    RMS spread. A window whose true positions all coincide (no spread) has residual 0 when the odometry's
+    do too, else 1."""
+    o = _xy(odom_xy, "odom_xy") if len(np.asarray(odom_xy)) else np.zeros((0, 2))
+    g = _xy(true_xy, "true_xy") if len(np.asarray(true_xy)) else np.zeros((0, 2))
+    if len(o) != len(g):
+        msg = f"one odometry position per true position: {len(o)} and {len(g)}"
+        raise ModelError(msg)
+    out = []
+    for i, j in fit_windows(g, window_m):
+        a, b = o[i : j + 1], g[i : j + 1]
+        spread = math.sqrt(float(np.mean(np.sum((b - b.mean(axis=0)) ** 2, axis=1))))
+        ate = absolute_trajectory_error(a, b)
+        out.append(ate / spread if spread > 0.0 else float(ate > 0.0))
+    return np.asarray(out, dtype=float)
+
+
+def odometry_fit(
+    odom_xy: ArrayLike,
+    true_xy: ArrayLike,
+    *,
+    window_m: float = ODOMETRY_FIT_WINDOW_M,
+    quantile: float = ODOMETRY_FIT_QUANTILE,
+    limit: float = ODOMETRY_FIT_LIMIT,
+) -> OdometryFit:
+    """How well the visits' odometry positions ``odom_xy (n, 2)`` fit the ground truth's ``true_xy (n, 2)``
+    at the same stamps (rows in visit order; a NaN row of ``true_xy``, a visit without ground truth, is
+    left out): the ``quantile`` of :func:`window_residuals` (module docstring: "Odometry fit")."""
+    if not 0.0 <= quantile <= 1.0:
+        msg = f"quantile must be in [0, 1], got {quantile}"
+        raise ConfigError(msg)
+    o = np.asarray(odom_xy, dtype=float).reshape(-1, 2)
+    g = np.asarray(true_xy, dtype=float).reshape(-1, 2)
+    if len(o) != len(g):
+        msg = f"one odometry position per true position: {len(o)} and {len(g)}"
+        raise ModelError(msg)
+    known = ~np.all(np.isnan(g), axis=1)
+    r = window_residuals(o[known], g[known], window_m)
+    statistic = float(np.quantile(r, quantile)) if r.size else None
+    return OdometryFit(statistic, int(r.size), int(known.sum()), window_m, quantile, limit)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -224,6 +224,26 @@ class VisitExtractor:
         out += self._complete(math.inf)
         return out
 
+    def rewind(self, name: str) -> int:
+        """Forget the timeline of the ``"scan"`` or ``"image"`` topic: its messages queued and not yet
+        processed are dropped (each counted as ``<name>-off-clock``) and its next message may be stamped
+        before the last one received (no ``-stamp-backwards``; one before the stream's position is still
+        ``-late``). For a caller that finds the topic's latest messages were on another clock than the
+        odometry and that it has come back to the odometry's (the detector node); returns the number
+        dropped."""
+        topic = {v: k for k, v in TOPIC_NAMES.items() if k != ODOM}.get(name)
+        if topic is None:
+            msg = f"only the scan and image topics can be rewound, not {name!r}"
+            raise ModelError(msg)
+        kept = [entry for entry in self._queue if entry[1] != topic]
+        dropped = len(self._queue) - len(kept)
+        heapq.heapify(kept)
+        self._queue = kept
+        self._watermark[topic] = -math.inf
+        for _ in range(dropped):
+            self.diagnostics.skip(f"{name}-off-clock")
+        return dropped
+
     # ------------------------------------------------------------------------------- sequencing
 
     def _push(self, topic: int, stamp: float, payload: Any) -> list[Visit]:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_helpers import ProcessLogs
 
 from ptm_ros.config import load_config
 from ptm_ros.io.bag import read_run
@@ -27,6 +28,30 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers", "dds: starts rclpy nodes or processes talking over DDS on a ROS domain: not in make check"
     )
+
+
+#: The logs of the processes a test started (fixture ``process_logs``), kept on its item for the report.
+PROCESS_LOGS = pytest.StashKey[ProcessLogs]()
+
+
+@pytest.fixture
+def process_logs(request: pytest.FixtureRequest) -> ProcessLogs:
+    """Where a test registers the logs of the processes it starts (``logs.add("ptm-bringup", lambda:
+    run.log)``): each is shown in full below the failure when the test fails."""
+    logs = ProcessLogs()
+    request.node.stash[PROCESS_LOGS] = logs
+    return logs
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> object:
+    """A failed test's report gets the full log of every process it registered (``process_logs``)."""
+    report = yield
+    logs = item.stash.get(PROCESS_LOGS, None)
+    if logs is not None and report.failed:
+        for name, text in logs.sections():
+            report.sections.append((f"full log of {name} ({call.when})", text))
+    return report
 
 
 @pytest.fixture(scope="session")

@@ -191,6 +191,30 @@ def kill_processes_mentioning(text: str) -> None:
             os.kill(pid, signal.SIGKILL)
 
 
+class ProcessLogs:
+    """The output of the processes a test started, by name. When the test fails, ``conftest.py`` attaches
+    each one in full to the test's report (a section per process, after the assertion), so the cause of a
+    node's exit code is never lost to pytest's shortening of long assertion operands."""
+
+    def __init__(self) -> None:
+        self._sources: dict[str, Callable[[], str]] = {}
+
+    def add(self, name: str, source: Callable[[], str]) -> None:
+        """Attach ``source()`` (called when the report is made: the output so far) as the log ``name``."""
+        self._sources[name] = source
+
+    def sections(self) -> list[tuple[str, str]]:
+        """``(name, text)`` of every attached log."""
+        out = []
+        for name, source in self._sources.items():
+            try:
+                text = source()
+            except Exception as err:  # a report must never fail for its attachments
+                text = f"(log unavailable: {type(err).__name__}: {err})"
+            out.append((name, text))
+        return out
+
+
 BRINGUP = [sys.executable, "-m", "ptm_ros.tools.bringup"]
 
 

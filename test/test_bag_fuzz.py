@@ -1,37 +1,49 @@
-"""Issue #25: whole corrupted bags through ``ptm-run`` and ``ptm-eval`` (property-based, hypothesis).
+"""Issue #25: whole corrupted bags through ``ptm-run`` and ``ptm-eval``, and through the node suite over
+DDS (``ptm-bringup --bag``) (property-based, hypothesis).
 
 A small simulated bag is corrupted by a generated :class:`bag_corruption.Plan`: backwards and jumping
 stamps on any topic, duplicates, NaN / inf / empty / over-long scans, wrong image encodings, header
 stamps that are no ROS time, a topic that stops midway, a storage file cut short or overwritten. Each
 run must either end with a PTM from the good messages, every bad message counted, or exit 2 with one
 line on stderr (no traceback). Then ``ptm-eval`` must score that PTM against the bag's ground truth.
+Through ``ptm-bringup`` the same holds for every process: no traceback in any node's log, exit 0 with a
+ptm.json (the landmark detector's final ``/diagnostics`` count the bad messages, under the names the
+reader uses) or exit 2 with one line.
 
-Seeded (``derandomize=True``) and small: ``PTM_FUZZ_EXAMPLES`` examples (default 6);
-``bench/bench_fuzz.py`` runs a larger budget.
+Seeded (``derandomize=True``) and small: ``PTM_FUZZ_EXAMPLES`` examples (default 6) through ``ptm-run``,
+``PTM_BRINGUP_FUZZ_EXAMPLES`` (default 2 per test) through ``ptm-bringup`` (20-60 s each);
+``bench/bench_fuzz.py`` runs a larger budget through ``ptm-run``.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 from bag_corruption import INSERTED, REPLACED, TOPIC_STREAMS, Insert, Plan, Replace, Stretch, corrupt
 from cli_helpers import call, one_error_line
-from hypothesis import HealthCheck, currently_in_test_context, event, given, settings
+from hypothesis import HealthCheck, Phase, currently_in_test_context, event, given, settings
 from hypothesis import strategies as st
+from ros_helpers import BRINGUP, Inbox, ProcessLogs, dds_env, ros_context
+from test_bringup import assert_no_orphans
 
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.ptm import from_json_dict
 from ptm_ros.tools import evaluate as eval_tool
 from ptm_ros.tools import run as run_tool
 
 pytestmark = pytest.mark.slow  # ptm-run on many damaged bags (3-20 s a test)
 
 EXAMPLES = int(os.environ.get("PTM_FUZZ_EXAMPLES", "6"))
+BRINGUP_EXAMPLES = int(os.environ.get("PTM_BRINGUP_FUZZ_EXAMPLES", "2"))
 RUN_ARGS = ("--quiet", "--no-report", "--particles", "10", "--seed", "0")
+#: ptm-bringup's parameters: those of RUN_ARGS
+BRINGUP_PARAMS = "inference: {particles: 10, seed: 0}\n"
 TOPICS = tuple(TOPIC_STREAMS)
 
 
@@ -172,3 +184,112 @@ def test_the_issue_corruption_gives_a_ptm_with_every_bad_message_counted(clean, 
     assert skipped["odometry-stamp-backwards"] == 10
     assert skipped["scan-non-finite"] + skipped["scan-empty"] >= 4
     assert sum(skipped.values()) == 10 + 4 + duplicates
+
+
+# ------------------------------------------------------------------------------ through the node suite
+
+
+def detector_counts(statuses: list) -> dict[str, str]:
+    """The landmark detector's final ``/diagnostics`` values (the status it publishes when its input is
+    finished); fails the test when none came."""
+    final = [s for s in statuses if s.name.startswith("landmark_detector:")]
+    final = [{kv.key: kv.value for kv in s.values} for s in final]
+    final = [v for v in final if v.get("finished") == "True"]
+    assert final, "the landmark detector never reported a finished input on /diagnostics"
+    return final[-1]
+
+
+def check_bringup(bag: Path, out: Path, plan: Plan, written, clean_ptm: dict, monkeypatch, logs: ProcessLogs):
+    """ptm-bringup --bag on a corrupted bag (the node suite over DDS, a probe on /diagnostics); the
+    ptm.json (None after an exit 2)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    params = out.parent / "params.yaml"
+    params.write_text(BRINGUP_PARAMS)
+    cmd = [
+        *BRINGUP,
+        "--bag",
+        str(bag),
+        "--rate",
+        "0",
+        "--params",
+        str(params),
+        "--out",
+        str(out),
+        "--no-report",
+    ]
+    with ros_context(monkeypatch) as ros:
+        probe = ros.node("fuzz_probe")
+        diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 1000)
+        ros.spin(probe)
+        name = f"ptm-bringup on {bag.parent.name}"
+        try:
+            proc = subprocess.run(
+                cmd, env=dds_env(ros.domain_id), capture_output=True, text=True, timeout=300, check=False
+            )
+        except subprocess.TimeoutExpired as err:
+            partial = b"".join(x for x in (err.stdout, err.stderr) if isinstance(x, bytes))
+            logs.add(name, lambda: partial.decode(errors="replace"))
+            raise
+        finally:
+            assert_no_orphans(str(out), str(bag))
+        logs.add(name, lambda: proc.stdout + proc.stderr)
+        statuses = [s for m in diagnostics.items for s in m.status]
+    if currently_in_test_context():  # --hypothesis-show-statistics: what was tried, how it ended
+        damage = [k for k in ("stretches", "replaces", "missing_from") if getattr(plan, k)]
+        damage += [k for k in ("truncate", "smash") if getattr(plan, k) is not None]
+        event(f"ptm-bringup exit {proc.returncode} on {'+'.join(damage) or 'inserted messages only'}")
+    assert "Traceback" not in proc.stdout + proc.stderr, "a process of the suite raised (full log below)"
+    assert proc.returncode in (0, 2), f"ptm-bringup exited {proc.returncode} (full log below)"
+    if proc.returncode == 2:  # a bag that cannot be read, or damaged so that no landmark visit is left
+        one_error_line(proc.stderr, "ptm-bringup")
+        assert not plan.neutral, proc.stderr
+        assert not (out / "ptm.json").exists()
+        return None
+    doc = json.loads((out / "ptm.json").read_text())
+    n = len(doc["landmarks"])
+    assert doc["stream"]["complete"] and doc["stream"]["visits"] == n
+    assert all(len(t["labels"]) == n for t in doc["topologies"])
+    assert sum(t["probability"] for t in doc["topologies"]) <= 1.0 + 1e-9
+    stamps = [lm["stamp"] for lm in doc["landmarks"]]
+    assert stamps == sorted(stamps)
+    counts = detector_counts(statuses)
+    for reason, k in written.at_least.items():  # every bad message of the plan counted, by the reader's name
+        assert int(counts.get(reason, 0)) >= k, (reason, counts)
+    if plan.truncate is None and plan.smash is None:  # every message written reached the detector
+        for topic, stream in TOPIC_STREAMS.items():
+            assert int(counts.get(f"received.{topic}", 0)) == written.messages[stream], (topic, counts)
+    if plan.neutral:  # only inserted bad messages: the clean bag's visits (ptm-run's, exactly)
+        online, offline = from_json_dict(doc), from_json_dict(clean_ptm)
+        assert online.landmarks == offline.landmarks
+        assert [t.labels for t in online.topologies] == [t.labels for t in offline.topologies]
+    return doc
+
+
+BRINGUP_FUZZ = settings(
+    FUZZ,
+    max_examples=BRINGUP_EXAMPLES,
+    phases=[Phase.explicit, Phase.reuse, Phase.generate],  # no shrinking: a minute per example
+)
+
+
+@pytest.mark.dds
+@BRINGUP_FUZZ
+@given(plan=neutral_plans)
+def test_the_node_suite_counts_inserted_bad_messages_and_maps_the_rest(
+    clean, plan, tmp_path_factory, monkeypatch, process_logs
+):
+    work = tmp_path_factory.mktemp("bringup_neutral")
+    written = corrupt(clean[0], work / "bag", plan)
+    assert check_bringup(written.path, work / "out", plan, written, clean[1], monkeypatch, process_logs)
+
+
+@pytest.mark.dds
+@BRINGUP_FUZZ
+@given(plan=damaging_plans)
+def test_the_node_suite_maps_damaged_bags_or_refuses_them_in_one_line(
+    clean, plan, tmp_path_factory, monkeypatch, process_logs
+):
+    work = tmp_path_factory.mktemp("bringup_damaged")
+    written = corrupt(clean[0], work / "bag", plan)
+    check_bringup(written.path, work / "out", plan, written, clean[1], monkeypatch, process_logs)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import ast
 import json
 import shutil
 import subprocess
@@ -16,6 +17,7 @@ from jsonschema import Draft202012Validator
 from ros_helpers import (
     BRINGUP,
     BringupProcess,
+    ProcessLogs,
     dds_env,
     kill_processes_mentioning,
     next_domain_id,
@@ -48,6 +50,31 @@ def sim_bag(tmp_path_factory):
     return out
 
 
+def run_logged(cmd: list[str], logs: ProcessLogs, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
+    """``ptm-bringup`` on its own domain to its end; its output goes into the test's report on failure."""
+    name = "ptm-bringup"
+    try:
+        proc = subprocess.run(
+            cmd, env=dds_env(next_domain_id()), capture_output=True, text=True, timeout=timeout, check=False
+        )
+    except subprocess.TimeoutExpired as err:
+        parts = (err.stdout, err.stderr)
+        text = "".join(x.decode(errors="replace") if isinstance(x, bytes) else x or "" for x in parts)
+        logs.add(name, lambda: text)
+        raise
+    logs.add(name, lambda: proc.stdout + proc.stderr)
+    return proc
+
+
+def stopped_codes(log: str) -> dict[str, int | None]:
+    """The nodes' exit codes of ``ptm-bringup``'s last line "stopped: exit codes {...}" (the player's left
+    out); fails the test when there is no such line."""
+    lines = [ln for ln in log.splitlines() if "stopped: exit codes {" in ln]
+    assert lines, "ptm-bringup never reported its processes' exit codes"
+    codes = ast.literal_eval(lines[-1].split("stopped: exit codes ", 1)[1])
+    return {name: code for name, code in codes.items() if name != "player"}
+
+
 def assert_no_orphans(*marks: str) -> None:
     deadline = time.monotonic() + 5.0  # a process may take a moment to disappear from /proc
     left = [p for m in marks for p in processes_mentioning(m)]
@@ -61,7 +88,7 @@ def assert_no_orphans(*marks: str) -> None:
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
+def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path, process_logs):
     # a ROS parameter file with a per-node section; ptm-run gets the same configuration in plain form
     ros_params = tmp_path / "ros.yaml"
     ros_params.write_text(
@@ -73,13 +100,11 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
     out = tmp_path / "bringup"
     cmd = [*BRINGUP, "--bag", str(sim_bag), "--rate", "0", "--params", str(ros_params), "--out", str(out)]
     try:
-        proc = subprocess.run(
-            cmd, env=dds_env(next_domain_id()), capture_output=True, text=True, timeout=300, check=False
-        )
+        proc = run_logged(cmd, process_logs)
     finally:
         assert_no_orphans(str(out), str(sim_bag))
     log = proc.stdout + proc.stderr
-    assert proc.returncode == 0, log[-4000:]
+    assert proc.returncode == 0, "ptm-bringup failed (its full log follows the traceback)"
     for name in ("[map_publisher]", "[topology_filter]", "[landmark_detector]", "[player]"):
         assert name in log
     assert (
@@ -114,11 +139,12 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path):
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
+def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path, process_logs):
     out = tmp_path / "interrupted"
     run = BringupProcess(
         ["--bag", str(sim_bag), "--rate", "2", "--out", str(out), "--no-report"], dds_env(next_domain_id())
     )
+    process_logs.add("ptm-bringup", lambda: run.log)
     try:
         run.wait_for_line("[topology_filter] [INFO]", timeout=120.0)
         run.wait_for_line(": visit 1: ", timeout=120.0)  # at least two visits mapped, the bag not over
@@ -126,9 +152,9 @@ def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
     finally:
         run.kill()
         assert_no_orphans(str(out), str(sim_bag))
-    assert code == 0, run.log
+    assert code == 0, f"ptm-bringup exited {code}"
     assert "input ended; mapping the last visits" in run.log
-    assert "stopped: exit codes {'map_publisher': 0, 'topology_filter': 0, 'landmark_detector': 0" in run.log
+    assert stopped_codes(run.log) == {"map_publisher": 0, "topology_filter": 0, "landmark_detector": 0}
     ptm = load_ptm(out / "ptm.json")
     full = detect_visits(read_run(sim_bag), PtmConfig())  # ptm-run's visits of the whole bag
     k = len(ptm.landmarks)
@@ -142,21 +168,50 @@ def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path):
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path):
+def test_sigint_without_data_writes_nothing_and_stops_every_node(tmp_path, process_logs):
     out = tmp_path / "live"
     run = BringupProcess(["--out", str(out)], dds_env(next_domain_id()))
+    process_logs.add("ptm-bringup", lambda: run.log)
     try:
         run.wait_for_line("nodes are up")
         code = run.interrupt()
     finally:
         run.kill()
         assert_no_orphans(str(out))
-    assert code == 1, run.log  # nothing was mapped: nothing to write
+    assert code == 1, f"ptm-bringup exited {code}"  # nothing was mapped: nothing to write
     assert "nothing written" in run.log
     # the filter's empty ensemble may or may not have reached the map publisher before the interrupt
     assert "holds no landmark visit" in run.log or "no ensemble received yet" in run.log
-    assert "stopped: exit codes {'map_publisher': 0, 'topology_filter': 0, 'landmark_detector': 0}" in run.log
+    assert stopped_codes(run.log) == {"map_publisher": 0, "topology_filter": 0, "landmark_detector": 0}
     assert not (out / "ptm.json").exists()
+
+
+@pytest.mark.dds
+@pytest.mark.slow
+def test_a_bag_without_a_landmark_visit_is_refused_in_one_line(tmp_path, process_logs):
+    """A bag the detector finds no landmark in (a robot that never moves) is refused as ptm-run refuses it:
+    exit 2, one line on stderr, no ptm.json, as soon as the filter's ensemble of the whole bag is empty
+    (it used to wait for --timeout, the map publisher refusing to save an empty ensemble)."""
+    from ptm_ros.io.bag import BagWriter
+
+    bag, out = tmp_path / "still", tmp_path / "out"
+    ranges = np.full(181, 4.0, dtype=np.float32)  # the same scan throughout: no surprise, no landmark
+    with BagWriter(bag) as w:
+        for k in range(100):
+            w.write_odometry(50.0 + 0.05 * k, (1.0, 2.0, 0.3))
+            if k % 2:
+                w.write_scan(50.0 + 0.05 * k, ranges, -1.57, 0.0174, 0.1, 30.0)
+    cmd = [*BRINGUP, "--bag", str(bag), "--rate", "0", "--out", str(out), "--timeout", "250"]
+    try:
+        proc = run_logged(cmd, process_logs)
+    finally:
+        assert_no_orphans(str(out), str(bag))
+    assert proc.returncode == 2, f"ptm-bringup exited {proc.returncode}"
+    assert [ln for ln in proc.stderr.splitlines() if ln.strip()] == [
+        f"ptm-bringup: error: {bag}: no landmark visits were detected: nothing to map"
+    ]
+    assert "Traceback" not in proc.stdout and not (out / "ptm.json").exists()
+    assert stopped_codes(proc.stdout) == {"map_publisher": 0, "topology_filter": 0, "landmark_detector": 0}
 
 
 def test_bad_input_fails_before_anything_starts(sim_bag, tmp_path, capsys):
@@ -247,7 +302,7 @@ def route_ids(path: Path) -> tuple[list[int], list[tuple[int, int, int]], np.nda
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path):
+def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path, process_logs):
     """Issue #24, one set of outputs wherever the map was made: ``make demo``'s ptm-bringup and ptm-run on
     the bundled bag write the same files, with the same PTM, map, route graph, trajectory errors and
     figures (ptm-bringup: from what the nodes published; the same writer functions)."""
@@ -257,12 +312,10 @@ def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path):
     up, off = tmp_path / "bringup", tmp_path / "run"
     cmd = [*BRINGUP, "--bag", str(bag), "--rate", "0", "--params", str(params), "--out", str(up)]
     try:
-        proc = subprocess.run(
-            cmd, env=dds_env(next_domain_id()), capture_output=True, text=True, timeout=300, check=False
-        )
+        proc = run_logged(cmd, process_logs)
     finally:
         assert_no_orphans(str(up), str(bag))
-    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
+    assert proc.returncode == 0, "ptm-bringup failed (its full log follows the traceback)"
     assert run_cli.main([str(bag), "--out", str(off), "--params", str(params), "--quiet"]) == 0
 
     # the same files (ptm-run's report figures include the surprise trace and the map)

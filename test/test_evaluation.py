@@ -5,10 +5,12 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import one_error_line
 from scipy.cluster.hierarchy import fcluster, linkage
 
 from ptm_ros import evaluation
@@ -294,9 +296,11 @@ def run_cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, d
 def test_cli_scores_carmen_ground_truth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # Ground truth: the robot drives A(0,0) -> B(10,0) -> A(0,0) over 20 s, straight lines.
     gt = write_carmen_gt(tmp_path / "gt.txt", [0.0, 10.0, 20.0], [(0.0, 0.0), (10.0, 0.0), (0.0, 0.0)])
-    # Landmarks at 0 s (A), 5 s (x=5), 19.9 s (x=0.1, A again) and 30 s (no truth: 10 s after the end).
+    # Landmarks at 0 s (A), 5 s (x=5), 19.9 s (x=0.1, A again) and 30 s (no truth: 10 s after the end);
+    # their odometry is the log's raw odometry (the ground truth's x_raw = x + 100).
     stamps = [0.0, 5.0, 19.9, 30.0]
-    landmarks = [Landmark(i, t, (float(i), 0.0, 0.0)) for i, t in enumerate(stamps)]
+    raw_x = [100.0, 105.0, 100.1, 100.0]
+    landmarks = [Landmark(i, t, (raw_x[i], 0.0, 0.0)) for i, t in enumerate(stamps)]
     ptm = make_ptm(landmarks, {(0, 1, 0, 2): 0.6, (0, 0, 0, 1): 0.3, (0, 1, 2, 3): 0.1})
     path = save_ptm(ptm, tmp_path / "run" / "ptm.json")
     code, doc, err = run_cli(
@@ -334,7 +338,8 @@ def test_cli_uses_simulator_places(tmp_path: Path, capsys: pytest.CaptureFixture
         ],
     }
     (tmp_path / "ground_truth.json").write_text(json.dumps(gt))
-    landmarks = [Landmark(i, t, (0.0, 0.0, 0.0)) for i, t in enumerate([0.05, 10.0, 19.9])]
+    odometry = [(5.05, 3.0, 1.0), (-4.9, 3.0, 1.0), (5.0, 3.0, 1.0)]  # the truth's motion, turned half round
+    landmarks = [Landmark(i, t, odometry[i]) for i, t in enumerate([0.05, 10.0, 19.9])]
     path = save_ptm(make_ptm(landmarks, {(0, 1, 0): 0.75, (0, 1, 2): 0.25}), tmp_path / "ptm.json")
     code, doc, err = run_cli([str(path), "--ground-truth", str(tmp_path)], capsys)  # the bag directory
     assert code == 0, err
@@ -342,7 +347,9 @@ def test_cli_uses_simulator_places(tmp_path: Path, capsys: pytest.CaptureFixture
     assert (doc["true_places_from"], doc["n_true_places"]) == ("place-ids", 2)
     assert doc["true_topology_mass"] == pytest.approx(0.75)
     direct = score_against_ground_truth(load_ptm(path), tmp_path / "ground_truth.json")
+    fit = {**doc.pop("odometry_fit")}
     assert {**direct.as_dict(), "map_quality": None} == doc  # no map beside the ptm.json
+    assert fit["against"] == "poses" and fit["windows"] == 1 and fit["statistic"] < 1e-9 and fit["fits"]
 
 
 def test_cli_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -412,6 +419,162 @@ def test_cli_on_intel_ground_truth(
     assert doc["n_visits_without_truth"] == 0
     assert doc["n_true_places"] == len(set(clusters))
     assert doc["map_recall"] == 1.0  # single linkage joins every pair closer than 1.5 m
+
+
+# ------------------------------------------------------------------------------ odometry fit (issue #25)
+
+
+def square_route(side: float, laps: int = 2, speed: float = 0.5, dt: float = 0.5) -> np.ndarray:
+    """Poses ``(x, y, yaw)`` every ``dt`` s of a robot driving ``laps`` times round a square of ``side`` m
+    at ``speed`` m/s (the simulator's worlds are such corridors)."""
+    s = np.arange(0.0, 4 * side * laps, speed * dt) % (4 * side)
+    side_k = (s // side).astype(int)
+    corners = np.array([[0.0, 0.0], [side, 0.0], [side, side], [0.0, side]])
+    heading = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    xy = corners[side_k] + (s - side_k * side)[:, None] * heading[side_k]
+    return np.column_stack([xy, np.arctan2(heading[side_k, 1], heading[side_k, 0])])
+
+
+def drifting_odometry(poses: np.ndarray, heading_drift: float, scale: float) -> np.ndarray:
+    """Odometry of ``poses``: their increments read ``scale`` too long and turned by ``heading_drift`` rad
+    per metre, integrated from another origin (the odometry frame)."""
+    from ptm_ros.geometry import between, compose
+
+    out = [np.array([3.0, -2.0, 0.7])]
+    for step in between(poses[:-1], poses[1:]):
+        d = math.hypot(step[0], step[1])
+        out.append(
+            compose(out[-1], [(1 + scale) * step[0], (1 + scale) * step[1], step[2] + heading_drift * d])
+        )
+    return np.array(out)
+
+
+def test_fit_windows_and_residuals_match_a_plain_loop() -> None:
+    rng = np.random.default_rng(8)
+    true = np.cumsum(rng.normal(scale=1.5, size=(40, 2)), axis=0)
+    odom = _rigid(true, 0.4, np.array([5.0, -1.0])) + rng.normal(scale=0.3, size=(40, 2))
+    step = np.hypot(*np.diff(true, axis=0).T)
+    windows = []
+    for i in range(len(true)):  # the shortest run of >= 3 visits from i whose true path covers 8 m
+        for j in range(i + 2, len(true)):
+            if step[i:j].sum() >= 8.0:
+                windows.append((i, j))
+                break
+    assert evaluation.fit_windows(true, 8.0) == windows and len(windows) > 20
+    expected = []
+    for i, j in windows:
+        g = true[i : j + 1]
+        spread = math.sqrt(np.mean(np.sum((g - g.mean(axis=0)) ** 2, axis=1)))
+        expected.append(_brute_ate(odom[i : j + 1], g) / spread)
+    np.testing.assert_allclose(evaluation.window_residuals(odom, true, 8.0), expected, rtol=1e-5)
+    fit = evaluation.odometry_fit(odom, true)
+    assert fit.statistic == pytest.approx(np.quantile(expected, 0.8), rel=1e-5)
+    assert (fit.windows, fit.visits) == (len(windows), 40)
+
+
+def test_odometry_fit_is_zero_for_the_same_motion_and_scale_free() -> None:
+    true = square_route(12.0)[::6, :2]
+    moved = _rigid(true, 2.0, np.array([-40.0, 7.0]))
+    fit = evaluation.odometry_fit(moved, true)
+    assert fit.statistic is not None and fit.statistic < 1e-9 and fit.fits and fit.windows > 40
+    other = evaluation.odometry_fit(3.0 * moved, 3.0 * true, window_m=24.0)
+    assert other.windows == fit.windows and other.statistic < 1e-9
+    wrong = evaluation.odometry_fit(3.0 * moved[::-1], 3.0 * true, window_m=24.0)
+    assert wrong.statistic == pytest.approx(evaluation.odometry_fit(moved[::-1], true).statistic, rel=1e-9)
+
+
+def test_odometry_fit_accepts_drifting_odometry_and_refuses_another_route() -> None:
+    """The hardest pair measured: a 12 m square loop's visits against the ground truth of an 18 m square
+    loop driven at the same speed (the same straight stretches, corners elsewhere), beside the loop's own
+    ground truth under Intel's heading drift (0.057 rad/m) and a 3 % scale error."""
+    loop, ring = square_route(12.0), square_route(18.0)
+    visits = np.arange(0, len(loop), 6)  # a landmark every 3 s
+    odom = drifting_odometry(loop, heading_drift=0.057, scale=0.03)[visits, :2]
+    own = evaluation.odometry_fit(odom, loop[visits, :2])
+    other = evaluation.odometry_fit(odom, ring[visits, :2])
+    assert own.statistic < 0.5 * evaluation.ODOMETRY_FIT_LIMIT and own.fits
+    assert other.statistic > 1.5 * evaluation.ODOMETRY_FIT_LIMIT and not other.fits
+    # odometry that did not move at all does not fit a truth that did
+    assert not evaluation.odometry_fit(np.zeros_like(odom), loop[visits, :2]).fits
+
+
+def test_odometry_fit_without_windows_is_not_judged() -> None:
+    true = np.array([[0.0, 0.0], [2.0, 0.0], [4.0, 0.0], [np.nan, np.nan], [6.0, 0.0]])
+    fit = evaluation.odometry_fit(np.zeros((5, 2)), true)  # 6 m of travel: no 8 m window
+    assert (fit.statistic, fit.windows, fit.visits, fit.fits) == (None, 0, 4, True)
+    assert evaluation.odometry_fit(np.zeros((0, 2)), np.zeros((0, 2))).statistic is None
+    with pytest.raises(ConfigError, match="quantile"):
+        evaluation.odometry_fit(np.zeros((5, 2)), true, quantile=1.5)
+    with pytest.raises(ConfigError, match="window_m"):
+        evaluation.fit_windows(true[:3], 0.0)
+    with pytest.raises(ModelError, match="one odometry position per true position"):
+        evaluation.odometry_fit(np.zeros((4, 2)), true)
+
+
+def write_route_gt(path: Path, poses: np.ndarray, stamps: np.ndarray, *, raw: np.ndarray | None) -> Path:
+    """``poses`` at ``stamps`` as a ground truth: a CARMEN file with ``raw`` as its raw odometry, or (``raw``
+    None) a ``ground_truth.json``."""
+    if raw is not None:
+        rows = [
+            f"{k} {k} {t} {p[0]} {p[1]} {p[2]} {r[0]} {r[1]} {r[2]}"
+            for k, (t, p, r) in enumerate(zip(stamps, poses, raw, strict=True))
+        ]
+        path.write_text(GT_HEADER + "\n".join(rows) + "\n")
+        return path
+    doc = {
+        "schema": "ptm_ros.ground_truth/1",
+        "frame_id": "map",
+        "poses": {"stamp": stamps.tolist(), "x": poses[:, 0].tolist(), "y": poses[:, 1].tolist()}
+        | {"yaw": poses[:, 2].tolist()},
+    }
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def route_ptm(path: Path, odometry: np.ndarray, stamps: np.ndarray) -> Path:
+    """A ptm.json of visits with this odometry at these stamps (one topology: all distinct)."""
+    landmarks = [
+        Landmark(i, float(t), tuple(float(v) for v in p))
+        for i, (t, p) in enumerate(zip(stamps, odometry, strict=True))
+    ]
+    return save_ptm(make_ptm(landmarks, {tuple(range(len(landmarks))): 1.0}), path)
+
+
+@pytest.mark.parametrize("carmen", [True, False], ids=["carmen-raw-odometry", "simulator-poses"])
+def test_cli_refuses_a_ground_truth_whose_motion_the_odometry_does_not_follow(
+    carmen: bool, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue #25: another run's ground truth on an overlapping clock (every landmark inside its time span)
+    is refused with the figures and the way round it (--force); the run's own is scored."""
+    stamps = 100.0 + 0.5 * np.arange(len(square_route(12.0)))
+    loop, ring = square_route(12.0), square_route(18.0)[: len(stamps)]
+    odom = drifting_odometry(loop, heading_drift=0.03, scale=0.02)
+    visits = np.arange(0, len(stamps), 6)
+    ptm = route_ptm(tmp_path / "run" / "ptm.json", odom[visits], stamps[visits])
+    own = write_route_gt(
+        tmp_path / ("own.txt" if carmen else "own.json"), loop, stamps, raw=odom if carmen else None
+    )
+    other_raw = drifting_odometry(ring, heading_drift=0.03, scale=0.02) if carmen else None
+    other = write_route_gt(tmp_path / ("other.txt" if carmen else "other.json"), ring, stamps, raw=other_raw)
+
+    code, doc, err = run_cli([str(ptm), "--ground-truth", str(own)], capsys)
+    assert code == 0, err
+    assert doc is not None and doc["n_visits_without_truth"] == 0
+    fit = doc["odometry_fit"]
+    assert fit["against"] == ("raw odometry" if carmen else "poses") and fit["fits"] and fit["windows"] > 40
+    assert fit["statistic"] < (1e-9 if carmen else 0.5 * evaluation.ODOMETRY_FIT_LIMIT)
+
+    code, doc, err = run_cli([str(ptm), "--ground-truth", str(other)], capsys)
+    assert code == 2 and doc is None
+    line = one_error_line(err, "ptm-eval")
+    assert "does not move as the ground truth's" in line and "--force" in line
+    figure = float(re.search(r"relative residual ([0-9.]+)", line).group(1))
+    assert figure > evaluation.ODOMETRY_FIT_LIMIT and f"below {evaluation.ODOMETRY_FIT_LIMIT:g}" in line
+
+    code, doc, err = run_cli([str(ptm), "--ground-truth", str(other), "--force"], capsys)
+    assert code == 0, err
+    assert doc is not None and not doc["odometry_fit"]["fits"]
+    assert doc["odometry_fit"]["statistic"] == pytest.approx(figure, abs=0.006)
 
 
 # --------------------------------------------------------------------------- absolute trajectory error

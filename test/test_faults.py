@@ -94,7 +94,7 @@ def node_pid(node: str, out) -> int:
 
 
 def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
-    demo_bag, fault_profile, tmp_path, monkeypatch
+    demo_bag, fault_profile, tmp_path, monkeypatch, process_logs
 ):
     from std_msgs.msg import String
 
@@ -111,6 +111,7 @@ def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
         visits_seen = Inbox(probe, String, "/landmark_visits", STREAM_QOS)
         ros.spin(probe)
         run = BringupProcess(args, fault_env(ros.domain_id, fault_profile))
+        process_logs.add("ptm-bringup", lambda: run.log)
         try:
             run.wait_for_line("[topology_filter]: visit 4: ", timeout=150.0)  # autosaved at 4, 4 is lost
             os.kill(node_pid("topology_filter", out), signal.SIGKILL)
@@ -121,7 +122,7 @@ def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
         published = [parse_visit_message(m.data) for m in visits_seen.items]
     log = run.log
     (tmp_path / "bringup.log").write_text(log)
-    assert code == 0, log[-4000:]
+    assert code == 0, f"ptm-bringup exited {code}"
     assert "topology_filter exited with code -9; restarting it (1 of 1)" in log
     assert f"resumed from {out / 'topology_filter' / 'state.npz'}: " in log
 
@@ -151,7 +152,7 @@ def test_filter_killed_mid_run_resumes_and_ends_with_the_unfaulted_ptm(
 
 
 def test_detector_killed_mid_run_filter_keeps_its_map_and_recovers(
-    demo_bag, fault_profile, tmp_path, monkeypatch
+    demo_bag, fault_profile, tmp_path, monkeypatch, process_logs
 ):
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from std_msgs.msg import String
@@ -169,6 +170,7 @@ def test_detector_killed_mid_run_filter_keeps_its_map_and_recovers(
         diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 200)
         ros.spin(probe)
         run = BringupProcess(args, fault_env(ros.domain_id, fault_profile))
+        process_logs.add("ptm-bringup", lambda: run.log)
         try:
             run.wait_for_line("[topology_filter]: visit 1: ", timeout=150.0)
             filter_pid = node_pid("topology_filter", out)
@@ -183,7 +185,7 @@ def test_detector_killed_mid_run_filter_keeps_its_map_and_recovers(
         statuses = [s for m in diagnostics.items for s in m.status if s.name.startswith("topology_filter:")]
     log = run.log
     (tmp_path / "bringup.log").write_text(log)
-    assert code == 0, log[-4000:]
+    assert code == 0, f"ptm-bringup exited {code}"
     assert log.count("[topology_filter]: RBPF with") == 1 and "topology_filter exited" not in log
     # until the restarted detector's first visit, the filter kept its map (never a graph with fewer
     # visits); then it started a new map for the new detector session

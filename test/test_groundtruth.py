@@ -202,6 +202,10 @@ def test_sim_json_errors(tmp_path: Path) -> None:
     )
     dup = {**SIM_DOC, "places": [SIM_DOC["places"][0], SIM_DOC["places"][0]]}
     sim_error(tmp_path, dup, "not unique")
+    sim_error(tmp_path, {**SIM_DOC, "raw_poses": [1, 2]}, "'raw_poses' must be an object")
+    short = {"x": [0.0], "y": [0.0], "yaw": [0.0]}
+    sim_error(tmp_path, {**SIM_DOC, "raw_poses": short}, "raw_poses lists must be as long as the poses'")
+    sim_error(tmp_path, {**SIM_DOC, "raw_poses": {**short, "x": None}}, r"raw_poses\.x must be a list")
 
 
 def test_load_ground_truth_dispatch_errors(tmp_path: Path) -> None:

@@ -9,7 +9,7 @@ import pytest
 
 from ptm_ros.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.detectors import Detector, EquidistantConfig, EquidistantDetector
-from ptm_ros.errors import DataError
+from ptm_ros.errors import DataError, ModelError
 from ptm_ros.geometry import between, interpolate_poses, path_length, wrap_angle
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
@@ -213,6 +213,32 @@ def test_bad_input_is_counted_not_raised():
     assert skipped["odometry-non-finite"] == 1
     assert skipped["odometry-stamp-backwards"] == 1
     assert skipped.get("scan-malformed", 0) + skipped.get("image-undecodable", 0) >= 1
+
+
+def test_rewind_drops_a_topic_stretch_stamped_ahead_and_takes_its_messages_again():
+    """VisitExtractor.rewind: scans queued on a clock ahead of the odometry's are dropped (counted as
+    scan-off-clock) and the topic's next scans, earlier than those, are taken, not skipped as going
+    back; a scan before the stream's position stays late; the odometry cannot be rewound."""
+    ext = VisitExtractor(
+        EquidistantDetector(EquidistantConfig(spacing=4.0)), config=ExtractorConfig(use_images=False)
+    )
+    scan = ([1.0, 2.0, 3.0], -0.1, 0.1, 0.05, 10.0)
+    for k in range(5):
+        ext.on_odometry(float(k), (0.5 * k, 0.0, 0.0))
+    for k in range(3):
+        ext.on_scan(100.0 + k, *scan)  # ahead: queued until the odometry gets there
+    ext.on_scan(4.5, *scan)
+    assert ext.diagnostics.skipped == {"scan-stamp-backwards": 1}
+    assert ext.rewind("scan") == 3
+    ext.on_scan(2.0, *scan)  # behind what the odometry has been processed to: late
+    for k in range(5, 8):
+        ext.on_odometry(float(k), (0.5 * k, 0.0, 0.0))
+        ext.on_scan(k + 0.5, *scan)
+    ext.flush()
+    assert ext.diagnostics.received["scan"] == 8
+    assert ext.diagnostics.skipped == {"scan-stamp-backwards": 1, "scan-off-clock": 3, "scan-late": 1}
+    with pytest.raises(ModelError, match="only the scan and image topics"):
+        ext.rewind("odometry")
 
 
 def test_odometry_beyond_any_run_is_counted_not_raised():

@@ -4,11 +4,15 @@ session against the offline pipeline, the graph / marker / path content, and the
 
 from __future__ import annotations
 
+import io
 import json
 import math
+import os
 import re
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -353,6 +357,29 @@ def test_stream_guard_confirms_jumps_resets_and_teleports():
     assert adm.outliers == 1 and guard.held == common.StreamGuard.MAX_RUNS
 
 
+def test_stream_guard_keeps_a_good_message_held_with_a_bad_one():
+    """A copy stamped 30 s ahead arrives right after the stream's first message and joins its run (it
+    continues it within stamp_jump_s): the messages that follow continue the first message, not the
+    copy, and their run keeps it, so only the copy is an outlier (ptm-run's reader too keeps the longest
+    increasing run); the same inside a held forward jump."""
+    guard = point_guard(confirm=3)
+    guard.admit(0.0, (0.0, 0.0))
+    guard.admit(30.0, (0.0, 0.0))  # a far copy of the first message
+    assert guard.held == 2
+    assert guard.admit(0.1, (0.05, 0.0)).released == () and guard.held == 3  # the first one shared
+    adm = guard.admit(0.2, (0.1, 0.0))
+    assert adm.event == common.START and adm.outliers == 1
+    assert adm.released == ((0.0, (0.0, 0.0)), (0.1, (0.05, 0.0)), (0.2, (0.1, 0.0)))
+    for s in (0.3, 0.4, 0.5):
+        guard.admit(s, (0.5 * s, 0.0))
+    guard.admit(100.0, (1.0, 0.0))  # a pause: held
+    guard.admit(125.0, (1.0, 0.0))  # a bad copy ahead of it, continuing it
+    guard.admit(100.1, (1.0, 0.0))
+    adm = guard.admit(100.2, (1.0, 0.0))
+    assert adm.event == common.FORWARD_JUMP and [t for t, _ in adm.released] == [100.0, 100.1, 100.2]
+    assert adm.outliers == 1 and guard.held == 0
+
+
 def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
     good = tmp_path / "good.yaml"
     good.write_text("/**:\n  ros__parameters:\n    inference:\n      particles: 3\n")
@@ -375,39 +402,99 @@ def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
         common.check_params_files(["--params-file", str(tmp_path / "missing.yaml")])
 
 
+@pytest.fixture
+def node_domain(monkeypatch):
+    """A private domain, localhost discovery, for a node run in this process by run_node."""
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(next_domain_id()))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
 @pytest.mark.dds
-def test_an_error_raised_by_the_shutdown_itself_is_a_clean_stop(monkeypatch):
-    """run_node: the spin raising once the context is shut down (the signal handler racing a take) ends
-    with 0 and destroys the node; the same error with the context alive is a bug and propagates."""
+def test_a_signal_during_a_callback_lets_it_finish_and_exits_0(node_domain):
+    """run_node: SIGINT while a callback runs (say, one writing ptm.json) is a stop request: the callback
+    completes, no other callback starts, the node is destroyed, rclpy shut down, exit code 0, and the
+    handlers are put back (rclpy's own handler raised KeyboardInterrupt inside the callback)."""
     import rclpy
     from rclpy.node import Node
 
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(next_domain_id()))
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    destroyed = []
+    events = []
 
     class Probe(Node):
         def __init__(self) -> None:
             super().__init__("probe")
+            self.create_timer(0.01, self.tick)
+
+        def tick(self) -> None:
+            events.append("tick")
+            os.kill(os.getpid(), signal.SIGINT)
+            total = sum(range(10_000))  # bytecodes after the signal: where a KeyboardInterrupt would strike
+            events.append(f"tick done {total}")
 
         def destroy_node(self) -> None:
-            destroyed.append(True)
+            events.append("destroyed")
             super().destroy_node()
 
-    def raced(node: Node) -> None:
-        rclpy.shutdown()
-        raise RuntimeError("Failed to take: the given context is not valid")
-
-    monkeypatch.setattr(rclpy, "spin", raced)
+    handlers = {sig: signal.getsignal(sig) for sig in common.STOP_SIGNALS}
     assert common.run_node(Probe, ["probe"], "probe") == 0
+    assert events == ["tick", f"tick done {sum(range(10_000))}", "destroyed"]
+    assert not rclpy.ok()
+    assert {sig: signal.getsignal(sig) for sig in common.STOP_SIGNALS} == handlers
+
+
+@pytest.mark.dds
+def test_a_signal_while_the_node_is_built_stops_it_cleanly(node_domain):
+    """run_node: SIGTERM before the node is fully built (rclpy's signal thread used to shut the context
+    down under the construction: RCLError, exit code 1) builds it, never spins it, destroys it: 0."""
+    from rclpy.node import Node
+
+    events = []
+
+    class Probe(Node):
+        def __init__(self) -> None:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.2)  # a signal thread shutting the context down has all the time it needs
+            super().__init__("probe")
+            self.create_timer(0.001, lambda: events.append("tick"))
+            events.append("built")
+
+        def destroy_node(self) -> None:
+            events.append("destroyed")
+            super().destroy_node()
+
+    assert common.run_node(Probe, ["probe"], "probe") == 0
+    assert events == ["built", "destroyed"]
+
+
+@pytest.mark.dds
+def test_run_node_ends_cleanly_when_the_context_is_shut_down_and_propagates_bugs(node_domain):
+    """run_node: a context shut down by someone else (rclpy.shutdown() in process) ends the spin with 0 and
+    destroys the node; an error raised by a callback with the context alive is a bug: it propagates after
+    the node is destroyed and rclpy shut down."""
+    import rclpy
+    from rclpy.node import Node
+
+    destroyed = []
+
+    def probe(callback):
+        class Probe(Node):
+            def __init__(self) -> None:
+                super().__init__("probe")
+                self.create_timer(0.01, callback)
+
+            def destroy_node(self) -> None:
+                destroyed.append(True)
+                super().destroy_node()
+
+        return Probe
+
+    assert common.run_node(probe(rclpy.shutdown), ["probe"], "probe") == 0
     assert destroyed == [True]
 
-    def bug(node: Node) -> None:
+    def bug() -> None:
         raise RuntimeError("a bug in a callback")
 
-    monkeypatch.setattr(rclpy, "spin", bug)
     with pytest.raises(RuntimeError, match="a bug"):
-        common.run_node(Probe, ["probe"], "probe")
+        common.run_node(probe(bug), ["probe"], "probe")
     assert destroyed == [True, True] and not rclpy.ok()
 
 
@@ -1115,6 +1202,39 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(m
 
 
 @pytest.mark.dds
+def test_detector_rejoins_a_scan_stream_whose_first_messages_were_stamped_ahead(
+    sim_bag, tmp_path, monkeypatch
+):
+    """The bag's first 11 scans stamped 100 s ahead (confirmed as the stream's start), then the scans on
+    the odometry's clock: the stream rejoins the session at once and what the extractor held of the
+    stretch ahead is dropped, so the node's visits are those ptm-run's reader gives (it keeps the longest
+    increasing run of a topic), not none (every later scan skipped as going back in time)."""
+    from bag_corruption import Plan, Stretch, corrupt
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import LaserScan
+
+    bag = corrupt(sim_bag, tmp_path / "ahead", Plan(stretches=(Stretch("/scan", 0.0, 11, 100.0),))).path
+    run = read_run(bag, image_topic=None)  # ptm-run's reader: the 11 scans ahead are skipped
+    expected = detect_visits(run, load_config(None, {"detector": {"kind": "laser-surprise"}}))
+    assert len(expected) >= 3
+    with ros_context(monkeypatch) as ros:
+        node = odometry_detector(ros, use_scans=True, **{"detector.kind": "laser-surprise"})
+        for raw in iter_raw(bag, ["/odom", "/scan"]):
+            if raw.topic == "/odom":
+                node._on_odom(deserialize_message(raw.rawdata, Odometry))
+            else:
+                node._on_scan(deserialize_message(raw.rawdata, LaserScan))
+        node.finish()
+        (got,) = visits_by_session(node)
+        diag = node.diagnostics()
+    assert [v.stamp for v in got] == [v.stamp for v in expected]
+    assert [v.input_pose for v in got] == [v.input_pose for v in expected]
+    assert diag["clock_resets"] == 1 and diag["sessions"] == 1  # the scans came back: no new session
+    assert diag["extractor"]["skipped"]["scan-off-clock"] > 0
+
+
+@pytest.mark.dds
 def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
     with ros_context(monkeypatch) as ros:
         node = odometry_detector(ros, use_scans=True, use_images=True, silence_s=10.0)
@@ -1224,6 +1344,27 @@ def test_bad_parameter_makes_the_node_exit_non_zero(node, ros_args, match):
     assert (
         "invalid parameters" in proc.stderr or "invalid arguments" in proc.stderr
     ) and match in proc.stderr
+
+
+@pytest.mark.dds
+@pytest.mark.parametrize("node", ["map_publisher", "topology_filter", "landmark_detector"])
+def test_a_stop_sent_while_a_node_starts_up_ends_it_with_0(node, tmp_path):
+    """A node started as ptm-bringup starts it (SIGINT / SIGTERM blocked until run_node answers them) and
+    sent SIGINT at once, while Python still imports its modules, stops cleanly with 0: the signal waits
+    for run_node instead of raising KeyboardInterrupt inside an import (exit -2, or 1 when numpy turns it
+    into an ImportError)."""
+    from ptm_ros.tools.bringup import node_command, spawn, stop_all
+
+    out = io.StringIO()
+    command = node_command(node, ["-p", f"out_dir:={tmp_path}"])
+    child = spawn(node, command, dds_env(next_domain_id()), out, node=True)
+    try:
+        os.killpg(child.popen.pid, signal.SIGINT)
+        code = child.popen.wait(timeout=60)
+    finally:
+        stop_all([child])
+    assert code == 0, out.getvalue()
+    assert "Traceback" not in out.getvalue()
 
 
 def test_player_rejects_bad_arguments(tmp_path, capsys, sim_bag):

@@ -166,6 +166,11 @@ def test_with_placed_landmarks_and_the_simulator_schema_round_trip(tmp_path: Pat
     assert np.array_equal(back.poses_corrected, placed.poses_corrected)
     assert (back.places, back.passages, back.frame_id) == (placed.places, placed.passages, "map")
     assert isinstance(back.places[0], Place) and isinstance(back.passages[0], Passage)
+    assert back.poses_raw is None
+    # a ground truth with its raw odometry (CARMEN's) keeps it: ptm-eval checks the odometry against it
+    raw = placed.poses_corrected + np.array([100.0, -3.0, 0.25])
+    with_raw = load_sim_gt(save_sim_gt(dataclasses.replace(placed, poses_raw=raw), tmp_path / "raw.json"))
+    assert with_raw.poses_raw is not None and np.array_equal(with_raw.poses_raw, raw)
 
 
 @pytest.fixture(scope="module")
@@ -264,3 +269,9 @@ def test_intel_with_landmarks_every_5_m_beats_the_thesis(datasets_dir: Path, tmp
     assert 55 <= len(result.ptm.landmarks) <= 75
     assert result.score.true_topology_mass > 0.72, result.score.true_topology_mass
     assert result.score.map.counts.f1 > 0.95
+    # the README's next step: ptm-eval against the ground truth ptm-run wrote (with Intel's raw odometry,
+    # which drifts 0.057 rad/m off its poses) accepts it as this run's
+    code = eval_cli.main(
+        [str(tmp_path / "o" / "ptm.json"), "--ground-truth", str(tmp_path / "o"), "--no-topologies"]
+    )
+    assert code == 0

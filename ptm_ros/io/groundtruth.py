@@ -15,8 +15,13 @@ Simulator ground truth (schema ``ptm_ros.ground_truth/1``)::
 
     {"schema": "ptm_ros.ground_truth/1", "frame_id": "map",
      "poses": {"stamp": [...], "x": [...], "y": [...], "yaw": [...]},
+     "raw_poses": {"x": [...], "y": [...], "yaw": [...]},
      "places": [{"id": 0, "x": 1.0, "y": 2.0, "kind": "junction"}],
      "passages": [{"stamp": 12.5, "place": 0}]}
+
+``raw_poses`` (optional) is the raw odometry at the same stamps, when the ground truth came with one: a
+CARMEN run's, kept by ``ptm-run --detector ground-truth`` in the file it writes (``ptm-eval`` checks the
+landmarks' odometry against it).
 
 :func:`with_placed_landmarks` adds landmarks fixed along the path and their visits (the
 ``ground-truth`` detector's) to a trajectory that has none (:mod:`ptm_ros.detectors`); :func:`save_sim_gt`
@@ -235,10 +240,21 @@ def load_sim_gt(path: str | Path) -> GroundTruthTrajectory:
     if unknown:
         msg = f"{p}: passages refer to unknown places {', '.join(unknown)}"
         raise DataError(msg)
+    raw = None
+    if doc.get("raw_poses") is not None:
+        raw_doc = doc["raw_poses"]
+        if not isinstance(raw_doc, dict):
+            msg = f"{p}: 'raw_poses' must be an object with lists 'x', 'y', 'yaw'"
+            raise DataError(msg)
+        raw_cols = [_finite_list(raw_doc.get(k), f"{p}: raw_poses.{k}") for k in ("x", "y", "yaw")]
+        if any(c.size != lengths["stamp"] for c in raw_cols):
+            msg = f"{p}: raw_poses lists must be as long as the poses' ({lengths['stamp']})"
+            raise DataError(msg)
+        raw = np.stack(raw_cols, axis=1)
     return GroundTruthTrajectory(
         stamps=cols["stamp"],
         poses_corrected=np.stack([cols["x"], cols["y"], cols["yaw"]], axis=1),
-        poses_raw=None,
+        poses_raw=raw,
         frame_id=frame_id,
         places=places,
         passages=passages,
@@ -284,9 +300,13 @@ def with_placed_landmarks(
 
 
 def sim_gt_document(truth: GroundTruthTrajectory) -> dict[str, Any]:
-    """``truth`` as a ``ptm_ros.ground_truth/1`` document (corrected poses, places, passages): what
-    :func:`load_sim_gt` reads (the simulator adds its own keys)."""
+    """``truth`` as a ``ptm_ros.ground_truth/1`` document (corrected poses, the raw ones when it has them,
+    places, passages): what :func:`load_sim_gt` reads (the simulator adds its own keys)."""
     t = truth.poses_corrected
+    raw = {}
+    if truth.poses_raw is not None:
+        r = truth.poses_raw
+        raw = {"raw_poses": {"x": r[:, 0].tolist(), "y": r[:, 1].tolist(), "yaw": r[:, 2].tolist()}}
     return {
         "schema": SIM_SCHEMA,
         "frame_id": truth.frame_id,
@@ -296,6 +316,7 @@ def sim_gt_document(truth: GroundTruthTrajectory) -> dict[str, Any]:
             "y": t[:, 1].tolist(),
             "yaw": t[:, 2].tolist(),
         },
+        **raw,
         "places": [{"id": pl.id, "x": pl.x, "y": pl.y, "kind": pl.kind} for pl in truth.places],
         "passages": [{"stamp": ps.stamp, "place": ps.place} for ps in truth.passages],
     }

@@ -37,6 +37,7 @@ import io
 import itertools
 import math
 import re
+import signal
 import sys
 import tokenize
 import traceback
@@ -659,9 +660,11 @@ class StreamGuard:
       or (with ``position``) farther from it than ``max_speed·Δt + TELEPORT_SLACK_M``, is a *jump* and is
       held, appended to the first
       held run it continues consistently (stamps non-decreasing, steps within ``stamp_jump_s``,
-      plausible speed) or starting a new run (at most :attr:`MAX_RUNS`; the oldest is dropped). The
-      first run to reach ``confirm`` messages is released (the other runs are outliers); a message back
-      on the old timeline drops every run (outliers). A confirmed backward jump is a clock reset.
+      plausible speed), else starting a new run from the longest beginning of a held run it continues
+      (the good messages held before a bad one that came between them), else from nothing (at most
+      :attr:`MAX_RUNS` runs; the oldest is dropped). The first run to reach ``confirm`` messages is
+      released (the messages of no other run in it are outliers); a message back on the old timeline
+      drops every run (outliers). A confirmed backward jump is a clock reset.
     * The stream's first messages are held the same way (event ``start``), so that a lone bad message
       cannot set the timeline.
     * Any other message is released at once (a small step back in time too: the consumer decides).
@@ -712,8 +715,8 @@ class StreamGuard:
 
     @property
     def held(self) -> int:
-        """Messages held for confirmation."""
-        return sum(len(run) for _, run in self._runs)
+        """Messages held for confirmation (each once: runs may share their first messages)."""
+        return len({id(m) for _, run in self._runs for m in run})
 
     @property
     def last_stamp(self) -> float | None:
@@ -761,14 +764,33 @@ class StreamGuard:
         outliers = 0
         run = next((r for _, r in self._runs if self._consistent(r[-1], stamp, payload)), None)
         if run is None:
-            if len(self._runs) >= self.MAX_RUNS:
-                outliers += len(self._runs.pop(0)[1])
-            run = []
-            self._runs.append((event, run))
+            run_event, run = self._fork(stamp, payload)
+            self._runs.append((run_event or event, run))
+            if len(self._runs) > self.MAX_RUNS:
+                _, oldest = self._runs.pop(0)
+                outliers += self._unheld(oldest)
         run.append((stamp, payload))
         if len(run) < self.config.confirm:
             return Admission(outliers=outliers)
         return self._release(run, outliers)
+
+    def _fork(self, stamp: float, payload: Any) -> tuple[str | None, list[tuple[float, Any]]]:
+        """A new run for a message that continues no held run: the longest beginning of a held run it
+        continues (a good message that arrived before a bad one held in the same run, e.g. a copy
+        stamped ahead just after the stream's first message), with that run's event; else empty."""
+        best: tuple[str | None, list[tuple[float, Any]]] = (None, [])
+        for run_event, run in self._runs:
+            for k in range(len(run) - 1, -1, -1):
+                if self._consistent(run[k], stamp, payload):
+                    if k + 1 > len(best[1]):
+                        best = (run_event, run[: k + 1])
+                    break
+        return best
+
+    def _unheld(self, messages: list[tuple[float, Any]]) -> int:
+        """How many of ``messages`` no held run has (runs may share their first messages)."""
+        held = {id(m) for _, run in self._runs for m in run}
+        return sum(id(m) not in held for m in messages)
 
     def _release(self, run: list[tuple[float, Any]], outliers: int = 0) -> Admission:
         event = next(e for e, r in self._runs if r is run)
@@ -881,48 +903,110 @@ def check_params_files(args: Sequence[str]) -> None:
 #: s a node may take to stop (destroy itself, shut rclpy down, exit) before it prints every thread's
 #: stack to stderr: a stop that hangs (ptm-bringup then escalates to SIGTERM and SIGKILL) says where.
 STOP_REPORT_S = 4.0
+#: s the spin waits for work before it looks at the stop request again: the longest a stop waits (a
+#: Python signal handler runs only when the main thread is back in Python, not inside rcl's wait).
+STOP_POLL_S = 0.1
+#: The signals that stop a node (each one: a request, answered between two callbacks).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class StopRequest:
+    """SIGINT / SIGTERM as a request that :func:`run_node`'s main thread answers between two callbacks.
+
+    rclpy's own signal handling raises ``KeyboardInterrupt`` wherever the main thread happens to be (in
+    the middle of a callback writing ptm.json, while the node is being built, in its teardown) and, from a
+    thread of its own, shuts the context down at the same time: the node's teardown then races that
+    shutdown (``Context.try_shutdown`` checks ``ok()`` and then shuts down: ``RCLError: failed to
+    shutdown``), and a node still being built fails with ``RCLError: ... context is not valid``: exit code
+    1 for a plain Ctrl-C. A :class:`StopRequest` installed as the Python handler instead only records the
+    signal; nothing is interrupted and only the main thread ever shuts the context down.
+    """
+
+    def __init__(self) -> None:
+        self.signals: list[int] = []
+
+    @property
+    def requested(self) -> bool:
+        """Whether a stop signal has arrived."""
+        return bool(self.signals)
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        self.signals.append(signum)
+
+    def install(self) -> dict[int, Any]:
+        """Make this the handler of :data:`STOP_SIGNALS` and unblock them; returns the handlers it replaces.
+
+        A process started with the signals blocked (``ptm-bringup`` starts its nodes so) holds a signal
+        sent while Python imported the node's modules, and it arrives here, as a stop request, instead of
+        as a ``KeyboardInterrupt`` in the middle of an import."""
+        previous: dict[int, Any] = {sig: signal.signal(sig, self) for sig in STOP_SIGNALS}
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+        return previous
+
+
+def spin_until_stopped(node: Node, stop: StopRequest) -> None:
+    """Spin ``node`` in this thread until ``stop`` is requested or its context is shut down, then destroy
+    it (see :func:`run_node`)."""
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=node.context)
+    try:
+        executor.add_node(node)
+        while not stop.requested and executor.context.ok():
+            executor.spin_once(timeout_sec=STOP_POLL_S)
+    except ExternalShutdownException:
+        pass
+    except Exception as err:
+        if executor.context.ok():
+            raise
+        node.get_logger().warning(f"stopped while shutting down: {type(err).__name__}: {err}")
+    finally:
+        # armed until the process exits (not cancelled): a hang in the node's teardown, in rclpy's shutdown
+        # or in the interpreter's exit prints the stacks instead of dying silently
+        faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__ or sys.stderr)
+        executor.remove_node(node)
+        node.destroy_node()
+        executor.shutdown(timeout_sec=0.0)
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, name: str = "ptm_ros") -> int:
-    """Initialise rclpy, build the node, spin until shutdown; return the process exit code.
+    """Initialise rclpy, build the node, spin until stopped; return the process exit code.
 
     A :class:`ConfigError` while building the node (a bad parameter) or a bad ``--params-file``
-    (:func:`check_params_files`, or rcl refusing the arguments) is logged as fatal and gives exit code 2;
-    SIGINT / SIGTERM end the spin cleanly with 0 (the Jazzy demo_nodes_py pattern). An error raised by
-    the spin once the context is shut down is the shutdown racing the executor (a wait or a take on a
-    context being invalidated by the signal handler): logged, and still a clean stop; with the context
-    alive it is a bug and propagates (exit code 1). A stop that takes more than :data:`STOP_REPORT_S`
-    prints every thread's stack to stderr (this is a process's entry point: call it last).
+    (:func:`check_params_files`, or rcl refusing the arguments) is logged as fatal and gives exit code 2.
+    SIGINT / SIGTERM, from the moment this function starts (while rclpy initialises, while the node is
+    built, during a callback or the teardown; before it, while the modules were imported, when the process
+    started with them blocked), are a :class:`StopRequest`: the callback running completes,
+    the spin ends before the next one (within :data:`STOP_POLL_S`), the node is destroyed and rclpy shut
+    down by this thread alone, exit code 0 (rclpy's own signal handlers are not installed). A context shut
+    down by someone else (``rclpy.shutdown()`` in process) also ends the spin cleanly, and so does an error
+    the spin raises once the context is shut down; with the context alive such an error is a bug and
+    propagates (exit code 1). A stop that takes more than :data:`STOP_REPORT_S` prints every thread's stack
+    to stderr (this is a process's entry point: call it last).
     """
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
     argv = list(args) if args is not None else sys.argv
-    try:
-        check_params_files(argv)
-        rclpy.init(args=argv)
-    except (ConfigError, RuntimeError) as err:  # rclpy's RCLError is a RuntimeError
-        rclpy.logging.get_logger(name).fatal(f"invalid arguments: {err}")
-        return 2
+    stop = StopRequest()
+    previous = stop.install()
     try:
         try:
-            node = factory()
-        except ConfigError as err:
-            rclpy.logging.get_logger(name).fatal(f"invalid parameters: {err}")
+            check_params_files(argv)
+            rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        except (ConfigError, RuntimeError) as err:  # rclpy's RCLError is a RuntimeError
+            rclpy.logging.get_logger(name).fatal(f"invalid arguments: {err}")
             return 2
         try:
-            rclpy.spin(node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        except Exception as err:
-            if rclpy.ok():
-                raise
-            node.get_logger().warning(f"stopped while shutting down: {type(err).__name__}: {err}")
+            try:
+                node = factory()
+            except ConfigError as err:
+                rclpy.logging.get_logger(name).fatal(f"invalid parameters: {err}")
+                return 2
+            spin_until_stopped(node, stop)
+            return 0
         finally:
-            # armed until the process exits (not cancelled): a hang in the node's teardown, in rclpy's
-            # shutdown or in the interpreter's exit prints the stacks instead of dying silently
-            faulthandler.dump_traceback_later(STOP_REPORT_S, exit=False, file=sys.__stderr__ or sys.stderr)
-            node.destroy_node()
-        return 0
+            rclpy.try_shutdown()
     finally:
-        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

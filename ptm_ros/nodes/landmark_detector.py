@@ -15,7 +15,8 @@ interleaves them. Publishes every completed visit on
   ``mapping.pose_xy`` / ``pose_yaw`` of motion or ``pose_interval`` s, and the keyframe scans (every
   ``mapping.keyframe_xy`` / ``keyframe_yaw``), each with an odometry sample at its stamp
   (:class:`ptm_ros.mapping.KeyframeStream`); the end marker (below) counts the keyframes sent;
-* ``/diagnostics`` every second: messages received per topic, the counters below and the extractor's.
+* ``/diagnostics`` every second and when the input finishes (the final counts): messages received per
+  topic, the counters below and the extractor's.
 
 QoS of the sensor subscriptions: parameter ``sensor_qos`` — ``reliable`` (default; keep all, so a
 replayed bag loses nothing and the visits equal ``ptm-run``'s) or ``sensor_data`` (best effort, for a
@@ -85,7 +86,11 @@ go to the extractor, which skips them (``extractor.skipped.<topic>-stamp-backwar
   new timeline starts within ``stamp_jump_s`` of the odometry's new one, whichever resets first (its
   messages wait, at most 200, for the odometry); after the odometry's reset, messages still on the old
   clock are skipped (``<topic>-clock-mismatch``), as are waiting ones the odometry never matches. A
-  topic off the session's clock for 100 messages in a row adopts it (``resyncs``).
+  topic off the session's clock for 100 messages in a row adopts it (``resyncs``). One going back onto
+  the odometry's current timeline (its first messages were stamped ahead of it, and confirmed) is back
+  on the session's clock at once: the extractor drops what it still held of the stretch ahead
+  (``extractor.skipped.<topic>-off-clock``) and takes the topic's messages from there, as ``ptm-run``'s
+  reader keeps the longest increasing run of a topic.
 
 At the end of input, held starts and forward jumps are used and held resets or teleports dropped.
 Missing topics: an expected topic silent for ``silence_s`` (default 10 s, wall time; 0 = off) while
@@ -488,10 +493,16 @@ class LandmarkDetectorNode(Node):
 
     def _sensor_reset(self, stream: str, start: float) -> None:
         """A scan/panorama clock went back to ``start``: it joins the session if the odometry already reset
-        onto that clock, else its messages wait for the odometry (a timeline still waiting is abandoned)."""
+        onto that clock, else its messages wait for the odometry (a timeline still waiting is abandoned).
+        A clock that goes back onto the odometry's own timeline (the stream's earlier stretch was stamped
+        ahead of it) rejoins at once, and what the extractor queued of that stretch is dropped."""
         self._log_once(f"{stream}-clock-reset", f"{stream} stamps went back in time: a new clock")
         self._drop_waiting(stream, f"{stream} messages of a clock abandoned before the odometry reached it")
-        if not self._aligned[stream] and self._matches_clock(start):
+        odometry = self.stream_guards["odometry"].last_stamp
+        if odometry is not None and abs(start - odometry) <= self.guard_config.stamp_jump_s:
+            self.extractor.rewind(stream)
+            self._aligned[stream], self._pending_start[stream] = True, None
+        elif not self._aligned[stream] and self._matches_clock(start):
             self._aligned[stream], self._pending_start[stream] = True, None
         else:
             self._aligned[stream], self._pending_start[stream] = False, start
@@ -660,6 +671,7 @@ class LandmarkDetectorNode(Node):
             }
             self._visit_pub.publish(String(data=json.dumps(end)))
             self.get_logger().info(f"input finished: {self.published} landmark visits")
+            self._publish_diagnostics()  # the final counters at once, not up to a second later
         return self.published
 
     @guarded

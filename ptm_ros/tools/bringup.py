@@ -43,7 +43,8 @@ bag position it then sees (it never receives what was replayed while it was down
 a new map of the rest of the run; the player's reliable writers wait for a killed reader until DDS
 declares it gone. After a bag it prints ``ptm-run``'s summary: the most probable topologies, scored
 against the ground truth when there is one. Exit codes: 0 written, 1 a node failed / nothing to write
-/ timeout, 2 bad arguments, parameters, ground truth or bag.
+/ timeout, 2 bad arguments, parameters, ground truth or bag (also a bag that ends without one landmark
+visit, as ``ptm-run`` refuses it: said as soon as the filter's ensemble of the whole bag is empty).
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -213,18 +214,37 @@ def _stream(name: str, pipe: TextIO, out: TextIO, lock: threading.Lock) -> None:
 _PRINT_LOCK = threading.Lock()
 
 
-def spawn(name: str, cmd: Sequence[str], env: dict[str, str], out: TextIO = sys.stdout) -> Child:
-    """Start ``cmd`` in a new session (its own process group), streaming its output with a prefix."""
-    popen = subprocess.Popen(
-        list(cmd),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        env=env,
-        text=True,
-        bufsize=1,
-        start_new_session=True,
-    )
+@contextlib.contextmanager
+def signals_blocked(signals: Collection[int]) -> Iterator[None]:
+    """Block ``signals`` in this thread for the block (a process started meanwhile inherits the mask)."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def spawn(
+    name: str, cmd: Sequence[str], env: dict[str, str], out: TextIO = sys.stdout, *, node: bool = False
+) -> Child:
+    """Start ``cmd`` in a new session (its own process group), streaming its output with a prefix.
+
+    A ``node`` starts with SIGINT and SIGTERM blocked: its entry point (:func:`ptm_ros.nodes.common.run_node`)
+    unblocks them once it answers them as a stop request, so a stop sent while the node still imports its
+    modules ends it cleanly (exit code 0) instead of interrupting the import."""
+    from ptm_ros.nodes.common import STOP_SIGNALS
+
+    with signals_blocked(STOP_SIGNALS if node else ()):
+        popen = subprocess.Popen(
+            list(cmd),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            text=True,
+            bufsize=1,
+            start_new_session=True,
+        )
     assert popen.stdout is not None
     thread = threading.Thread(target=_stream, args=(name, popen.stdout, out, _PRINT_LOCK), daemon=True)
     thread.start()
@@ -404,6 +424,7 @@ class Bringup:
         self.children: list[Child] = []
         self.respawns = dict.fromkeys(plan.nodes, 0)
         self.stop_requested = False
+        self.error: str | None = None  # why the input was refused (exit code 2) after the nodes started
         self.context = rclpy.Context()
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("ptm_bringup", context=self.context)
@@ -416,6 +437,7 @@ class Bringup:
         ]
         self.trace_client = self.node.create_client(Trigger, "/landmark_detector/surprise_trace")
         self.graph_complete = False  # the filter's latest ensemble covers a finished input
+        self.graph_visits: int | None = None  # the visits it holds
         self.node.create_subscription(String, "/ptm_graph", self._on_graph, LATCHED_QOS)
         self.trajectory: Any = None  # the map publisher's latest ptm_trajectory (nav_msgs/Path)
         self.node.create_subscription(PathMsg, "/ptm_trajectory", self._on_trajectory, LATCHED_QOS)
@@ -429,6 +451,8 @@ class Bringup:
         except (json.JSONDecodeError, AttributeError):
             return
         self.graph_complete = bool(isinstance(stream, dict) and stream.get("complete"))
+        visits = stream.get("visits") if isinstance(stream, dict) else None
+        self.graph_visits = visits if isinstance(visits, int) and not isinstance(visits, bool) else None
 
     def _on_trajectory(self, msg: Any) -> None:
         self.trajectory = msg
@@ -481,7 +505,7 @@ class Bringup:
     def execute(self, env: dict[str, str]) -> int:
         """Start everything, supervise until the map is complete, SIGINT/SIGTERM or a failure."""
         for name, cmd in self.plan.nodes.items():
-            self.children.append(spawn(name, cmd, env))
+            self.children.append(spawn(name, cmd, env, node=True))
         if not self.wait_for_nodes():
             if self.stop_requested:
                 return self.write_what_we_have()
@@ -511,6 +535,10 @@ class Bringup:
             if player_done_at is None:
                 self.executor.spin_once(timeout_sec=0.1)
                 continue
+            if self.graph_complete and self.graph_visits == 0:  # the whole bag, and not one landmark
+                self.log("the bag finished without a landmark visit: nothing to map")
+                self.error = "no landmark visits were detected: nothing to map"
+                return 2
             if self.graph_complete:  # the map publisher has it too, or will in a moment
                 reply = self.save()
                 if reply and reply.get("success") and reply.get("complete"):
@@ -534,7 +562,8 @@ class Bringup:
             f"({self.respawns[dead.name]} of {self.plan.respawn})"
         )
         stop_all([dead])  # its process group's stray members, its output thread
-        self.children[self.children.index(dead)] = spawn(dead.name, self.plan.restart_command(dead.name), env)
+        restart = self.plan.restart_command(dead.name)
+        self.children[self.children.index(dead)] = spawn(dead.name, restart, env, node=True)
         return True
 
     def end_input(self) -> None:
@@ -700,6 +729,8 @@ def run(args: argparse.Namespace) -> int:
         suite.log(f"stopped: exit codes {codes}")
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if suite.error is not None:
+        print(f"{PROG}: error: {args.bag}: {suite.error}", file=sys.stderr)
     ptm_path = plan.out / "ptm.json"
     if code == 0 and args.bag is not None and not suite.stop_requested and ptm_path.is_file():
         try:

@@ -55,13 +55,13 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-    from ptm_ros.evaluation import CalibrationSummary, EvalConfig, Score
+    from ptm_ros.evaluation import CalibrationSummary, EvalConfig, OdometryFit, Score
     from ptm_ros.io.groundtruth import GroundTruthTrajectory
     from ptm_ros.ptm import Ptm
 
@@ -111,6 +111,49 @@ def check_truth_covers(score: Score) -> None:
             "time span: is it another run's? (--force scores the rest anyway)"
         )
         raise DataError(msg)
+
+
+def odometry_fit_against(
+    ptm: Ptm, truth: GroundTruthTrajectory, *, max_extrapolation: float = 0.5
+) -> OdometryFit:
+    """How well the landmarks' odometry poses (``ptm.json``'s ``pose``) fit the ground truth at their stamps
+    (:func:`ptm_ros.evaluation.odometry_fit`): against its raw odometry when it has one (CARMEN: the same
+    odometry), else its true poses; landmarks more than ``max_extrapolation`` s outside its span are left
+    out, as in :func:`true_positions_for`."""
+    import numpy as np
+
+    from ptm_ros.evaluation import odometry_fit
+    from ptm_ros.io.groundtruth import interpolate_pose
+
+    stamps = np.array([lm.stamp for lm in ptm.landmarks], dtype=float)
+    odom = np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
+    t0, t1 = float(np.min(truth.stamps)), float(np.max(truth.stamps))
+    inside = (stamps >= t0 - max_extrapolation) & (stamps <= t1 + max_extrapolation)
+    which: Literal["corrected", "raw"] = "raw" if truth.poses_raw is not None else "corrected"
+    ref = interpolate_pose(truth, stamps[inside], which=which, tolerance=max_extrapolation)
+    return odometry_fit(odom[inside], ref[:, :2])
+
+
+def check_odometry_fits(fit: OdometryFit, *, raw: bool) -> None:
+    """Refuse a ground truth the landmarks' odometry does not fit (:attr:`OdometryFit.fits`): another run's,
+    its clock overlapping this one's. Raises :class:`DataError` with the figures (``raw``: the fit was
+    against the ground truth's raw odometry, else its true poses)."""
+    from ptm_ros.errors import DataError
+
+    if fit.fits or fit.statistic is None:
+        return
+    legacy = (
+        ""
+        if raw
+        else "; one of a real run written without its raw odometry by an older ptm-run: write it again"
+    )
+    msg = (
+        f"the landmarks' odometry does not move as the ground truth's {'raw odometry' if raw else 'poses'} "
+        f"do: relative residual {fit.statistic:.2f} over {fit.window_m:g} m stretches ({fit.quantile:.0%} "
+        f"quantile of {fit.windows}; a run's own ground truth stays below {fit.limit:g}): is it another "
+        f"run's?{legacy} (--force scores it anyway)"
+    )
+    raise DataError(msg)
 
 
 def score_against_ground_truth(
@@ -343,7 +386,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--force",
         action="store_true",
-        help="score even when most landmarks lie outside the ground truth's span (another run's truth?)",
+        help="score even when the ground truth looks like another run's: most landmarks outside its time "
+        "span, or the landmarks' odometry not moving as its poses do",
     )
     p.add_argument(
         "--report", type=Path, default=None, help="also write the report with the score here (default: none)"
@@ -417,8 +461,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         truth = load_ground_truth(args.ground_truth)
         extrapolation = args.max_extrapolation
         score = score_against_ground_truth(ptm, truth, config=config, max_extrapolation=extrapolation)
+        fit = odometry_fit_against(ptm, truth, max_extrapolation=extrapolation)
         if not args.force:
             check_truth_covers(score)
+            check_odometry_fits(fit, raw=truth.poses_raw is not None)
         quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
             from ptm_ros.report import find_chain_trace, write_report
@@ -436,7 +482,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
-    doc = {**score.as_dict(per_topology=not args.no_topologies), "map_quality": quality}
+    against = "raw odometry" if truth.poses_raw is not None else "poses"
+    doc = {
+        **score.as_dict(per_topology=not args.no_topologies),
+        "odometry_fit": {**fit.as_dict(), "against": against},
+        "map_quality": quality,
+    }
     print(json.dumps(doc, indent=args.indent))
     return 0
 
