@@ -197,20 +197,12 @@ class RbpfConfig:
     record_top: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.particles, bool) or not isinstance(self.particles, (int, np.integer)):
-            msg = f"RbpfConfig.particles must be an integer >= 1, got {self.particles!r}"
-            raise ConfigError(msg)
-        if self.particles < 1:
-            msg = f"RbpfConfig.particles must be an integer >= 1, got {self.particles!r}"
-            raise ConfigError(msg)
+        for name, value, low in (("particles", self.particles, 1), ("record_top", self.record_top, 0)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                msg = f"RbpfConfig.{name} must be an integer >= {low}, got {value!r}"
+                raise ConfigError(msg)
         if self.resample not in RESAMPLE_METHODS:
             msg = f"RbpfConfig.resample must be one of {RESAMPLE_METHODS}, got {self.resample!r}"
-            raise ConfigError(msg)
-        if isinstance(self.record_top, bool) or not isinstance(self.record_top, (int, np.integer)):
-            msg = f"RbpfConfig.record_top must be an integer >= 0, got {self.record_top!r}"
-            raise ConfigError(msg)
-        if self.record_top < 0:
-            msg = f"RbpfConfig.record_top must be an integer >= 0, got {self.record_top!r}"
             raise ConfigError(msg)
 
 
