@@ -195,7 +195,7 @@ def route_edges_crossing_walls(files: Mapping[str, Path]) -> int | None:
         return None
     grid = load_map(files["map_yaml"])
     doc = json.loads(Path(files["route_graph"]).read_text())
-    return crossing_segments(doc, ClassGrid(grid.data, grid.origin, grid.resolution))
+    return crossing_segments(doc, ClassGrid(grid.classes(), grid.origin, grid.resolution))
 
 
 def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:

@@ -13,7 +13,8 @@ tools write one set of outputs, issue #24):
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
 * ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
   its nodes on the map's trajectory and its edges kept off the map's walls (:func:`write_route_graph`);
-* ``map.pgm`` + ``map.yaml`` (nav2 ``map_server``) and ``map.png`` — the occupancy grid
+* ``map.pgm`` (``map_scale.png`` with ``occupancy.mode: scale``) + ``map.yaml`` (nav2 ``map_server``) and
+  ``map.png`` — the occupancy grid
   (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
@@ -98,7 +99,7 @@ OUTPUT_FILES = {
     "ptm": "ptm.json",
     "config": "config.yaml",
     "route_graph": "route_graph.geojson",
-    "map_pgm": f"{MAP_STEM}.pgm",
+    "map_image": f"{MAP_STEM}.pgm",  # the map_server image: MAP_IMAGES[occupancy.mode]
     "map_yaml": f"{MAP_STEM}.yaml",
     "map_png": f"{MAP_STEM}.png",
     "state": "filter_state.npz",
@@ -563,7 +564,7 @@ class MetricMap:
         trajectory: ``(T, 3)`` the smoothed MAP trajectory at the run's odometry stamps
             (:func:`map_trajectory`); None when none was drawn.
         walls: the classes of ``map.pgm`` (:func:`class_grid`, :func:`map_classes`); None without a map.
-        files: the map files written (keys ``map_pgm``, ``map_yaml``, ``map_png`` of :data:`OUTPUT_FILES`).
+        files: the map files written (keys ``map_image``, ``map_yaml``, ``map_png`` of :data:`OUTPUT_FILES`).
     """
 
     trajectory: np.ndarray | None = None
@@ -575,7 +576,7 @@ def saved_map(
     run: RunData, files: Mapping[str, Path], trajectory: tuple[np.ndarray, np.ndarray] | None
 ) -> MetricMap:
     """The :class:`MetricMap` of a map drawn elsewhere (the map publisher's, saved by its ``~/save_map``):
-    its ``files`` (keys ``map_pgm``, ``map_yaml``, ``map_png``; none without a map), the classes of
+    its ``files`` (keys ``map_image``, ``map_yaml``, ``map_png``; none without a map), the classes of
     ``map.yaml`` read back (:func:`map_classes`), and the ``trajectory`` ``(stamps (K,), poses (K, 3))``
     it was drawn along at the run's odometry stamps (:func:`ptm_ros.geometry.interpolate_poses`: exact
     where the run's stamps are among the trajectory's, as when the map was drawn from every sample)."""
@@ -589,13 +590,13 @@ def saved_map(
 
 
 def map_classes(yaml_path: Path) -> ClassGrid:
-    """The classes of a saved map (``map.yaml`` + ``map.pgm``, :func:`ptm_ros.occupancy.load_map`): the
-    :func:`class_grid` of the grid it was saved from."""
+    """The classes of a saved map (``map.yaml`` + its image, :func:`ptm_ros.occupancy.load_map`): the
+    :func:`class_grid` of the grid it was saved from, in either map_server mode."""
     from ptm_ros.map_quality import ClassGrid
     from ptm_ros.occupancy import load_map
 
     saved = load_map(yaml_path)
-    return ClassGrid(saved.data, saved.origin, saved.resolution)
+    return ClassGrid(saved.classes(), saved.origin, saved.resolution)
 
 
 def write_outputs(
@@ -787,18 +788,20 @@ def map_quality_against(
     ref = reference_grid(run, truth, config)
     if ref is None:
         return None
-    reference = replace(class_grid(ref, config), seen=ref.observed)
+    trinary = replace(config, occupancy=replace(config.occupancy, mode="trinary"))  # whatever the map's mode
+    reference = replace(class_grid(ref, trinary), seen=ref.observed)
     quality = map_quality(product, reference, theta=alignment["theta"], t=(alignment["x"], alignment["y"]))
     return quality.as_dict()
 
 
 def class_grid(grid: Any, config: PtmConfig) -> Any:
-    """The map_server classes of an occupancy grid (:func:`ptm_ros.occupancy.trinary`) as a
-    :class:`~ptm_ros.map_quality.ClassGrid`."""
+    """The trinary classes of an occupancy grid as its saved map reads back in ``occupancy.mode``
+    (:func:`ptm_ros.occupancy.cells`, :func:`~ptm_ros.occupancy.classes_of`: in trinary mode
+    :func:`~ptm_ros.occupancy.trinary`) as a :class:`~ptm_ros.map_quality.ClassGrid`."""
     from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.occupancy import trinary
+    from ptm_ros.occupancy import cells, classes_of
 
-    return ClassGrid(trinary(grid, config.occupancy), grid.origin, grid.resolution)
+    return ClassGrid(classes_of(cells(grid, config.occupancy)), grid.origin, grid.resolution)
 
 
 def inference_notes(inference: Mapping[str, Any]) -> list[str]:
@@ -885,8 +888,8 @@ def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> A
 def write_occupancy_map(
     run: RunData, trajectory: np.ndarray, out: Path, config: PtmConfig, *, grid: Any | None = None
 ) -> dict[str, Path]:
-    """``map.pgm`` + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory`` over
-    it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
+    """The map_server image + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory``
+    over it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
     run has no usable scan."""
     from ptm_ros.occupancy import save_map_files
 
@@ -894,8 +897,8 @@ def write_occupancy_map(
         grid = occupancy_grid(run, trajectory, config)
     if grid is None:
         return {}
-    pgm, yml, png = save_map_files(grid, out, config.occupancy, trajectory=trajectory)
-    return {"map_pgm": pgm, "map_yaml": yml, "map_png": png}
+    image, yml, png = save_map_files(grid, out, config.occupancy, trajectory=trajectory)
+    return {"map_image": image, "map_yaml": yml, "map_png": png}
 
 
 def write_route_graph(
