@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import functools
 import heapq
+import json
 import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -638,13 +639,16 @@ def write_outputs(
     ph = phases if phases is not None else Phases(quiet=True)
     extra = dict(ptm.extra)
     traj, walls = metric.trajectory, metric.walls
+    reference, alignment = None, None
     if truth is not None and traj is not None:
         ate = trajectory_errors(run, traj, truth)
         if ate is not None:
             extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(truth_file)}
             if walls is not None:
                 with ph.step("map quality"):
-                    quality = map_quality_against(run, walls, truth, ate["alignment"], used)
+                    alignment = ate["alignment"]
+                    reference = reference_classes(run, truth, used)
+                    quality = map_quality_against(run, walls, truth, alignment, used, reference=reference)
                 if quality is not None:
                     extra[MAP_QUALITY_KEY] = quality
     ptm = replace(ptm, extra=extra)
@@ -677,6 +681,7 @@ def write_outputs(
                 score=score,
                 surprise_trace=surprise,
                 occupancy_map=files.get("map_png"),
+                map_comparison=map_comparison(walls, reference, alignment, extra, files["route_graph"]),
                 notes=doubt_lines(find_doubts(ptm))
                 + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
                 + map_quality_notes(extra.get(MAP_QUALITY_KEY))
@@ -772,26 +777,58 @@ def reference_grid(run: RunData, truth: GroundTruthTrajectory, config: PtmConfig
     return grid_along(truth.stamps[order], truth.poses_corrected[order], sc, cfg)
 
 
+def reference_classes(run: RunData, truth: GroundTruthTrajectory, config: PtmConfig) -> ClassGrid | None:
+    """:func:`reference_grid` as trinary classes (whatever ``occupancy.mode``) with its seen cells; None
+    without a reference."""
+    ref = reference_grid(run, truth, config)
+    if ref is None:
+        return None
+    trinary = replace(config, occupancy=replace(config.occupancy, mode="trinary"))
+    return replace(class_grid(ref, trinary), seen=ref.observed)
+
+
 def map_quality_against(
     run: RunData,
     product: Any,
     truth: GroundTruthTrajectory,
     alignment: Mapping[str, float],
     config: PtmConfig,
+    *,
+    reference: ClassGrid | None = None,
 ) -> dict[str, Any] | None:
     """:func:`ptm_ros.map_quality.map_quality` of a map (a :class:`~ptm_ros.map_quality.ClassGrid` in the
-    odometry frame) against :func:`reference_grid`, carried into the ground truth's frame by
-    ``alignment`` (``theta``, ``x``, ``y``: :func:`trajectory_errors`' ATE alignment); None without a
-    reference."""
+    odometry frame) against :func:`reference_classes` (or ``reference``, made by it already), carried
+    into the ground truth's frame by ``alignment`` (``theta``, ``x``, ``y``: :func:`trajectory_errors`'
+    ATE alignment); None without a reference."""
     from ptm_ros.map_quality import map_quality
 
-    ref = reference_grid(run, truth, config)
-    if ref is None:
+    if reference is None:
+        reference = reference_classes(run, truth, config)
+    if reference is None:
         return None
-    trinary = replace(config, occupancy=replace(config.occupancy, mode="trinary"))  # whatever the map's mode
-    reference = replace(class_grid(ref, trinary), seen=ref.observed)
     quality = map_quality(product, reference, theta=alignment["theta"], t=(alignment["x"], alignment["y"]))
     return quality.as_dict()
+
+
+def map_comparison(
+    walls: ClassGrid | None,
+    reference: ClassGrid | None,
+    alignment: Mapping[str, float] | None,
+    extra: Mapping[str, Any],
+    route_graph: Path,
+) -> Any | None:
+    """The report's side-by-side map figure (:class:`ptm_ros.report.MapComparison`): the map next to its
+    ``reference`` carried by the ATE ``alignment`` when there is one, else next to the route graph written
+    to ``route_graph``; None without a map."""
+    from ptm_ros.report import MapComparison
+
+    if walls is None:
+        return None
+    if reference is not None and alignment is not None:
+        t = (float(alignment["x"]), float(alignment["y"]))
+        quality = extra.get(MAP_QUALITY_KEY)
+        return MapComparison(walls, reference, theta=float(alignment["theta"]), t=t, quality=quality)
+    return MapComparison(walls, route_graph=json.loads(route_graph.read_text()))
 
 
 def class_grid(grid: Any, config: PtmConfig) -> Any:
