@@ -257,7 +257,9 @@ def run_diagnostics(run: RunData, extractor: VisitExtractor) -> dict[str, Any]:
 @dataclass(frozen=True)
 class RunResult:
     """What ``run_offline`` wrote: ``files`` maps the keys of :data:`OUTPUT_FILES` to the files written;
-    ``trajectory_error`` is ``ptm.extra["trajectory_error"]`` (None without a ground truth)."""
+    ``trajectory_error`` is ``ptm.extra["trajectory_error"]`` (None without a ground truth);
+    ``trajectory`` the ``(T, 3)`` smoothed MAP trajectory at the run's odometry stamps that the map was
+    drawn along (None when none was drawn), so that a caller can redraw or rescore the map."""
 
     ptm: Ptm
     ptm_path: Path
@@ -267,6 +269,7 @@ class RunResult:
     files: Mapping[str, Path] = field(default_factory=dict)
     trajectory_error: Mapping[str, Any] | None = None
     resumed_visits: int = 0
+    trajectory: np.ndarray | None = None
 
 
 #: ``meta["tool"]`` of that file.
@@ -697,6 +700,7 @@ def write_outputs(
         diagnostics=dict(extra.get("diagnostics") or {}),
         files=files,
         trajectory_error=extra.get(TRAJECTORY_ERROR_KEY),
+        trajectory=traj,
     )
 
 
