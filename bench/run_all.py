@@ -10,7 +10,8 @@
    (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities fitted leave one run out
    (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised in ``results.md``) and the model's
    odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
-   when present.
+   and the occupancy maps of every simulated world and real run against their references
+   (``bench_maps.py``: ``maps_quality.json``, summarised in ``results.md``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -72,6 +73,7 @@ COMPONENTS = (
     "bench_fuzz.py",
     "bench_fitness_loo.py",
     "bench_odometry_noise.py",
+    "bench_maps.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (
@@ -380,6 +382,7 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
                 f"{cal['wall_s']:.1f} |"
             )
     lines += map_section(runs)
+    lines += maps_quality_section(BENCH / "maps_quality.json")
     lines += loo_section(BENCH / "fitness_loo.json")
     lines += ["", "Component benchmarks (their own JSON files beside this one):", ""]
     lines += [f"- `{c['script']}`: exit {c['exit_code']}, {c['wall_s']:.1f} s" for c in components]
@@ -427,6 +430,36 @@ def map_section(runs: list[dict]) -> list[str]:
         lines += [
             f"![{name} ({f['method']})]({f.get('map_comparison_png') or f['map_png']})" for name, f in maps
         ]
+    return lines
+
+
+def maps_quality_section(path: Path) -> list[str]:
+    """Every simulated world's and real run's map quality (``bench_maps.py``'s JSON): the map at the
+    default parameters (and calibrated), the same occupancy model at the true poses, the model before
+    issue #24 on the same trajectory."""
+    if not path.is_file():
+        return []
+    doc = json.loads(path.read_text())
+    lines = [
+        "",
+        "### Every simulated world and real run (`bench/bench_maps.py`)",
+        "",
+        f"`bench/maps_quality.json` (generated {doc['generated']}; `bench/maps_quality.md` discusses it): "
+        "leak, free-area ratio, wall precision and recall of the map; `model leak` = the same occupancy "
+        "model with the scans at the true poses (what the ray model alone leaks); `before` = the model at "
+        "the start of issue #24 on the same trajectory (maps `bench/maps/<run>-before.png`).",
+        "",
+        "| run | method | leak | free-area ratio | wall precision | wall recall | ATE (m) | model leak "
+        "| before: leak | before: free-area ratio |",
+        "|" + "---|" * 10,
+    ]
+    for run in doc["runs"]:
+        for r in run["rows"]:
+            d = r.get("diagnosis") or {}
+            cells = [r.get(f"map_{k}") for k in MAP_QUALITY_KEYS] + [r.get("ate_smoothed_m")]
+            cells += [(d.get("model") or {}).get("leak")]
+            cells += [(d.get("before") or {}).get(k) for k in ("leak", "free_area_ratio")]
+            lines.append(f"| {run['run']} | {r['method']} | " + " | ".join(fmt(c) for c in cells) + " |")
     return lines
 
 
