@@ -10,8 +10,9 @@
    (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities fitted leave one run out
    (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised in ``results.md``) and the model's
    odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
-   and the occupancy maps of every simulated world and real run against their references
-   (``bench_maps.py``: ``maps_quality.json``, summarised in ``results.md``), when present.
+   ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``) and the occupancy
+   maps of every simulated world and real run against their references (``bench_maps.py``:
+   ``maps_quality.json``, summarised in ``results.md``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -74,6 +75,7 @@ COMPONENTS = (
     "bench_fitness_loo.py",
     "bench_odometry_noise.py",
     "bench_maps.py",
+    "bench_demo.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -86,6 +86,7 @@ FloatArray = NDArray[np.float64]
 #: (no valid registration). Same contract as :mod:`ptm_ros.posterior` and :mod:`ptm_ros.rbpf`.
 
 __all__ = [
+    "GreedyAssociation",
     "GreedyConfig",
     "Innovations",
     "LoopClosureConfig",
@@ -252,28 +253,59 @@ def place_innovations(
     return Innovations(mean=nu, cov=cov, d2=d2, poses=poses)
 
 
+class GreedyAssociation:
+    """Greedy association fed one visit at a time, as a robot runs it: :meth:`add` decides the newest
+    visit (join the place of smallest Mahalanobis distance inside the gate, else a new place) and the
+    decision is final; the optimised poses warm-start the next decision."""
+
+    def __init__(self, odometry_config: OdometryConfig, config: GreedyConfig | None = None) -> None:
+        self.odometry_config = odometry_config
+        self.config = config or GreedyConfig()
+        self._labels: list[int] = []
+        self._poses: FloatArray = np.zeros((0, 3))
+
+    @property
+    def labels(self) -> Labels:
+        """The decisions so far, one canonical label per visit."""
+        return tuple(self._labels)
+
+    def add(self, visits: Sequence[Visit]) -> int:
+        """Decide the last of ``visits`` (the visits decided so far, then one more); returns its label.
+
+        Raises:
+            ModelError: not exactly one visit more than decided so far, or a pose graph that cannot be
+                solved (the decisions so far stay).
+        """
+        n = len(self._labels)
+        if len(visits) != n + 1:
+            msg = f"greedy association decided {n} visits: expected {n + 1}, got {len(visits)}"
+            raise ModelError(msg)
+        if n == 0:
+            self._labels.append(0)
+            self._poses = poses_array(visits)
+            return 0
+        step = relative_odometry(visits[-2:])[0]
+        warm = np.vstack([self._poses, compose(self._poses[-1], step)])
+        inn = place_innovations(self._labels, visits, self.odometry_config, initial=warm)
+        best = int(np.argmin(inn.d2))
+        label = best if inn.d2[best] <= self.config.gate else len(inn.d2)
+        self._labels.append(label)
+        self._poses = inn.poses
+        return label
+
+
 def greedy_association(
     visits: Sequence[Visit], odometry_config: OdometryConfig, config: GreedyConfig
 ) -> Labels:
     """Greedy maximum-likelihood data association on odometry (see the module docstring).
 
     Each visit joins the place of smallest Mahalanobis distance inside the gate, or opens a new place;
-    decisions are final. Returns canonical labels.
+    decisions are final (:class:`GreedyAssociation` over the visits in order). Returns canonical labels.
     """
-    n = len(visits)
-    if n == 0:
-        return ()
-    gate = config.gate
-    labels = [0]
-    previous = poses_array(visits[:1])
-    steps = relative_odometry(visits)
-    for k in range(1, n):
-        warm = np.vstack([previous, compose(previous[-1], steps[k - 1])])
-        inn = place_innovations(labels, visits[: k + 1], odometry_config, initial=warm)
-        best = int(np.argmin(inn.d2))
-        labels.append(best if inn.d2[best] <= gate else len(inn.d2))
-        previous = inn.poses
-    return canonical(labels)
+    greedy = GreedyAssociation(odometry_config, config)
+    for k in range(len(visits)):
+        greedy.add(visits[: k + 1])
+    return canonical(greedy.labels)
 
 
 # -------------------------------------------------------------------------------- robust pose graph

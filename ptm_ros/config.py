@@ -70,6 +70,8 @@ class InferenceConfig:
     resample: str = "optimal"  # RBPF: "optimal" (Fearnhead-Clifford) or "top"
     seed: int = 0
     top: int = 50  # topologies written to ptm.json
+    timeline: int = 3  # rbpf: topologies per visit in ptm.json's inference.timeline (0: no timeline)
+    greedy: bool = False  # also run the greedy single-answer baseline (a pose graph per visit: O(N²))
     max_exact_visits: int = 9  # exact enumeration refuses larger N (B_9 = 21 147; B_12 = 4.2 million)
     mcmc: McmcConfig = field(default_factory=McmcConfig)
 
@@ -82,6 +84,9 @@ class InferenceConfig:
             raise ConfigError(msg)
         if self.particles < 1 or self.top < 1:
             msg = f"particles and top must be >= 1, got {self.particles}, {self.top}"
+            raise ConfigError(msg)
+        if self.timeline < 0:
+            msg = f"inference timeline must be >= 0 (topologies per visit), got {self.timeline}"
             raise ConfigError(msg)
         if not 1 <= self.max_exact_visits <= 12:
             msg = f"max_exact_visits must be in 1..12, got {self.max_exact_visits}"

@@ -61,6 +61,13 @@ with ``ẽ, g̃`` the centred points: for fixed θ the best ``t`` matches the ce
 cost is ``const − 2 (cos θ Σ ẽ·g̃ + sin θ Σ ẽ×g̃)``, largest at the ``θ*`` above (a rotation: the 2-D
 Kabsch solution can never be a reflection).
 
+Timeline (issue #25). The particle filter's PTM after each visit ``n`` (``ptm.inference["timeline"]``,
+:class:`~ptm_ros.ptm.TimelineStep`: the posterior of thesis Algorithm 8 over the topologies of the first
+``n`` visits) is judged against the true topology *of those visits*, the truth's labels cut to their
+first ``n`` entries and made canonical (:func:`timeline_masses`): the mass moving onto or off it as the
+visits arrive. A single-answer method whose decisions are final (the greedy baseline) goes wrong at the
+first visit whose cut labels differ from the cut truth (:func:`first_wrong_visit`) and stays wrong.
+
 Calibration (issue #23, "an honest posterior"). Over many runs ``r = 1..R`` with stated MAP probability
 ``p_r`` (the listed probability of the most probable topology) and outcome ``y_r = 1`` when the MAP
 topology *is* the ground-truth topology (same partition of the visits as the true place ids), with
@@ -91,8 +98,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import pdist
 
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.partitions import IntSequence, canonical, num_places
-from ptm_ros.ptm import Ptm
+from ptm_ros.partitions import IntSequence, Labels, canonical, num_places
+from ptm_ros.ptm import Ptm, TimelineStep
 
 #: Schema tag of :meth:`Score.as_dict` (the JSON printed by ``ptm-eval``).
 SCORE_SCHEMA = "ptm_ros.eval/1"
@@ -200,6 +207,7 @@ class Score:
     n_contradictory_pairs: int = 0
     attainable_consistent_mass: float = 0.0
     config: EvalConfig = field(default_factory=EvalConfig)
+    true_labels: Labels | None = field(default=None, repr=False)  # the true topology, with place ids
 
     @property
     def n_pairs(self) -> int:
@@ -398,6 +406,7 @@ def score_ptm(
     attainable_mass = float(probs[(attainable[:, 1] + attainable[:, 2]) == 0].sum())
 
     true_mass: float | None = None
+    truth: Labels | None = None
     if true_places is None:
         n_true = int(np.max(single_linkage_places(xy[known], config.same_radius), initial=-1)) + 1
         source = "single-linkage"
@@ -428,7 +437,48 @@ def score_ptm(
         config=config,
         n_contradictory_pairs=int(contra.sum()),
         attainable_consistent_mass=attainable_mass,
+        true_labels=truth,
     )
+
+
+def cut(labels: IntSequence, visits: int) -> Labels:
+    """The topology of the first ``visits`` visits under ``labels`` (canonical)."""
+    return canonical([int(v) for v in labels[:visits]])
+
+
+def timeline_masses(steps: Sequence[TimelineStep], labels: IntSequence) -> tuple[float | None, ...]:
+    """After each visit, the mass the PTM then listed on ``labels`` cut to the visits so far (the truth's,
+    a baseline's); None when it was not among the listed topologies (then it held at most
+    :func:`unlisted_bound`). Raises :class:`ModelError` when ``labels`` covers fewer visits."""
+    out: list[float | None] = []
+    for st in steps:
+        if len(labels) < st.visits:
+            msg = f"labels of {len(labels)} visits cannot be cut to {st.visits}"
+            raise ModelError(msg)
+        want = cut(labels, st.visits)
+        out.append(next((p for lab, p in st.topologies if lab == want), None))
+    return tuple(out)
+
+
+def unlisted_bound(step: TimelineStep) -> float:
+    """The most mass a topology not listed in ``step`` can hold: the smallest listed mass, and no more
+    than the mass left over by the listed ones."""
+    listed = [p for _, p in step.topologies]
+    if not listed:
+        return 1.0
+    return max(0.0, min(*listed, 1.0 - sum(listed)))
+
+
+def first_wrong_visit(labels: IntSequence, true_labels: IntSequence) -> int | None:
+    """The first visit ``k`` at which ``labels`` contradict the truth of the visits so far (the cut
+    labels differ from the cut truth, :func:`cut`); None when they are the truth."""
+    if len(labels) != len(true_labels):
+        msg = f"labels of {len(labels)} visits against a truth of {len(true_labels)}"
+        raise ModelError(msg)
+    for k in range(len(labels)):
+        if cut(labels, k + 1) != cut(true_labels, k + 1):
+            return k
+    return None
 
 
 def place_ids_from_positions(

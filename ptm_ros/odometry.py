@@ -87,8 +87,10 @@ is :math:`\partial^2/\partial x_i \partial x_j`.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import cast
 
 import numpy as np
@@ -112,6 +114,12 @@ _LOG_2PI = math.log(2.0 * math.pi)
 #: Coordinates in which the importance-sampling proposal is Gaussian.
 PROPOSALS = ("relative", "absolute")
 
+#: How the area ``A`` of eq. 17 is learned from the visits (:func:`place_area`).
+AREA_MODELS = ("swept", "extent")
+
+#: Raster cell of :class:`SweptArea` [m].
+SWEPT_CELL = 0.25
+
 
 @dataclass(frozen=True)
 class OdometryConfig:
@@ -125,7 +133,10 @@ class OdometryConfig:
         c_th: heading variance per metre travelled [rad²/m].
         sigma_topology: σ_T, how far a visit passes from its place [m].
         area_m2: A, area of the mapped environment over which places are uniform [m²]; 0 (the default):
-            learned from the visits (:func:`mapped_area`, floored at ``penalty_radius`` per axis).
+            learned from the visits as ``area_model`` says.
+        area_model: how ``A`` is learned when ``area_m2`` is 0: ``"swept"`` (default) the area the
+            robot's path covers (:func:`swept_area`), ``"extent"`` the rectangle spanned by the visits
+            (:func:`mapped_area`). Both are floored at ``penalty_radius²``.
         penalty_radius: D, distance below which distinct places are penalised (eq. 15) [m].
         penalty_max: c_max, the penalty (negative log prior) at distance 0 [nats]; 0 disables the prior.
         registration_volume: V_reg, volume of registration outcomes when two visits are different
@@ -156,6 +167,7 @@ class OdometryConfig:
     c_th: float = 0.02**2
     sigma_topology: float = 0.5
     area_m2: float = 0.0
+    area_model: str = "swept"
     penalty_radius: float = 3.0
     penalty_max: float = 5.0
     registration_volume: float = 25.0
@@ -190,6 +202,9 @@ class OdometryConfig:
         eps = self.registration_outlier
         if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0.0 <= eps < 1.0:
             msg = f"OdometryConfig.registration_outlier must be in [0, 1), got {eps!r}"
+            raise ConfigError(msg)
+        if self.area_model not in AREA_MODELS:
+            msg = f"OdometryConfig.area_model must be one of {AREA_MODELS}, got {self.area_model!r}"
             raise ConfigError(msg)
         if self.proposal not in PROPOSALS:
             msg = f"OdometryConfig.proposal must be one of {PROPOSALS}, got {self.proposal!r}"
@@ -242,11 +257,101 @@ def mapped_area(xy: ArrayLike, floor: float) -> float:
     return float(extent[0] * extent[1])
 
 
+@dataclass
+class SweptArea:
+    """The area within ``radius`` of a growing polyline, rasterised on the fixed lattice of cell centres
+    ``((i + ½)·cell, (j + ½)·cell)``: a cell counts once however many segments pass it, and extending
+    the path adds only the new segment's cells, so the area of a path and of its prefixes agree.
+
+    Attributes:
+        radius: half-width of the swept band [m].
+        cell: lattice spacing [m].
+        cells: keys of the covered cells (``i · 2³² + j``, both offset to be non-negative).
+        end: the polyline's last point, ``None`` while empty.
+    """
+
+    radius: float
+    cell: float = SWEPT_CELL
+    cells: set[int] = field(default_factory=set)
+    end: tuple[float, float] | None = None
+
+    @property
+    def area(self) -> float:
+        """The covered area [m²]."""
+        return len(self.cells) * self.cell * self.cell
+
+    def extended(self, xy: ArrayLike) -> SweptArea:
+        """A copy with the polyline continued through the ``(K, 2)`` points ``xy``."""
+        out = SweptArea(self.radius, self.cell, set(self.cells), self.end)
+        for point in np.asarray(xy, dtype=float).reshape(-1, 2):
+            b = (float(point[0]), float(point[1]))
+            out.cells.update(_segment_cells(out.end or b, b, self.radius, self.cell))
+            out.end = b
+        return out
+
+
+def _segment_cells(a: tuple[float, float], b: tuple[float, float], radius: float, cell: float) -> list[int]:
+    """Keys of the lattice cells whose centre lies within ``radius`` of the segment ``a``–``b``."""
+    pa, pb = np.array(a), np.array(b)
+    lo = np.floor((np.minimum(pa, pb) - radius) / cell - 0.5).astype(np.int64)
+    hi = np.ceil((np.maximum(pa, pb) + radius) / cell - 0.5).astype(np.int64)
+    i, j = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
+    q = (np.stack([i.ravel(), j.ravel()], axis=1) + 0.5) * cell
+    ab = pb - pa
+    den = float(ab @ ab)
+    t = np.clip((q - pa) @ ab / den, 0.0, 1.0) if den > 0.0 else np.zeros(len(q))
+    d2 = np.sum((q - pa - t[:, None] * ab) ** 2, axis=1)
+    keep = d2 <= radius * radius
+    offset = np.int64(1 << 31)
+    return (((i.ravel()[keep] + offset) << 32) + (j.ravel()[keep] + offset)).tolist()
+
+
+_SWEPT_MEMO: OrderedDict[tuple[float, float, bytes], SweptArea] = OrderedDict()
+_SWEPT_MEMO_SIZE = 16
+_SWEPT_LOCK = threading.Lock()
+
+
+def swept_area(xy: ArrayLike, radius: float, cell: float = SWEPT_CELL) -> float:
+    """Area [m²] within ``radius`` of the polyline through the ``(N, 2)`` positions (a disc for one).
+
+    Memoised, and computed incrementally from a memoised prefix: the filter asks for the path of
+    visits ``0..n`` right after ``0..n-1`` and the batch model asks for one path many times."""
+    p = np.ascontiguousarray(np.asarray(xy, dtype=float).reshape(-1, 2))
+    if len(p) == 0:
+        return 0.0
+    key = (float(radius), float(cell), p.tobytes())
+    with _SWEPT_LOCK:
+        swept = _SWEPT_MEMO.get(key)
+        prefix = _SWEPT_MEMO.get((key[0], key[1], p[:-1].tobytes())) if swept is None else None
+    if swept is None:
+        swept = prefix.extended(p[-1:]) if prefix is not None else SweptArea(radius, cell).extended(p)
+    with _SWEPT_LOCK:
+        _SWEPT_MEMO[key] = swept
+        _SWEPT_MEMO.move_to_end(key)
+        while len(_SWEPT_MEMO) > _SWEPT_MEMO_SIZE:
+            _SWEPT_MEMO.popitem(last=False)
+    return swept.area
+
+
 def place_area(visits: Sequence[Visit], config: OdometryConfig) -> float:
-    """``config.area_m2``, or (0) :func:`mapped_area` of the visits' positions with ``penalty_radius``."""
+    r"""``A`` of eq. 17: ``config.area_m2``, or learned from the visits' positions.
+
+    ``"swept"``: places are where the robot went, so ``A`` is the area within ``r = √π σ_T`` of its path
+    through the visits. The band's width ``2r = √(2π · 2σ_T²)`` is the width of the uniform density
+    whose height equals the peak of the cross-track offset between two visits of one place (each
+    ``σ_T`` from it): with it, a merge's Occam factor ``A / (2π · 2σ_T²)`` counts the places that fit
+    along the path, not the empty rectangle around it. The path is rasterised in the first visit's
+    frame. ``"extent"``: :func:`mapped_area`. Both are at least ``penalty_radius²``."""
     if config.area_m2 > 0.0:
         return config.area_m2
-    return mapped_area([v.pose[:2] for v in visits], config.penalty_radius)
+    floor = config.penalty_radius
+    if config.area_model == "extent":
+        return mapped_area([v.pose[:2] for v in visits], floor)
+    if not visits:
+        return floor * floor
+    # the lattice lies in the first visit's frame, so that A is invariant to a global rigid motion
+    local = between(np.asarray(visits[0].pose, dtype=float), poses_array(visits))
+    return max(swept_area(local[:, :2], math.sqrt(math.pi) * config.sigma_topology), floor * floor)
 
 
 def relative_odometry(visits: Sequence[Visit]) -> FloatArray:

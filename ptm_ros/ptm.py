@@ -28,6 +28,10 @@ if TYPE_CHECKING:
 SCHEMA = "ptm_ros.ptm/1"
 #: The JSON Schema (draft 2020-12) of ptm.json, package data under ``ptm_ros/`` (:func:`ptm_schema`).
 SCHEMA_FILE = ("schema", "ptm.schema.json")
+#: ``Ptm.inference`` key of the particle filter's PTM after each visit (:func:`timeline_list`).
+TIMELINE_KEY = "timeline"
+#: ``Ptm.extra`` key (top level of ptm.json) of the greedy baseline's answer (:func:`greedy_dict`).
+GREEDY_KEY = "greedy"
 
 
 @dataclass(frozen=True)
@@ -222,6 +226,82 @@ def from_json_dict(doc: Mapping[str, Any]) -> Ptm:
         timing=dict(doc.get("timing", {})),
         extra={k: v for k, v in doc.items() if k not in known},
     )
+
+
+@dataclass(frozen=True)
+class TimelineStep:
+    """The PTM after one visit: ``visits`` visits so far and the most probable ``topologies`` of them
+    (canonical labels, one per visit so far) with their probabilities, most probable first."""
+
+    visits: int
+    topologies: tuple[tuple[Labels, float], ...]
+
+
+def timeline_list(steps: Sequence[TimelineStep]) -> list[dict[str, Any]]:
+    """The JSON form of a timeline: ``[{"visits": n, "topologies": [{"labels", "probability"}, …]}, …]``."""
+    return [
+        {
+            "visits": st.visits,
+            "topologies": [{"labels": list(lab), "probability": p} for lab, p in st.topologies],
+        }
+        for st in steps
+    ]
+
+
+def ptm_timeline(ptm: Ptm) -> tuple[TimelineStep, ...]:
+    """The timeline in ``ptm.inference`` (:data:`TIMELINE_KEY`), checked; empty when there is none.
+
+    Raises:
+        DataError: a malformed timeline (steps not for 1, 2, … visits, labels not canonical sequences of
+            that many visits, probabilities outside [0, 1]).
+    """
+    raw = ptm.inference.get(TIMELINE_KEY)
+    if raw is None:
+        return ()
+    steps = []
+    try:
+        for k, d in enumerate(raw):
+            n = int(d["visits"])
+            if n != k + 1:
+                raise _fail(f"timeline step {k} is for {n} visits, expected {k + 1}")
+            tops = []
+            for t in d["topologies"]:
+                labels = tuple(int(v) for v in t["labels"])
+                p = float(t["probability"])
+                if len(labels) != n or not is_canonical(labels):
+                    raise _fail(f"timeline step {k}: labels {labels} are not a canonical sequence of {n}")
+                if not 0.0 <= p <= 1.0 + 1e-9:
+                    raise _fail(f"timeline step {k}: probability {p} outside [0, 1]")
+                tops.append((labels, p))
+            steps.append(TimelineStep(n, tuple(tops)))
+    except (KeyError, TypeError, ValueError) as err:
+        raise _fail(f"timeline: {type(err).__name__}: {err}") from err
+    return tuple(steps)
+
+
+def greedy_dict(labels: Labels, gate_probability: float) -> dict[str, Any]:
+    """The JSON form of the greedy baseline's answer: its canonical ``labels``, number of ``places`` and
+    the ``gate_probability`` of its association gate (:class:`ptm_ros.baselines.GreedyConfig`)."""
+    lab = canonical(labels)
+    return {"labels": list(lab), "places": max(lab, default=-1) + 1, "gate_probability": gate_probability}
+
+
+def ptm_greedy(ptm: Ptm) -> Labels | None:
+    """The greedy baseline's labels in ``ptm.extra`` (:data:`GREEDY_KEY`), checked; None without them.
+
+    Raises:
+        DataError: labels that are not a canonical sequence of the PTM's visits.
+    """
+    raw = ptm.extra.get(GREEDY_KEY)
+    if raw is None:
+        return None
+    try:
+        labels = tuple(int(v) for v in raw["labels"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise _fail(f"greedy: {type(err).__name__}: {err}") from err
+    if len(labels) != len(ptm.landmarks) or not is_canonical(labels):
+        raise _fail(f"greedy: labels {labels} are not a canonical sequence of {len(ptm.landmarks)} visits")
+    return labels
 
 
 def save_ptm(ptm: Ptm, path: str | Path) -> Path:

@@ -188,10 +188,13 @@ class RbpfConfig:
     Attributes:
         particles: N, the largest number of distinct topologies kept after each visit.
         resample: ``"optimal"`` (Fearnhead–Clifford) or ``"top"`` (the N heaviest children, biased).
+        record_top: the most probable topologies each update records in its :class:`FilterState`
+            (``top``: the PTM after that visit, eq. 38–39); 0 records none.
     """
 
     particles: int = 100
     resample: str = "optimal"
+    record_top: int = 0
 
     def __post_init__(self) -> None:
         if isinstance(self.particles, bool) or not isinstance(self.particles, (int, np.integer)):
@@ -202,6 +205,12 @@ class RbpfConfig:
             raise ConfigError(msg)
         if self.resample not in RESAMPLE_METHODS:
             msg = f"RbpfConfig.resample must be one of {RESAMPLE_METHODS}, got {self.resample!r}"
+            raise ConfigError(msg)
+        if isinstance(self.record_top, bool) or not isinstance(self.record_top, (int, np.integer)):
+            msg = f"RbpfConfig.record_top must be an integer >= 0, got {self.record_top!r}"
+            raise ConfigError(msg)
+        if self.record_top < 0:
+            msg = f"RbpfConfig.record_top must be an integer >= 0, got {self.record_top!r}"
             raise ConfigError(msg)
 
 
@@ -215,6 +224,8 @@ class FilterState:
         ess: effective sample size ``1 / Σ w²`` of the normalised weights.
         log_evidence_increment: estimate of ``log p(z_n | z^{n-1})`` (the first visit: ``log p(z_0)``).
         update_s: wall time of the update [s].
+        top: the ``RbpfConfig.record_top`` most probable topologies after the update with their
+            probabilities, most probable first (ties in particle order): the PTM of the visits so far.
     """
 
     n_visits: int
@@ -222,6 +233,7 @@ class FilterState:
     ess: float
     log_evidence_increment: float
     update_s: float
+    top: tuple[tuple[Labels, float], ...] = ()
 
 
 # ------------------------------------------------------------------------------------------ resampling
@@ -897,12 +909,15 @@ class TopologyFilter:
         self._index = None
         self._log_evidence += increment
         w = np.exp(new.log_w)
+        update_s = time.perf_counter() - start
+        order = np.argsort(-new.log_w, kind="stable")[: self.config.record_top]
         state = FilterState(
             n_visits=n + 1,
             n_topologies=len(new.labels),
             ess=float(1.0 / np.sum(w * w)),
             log_evidence_increment=float(increment),
-            update_s=time.perf_counter() - start,
+            update_s=update_s,
+            top=tuple((new.labels[i], float(w[i])) for i in order.tolist()),
         )
         self._history.append(state)
         return state

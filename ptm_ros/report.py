@@ -16,6 +16,11 @@
   its band ``mean ± k·std`` shaded (the upper edge is the detector's threshold), the surprise maxima
   that fired a landmark ringed (above the band, by the detector's rule) and the landmarks as declared
   (dotted lines: a laser detector places each at the most open scan near its maximum).
+* ``ptm_timeline.png`` (only when ``ptm.inference`` holds the particle filter's timeline,
+  :func:`ptm_ros.ptm.ptm_timeline`) — how the mass moved as the visits arrived (:func:`timeline_figure`):
+  after each visit the mass of the most probable topology (bars), of the true topology of the visits so
+  far (with a ground truth) and of the greedy baseline's answer (when ptm.json has one), each cut to the
+  visits so far (:func:`ptm_ros.evaluation.timeline_masses`); without a truth, the two most probable.
 * ``ptm_srq.png`` (only when ``ptm.inference[SRQ_KEY]`` holds MCMC cold-chain states) — the scaled
   regeneration quantile plot of every chain (thesis Ch. 3.6, Fig. 42; :mod:`ptm_ros.convergence`), all
   chains at one atom: the state most visited over all chains.
@@ -57,12 +62,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.convergence import most_visited, srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.evaluation import Score
+from ptm_ros.evaluation import Score, first_wrong_visit, timeline_masses, unlisted_bound
 from ptm_ros.figures import ess_fraction, sig
 from ptm_ros.map_quality import ClassGrid, leaked_cells
 from ptm_ros.occupancy import FREE, OCCUPIED, UNKNOWN
-from ptm_ros.partitions import IntSequence, num_places
-from ptm_ros.ptm import Ptm, Topology
+from ptm_ros.partitions import IntSequence, Labels, num_places
+from ptm_ros.ptm import Ptm, TimelineStep, Topology, ptm_greedy, ptm_timeline
 from ptm_ros.routes import place_means
 
 if TYPE_CHECKING:
@@ -77,6 +82,9 @@ SCORES = "ptm_scores.png"
 SURPRISE = "ptm_surprise.png"
 SRQ = "ptm_srq.png"
 MAP_COMPARISON = "map_comparison.png"
+TIMELINE = "ptm_timeline.png"
+#: Caption of the timeline figure.
+TIMELINE_CAPTION = "How the mass moved as the visits arrived (the particle filter's PTM after each visit)"
 REPORT_MD = "report.md"
 REPORT_HTML = "report.html"
 #: Key of ``Ptm.inference`` holding the MCMC cold-chain states drawn as the SRQ plot (module docstring):
@@ -639,6 +647,84 @@ def draw_surprise(trace: SurpriseTrace, path: Path, *, config: ReportConfig) -> 
     return path
 
 
+def _mass_track(
+    steps: Sequence[TimelineStep], labels: IntSequence
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Per visit the listed mass of ``labels`` cut to the visits so far, and whether it was listed (an
+    unlisted one is drawn at :func:`ptm_ros.evaluation.unlisted_bound`, the most it can hold)."""
+    masses = timeline_masses(steps, labels)
+    listed = np.array([m is not None for m in masses])
+    values = np.array([unlisted_bound(st) if m is None else m for st, m in zip(steps, masses, strict=True)])
+    return values, listed
+
+
+def timeline_figure(
+    steps: Sequence[TimelineStep], *, truth: Labels | None = None, greedy: Labels | None = None
+) -> Figure:
+    """The timeline figure (module docstring), not yet saved: x = the newest visit's index. Artists carry
+    ids (``gid``): ``"top"`` (the bars), ``"truth"``, ``"greedy"`` or ``"second"`` (lines), ``"commit"``
+    (the greedy baseline's first wrong decision)."""
+    if not steps:
+        msg = "the timeline figure needs at least one step"
+        raise DataError(msg)
+    fig = _new_figure(max(6.0, 0.35 * len(steps) + 3.0), 4.2)
+    ax = fig.add_subplot()
+    x = np.array([st.visits - 1 for st in steps])
+    top = np.array([st.topologies[0][1] if st.topologies else 0.0 for st in steps])
+    ax.bar(
+        x,
+        top,
+        width=0.8,
+        color="0.85",
+        edgecolor="0.6",
+        linewidth=0.5,
+        label="most probable topology",
+        gid="top",
+    )
+    tracks: list[tuple[str, IntSequence, str, str, str]] = []
+    if greedy is not None:
+        tracks.append(("greedy baseline's answer so far", greedy, "tab:red", "s", "greedy"))
+    if truth is not None:
+        tracks.append(("true topology of the visits so far", truth, "tab:green", "o", "truth"))
+    else:
+        second = [st.topologies[1][1] if len(st.topologies) > 1 else 0.0 for st in steps]
+        ax.plot(
+            x, second, color="tab:blue", marker="o", linewidth=1.2, label="second most probable", gid="second"
+        )
+    unlisted = False
+    for z, (name, labels, color, marker, gid) in enumerate(tracks, start=2):
+        values, listed = _mass_track(steps, labels)
+        ax.plot(x, values, color=color, linewidth=1.5, label=name, zorder=z, gid=gid)
+        ax.scatter(x[listed], values[listed], color=color, marker=marker, zorder=z)
+        ax.scatter(x[~listed], values[~listed], facecolors="white", edgecolors=color, marker=marker, zorder=z)
+        unlisted |= not listed.all()
+    if greedy is not None and truth is not None:
+        wrong = first_wrong_visit(greedy, truth)
+        if wrong is not None:
+            ax.axvline(wrong, color="tab:red", linestyle=":", linewidth=1.0, gid="commit")
+            ax.annotate(
+                f" greedy commits, wrongly (visit {wrong})", (wrong, 0.02), fontsize=7, color="tab:red"
+            )
+    ax.set_xticks(x)
+    ax.tick_params(labelsize=7)
+    ax.set_xlim(x[0] - 0.6, x[-1] + 0.6)
+    ax.set_ylim(0.0, 1.05)
+    ax.set_xlabel("visit (the newest one)")
+    ax.set_ylabel("posterior probability")
+    hollow = "\n(hollow marker: not among the listed topologies, at most this)" if unlisted else ""
+    ax.set_title(f"How the mass moved as the visits arrived{hollow}", fontsize=9)
+    ax.legend(loc="center left", fontsize=7)
+    return fig
+
+
+def draw_timeline(ptm: Ptm, path: Path, *, truth: Labels | None, config: ReportConfig) -> Path:
+    """Write the timeline figure (:func:`timeline_figure`) of a PTM's timeline to ``path``, with the
+    greedy baseline's answer when ptm.json has one."""
+    fig = timeline_figure(ptm_timeline(ptm), truth=truth, greedy=ptm_greedy(ptm))
+    fig.savefig(path, dpi=config.dpi)
+    return path
+
+
 SrqPoints = tuple[ArrayLike, ArrayLike]
 
 
@@ -1100,6 +1186,11 @@ def write_report(
     ]
     if score is not None:
         figures.append(("Scores against ground truth", draw_scores(score, out / SCORES, config=config).name))
+    if ptm_timeline(ptm):
+        truth = score.true_labels if score is not None else None
+        figures.append(
+            (TIMELINE_CAPTION, draw_timeline(ptm, out / TIMELINE, truth=truth, config=config).name)
+        )
     notes = list(notes)
     declared = None
     if surprise_trace is not None and len(surprise_trace.stamps):
@@ -1122,7 +1213,7 @@ def write_report(
         notes.append(f"SRQ max |y − x| (0 = ideal mixing): {devs}" + (f"; atom {trapped}" if trapped else ""))
     elif isinstance(summary := ptm.inference.get(CHAINS_KEY), Mapping):
         notes.append(srq_summary_line(summary))
-    taken = {HISTOGRAM, TOPOLOGIES, SCORES, SURPRISE, SRQ, MAP_COMPARISON, REPORT_MD, REPORT_HTML}
+    taken = {HISTOGRAM, TOPOLOGIES, SCORES, SURPRISE, SRQ, TIMELINE, MAP_COMPARISON, REPORT_MD, REPORT_HTML}
     if occupancy_map is not None:
         figures.append((MAP_CAPTION, _place_extra(occupancy_map, out, taken, "map")))
     if map_comparison is not None:

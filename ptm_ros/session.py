@@ -37,9 +37,10 @@ from typing import Any
 import numpy as np
 
 from ptm_ros.appearance import AppearanceModel
+from ptm_ros.baselines import GreedyAssociation, GreedyConfig, greedy_association
 from ptm_ros.config import PtmConfig
 from ptm_ros.doubts import doubts_dict, find_doubts
-from ptm_ros.errors import ConfigError, DataError, PtmError
+from ptm_ros.errors import ConfigError, DataError, ModelError, PtmError
 from ptm_ros.factories import Registration, cached, make_registrar
 from ptm_ros.geometry import Registrar
 from ptm_ros.partitions import Labels
@@ -60,7 +61,16 @@ from ptm_ros.posterior import (
     total_variation,
 )
 from ptm_ros.priors import make_prior
-from ptm_ros.ptm import Landmark, Ptm, make_ptm
+from ptm_ros.ptm import (
+    GREEDY_KEY,
+    TIMELINE_KEY,
+    Landmark,
+    Ptm,
+    TimelineStep,
+    greedy_dict,
+    make_ptm,
+    timeline_list,
+)
 from ptm_ros.rbpf import FilterState, RbpfConfig, TopologyFilter
 from ptm_ros.visits import Visit
 
@@ -76,12 +86,14 @@ DOUBTS_KEY = "doubts"
 
 @dataclass(frozen=True)
 class Inference:
-    """A PTM's topologies with probabilities, and method-specific details."""
+    """A PTM's topologies with probabilities, and method-specific details; ``greedy`` the single answer
+    of the greedy baseline on the same visits (:func:`ptm_ros.baselines.greedy_association`), if known."""
 
     probabilities: dict[Labels, float]
     positions: dict[Labels, np.ndarray]
     log_posteriors: dict[Labels, float]
     details: dict[str, Any]
+    greedy: Labels | None = None
 
 
 def require_rbpf(config: PtmConfig, what: str) -> None:
@@ -128,6 +140,11 @@ class FilterSession:
             model of MCMC); default: one over the session's own visits, counting into
             :attr:`registrations`. Either way the session caches its outcomes per pair.
 
+    With ``inference.greedy``, beside the filter the session runs the greedy baseline
+    (:class:`ptm_ros.baselines.GreedyAssociation`, odometry only, decisions final) on the same visits,
+    one decision per visit; a restored session
+    decides the restored visits again (the same answer: it depends on the visits alone).
+
     Raises:
         ConfigError: another inference method, or ``refit_max_visits < 0``.
     """
@@ -161,6 +178,8 @@ class FilterSession:
         if inner is None and config.model.use_laser:
             inner = make_registrar(self._visits, config, self.registrations)
         self._registrar = None if inner is None or not config.model.use_laser else cached(inner, self._pairs)
+        self._greedy: GreedyAssociation | None = None
+        self._start_greedy()
 
     def _fit(self, visits: Sequence[Visit]) -> AppearanceModel | None:
         """The appearance priors fitted to ``visits`` (the same model object ``PosteriorModel`` builds)."""
@@ -186,6 +205,27 @@ class FilterSession:
         """The registrations made so far, per visit pair ``(i, j)``."""
         return self._pairs
 
+    @property
+    def greedy(self) -> Labels | None:
+        """The greedy baseline's labels of the visits so far (None: its pose graph could not be solved
+        at some visit, and it stopped)."""
+        return None if self._greedy is None else self._greedy.labels
+
+    def _start_greedy(self) -> None:
+        """A fresh greedy baseline when ``inference.greedy`` asks for one."""
+        on = self.config.inference.greedy
+        self._greedy = GreedyAssociation(self.config.model.odometry, GreedyConfig()) if on else None
+
+    def _decide_greedy(self, visits: Sequence[Visit]) -> None:
+        """The greedy baseline's decision on the last of ``visits`` (the ones it decided, then one more);
+        a failure stops the baseline, not the map."""
+        if self._greedy is None:
+            return
+        try:
+            self._greedy.add(visits)
+        except ModelError:
+            self._greedy = None
+
     def add(self, visit: Visit) -> FilterState:
         """Process the next visit (``visit.index`` must equal the number of visits so far).
 
@@ -209,6 +249,7 @@ class FilterSession:
             for key in [k for k in self._pairs if k[1] == n]:
                 del self._pairs[key]
             raise
+        self._decide_greedy(self._visits)
         self.wall_s += time.perf_counter() - start
         return state
 
@@ -230,7 +271,7 @@ class FilterSession:
     def _new_filter(self, appearance: AppearanceModel | None) -> TopologyFilter:
         inf = self.config.inference
         return TopologyFilter(
-            RbpfConfig(particles=inf.particles, resample=inf.resample),
+            rbpf_config(self.config),
             make_prior(self.config.model.prior),
             self.config.model.odometry,
             appearance=appearance,
@@ -262,6 +303,7 @@ class FilterSession:
         self.replays = 0
         self.wall_s = 0.0
         self.registrations.clear()
+        self._start_greedy()
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the session (plain values and arrays, for
@@ -303,6 +345,8 @@ class FilterSession:
                 self._filter = self._restore_filter(
                     state["filter"], appearance_from_state(state["appearance"])
                 )
+            for k in range(len(self._visits)):  # the greedy baseline's decisions, made again
+                self._decide_greedy(self._visits[: k + 1])
         except (KeyError, IndexError, TypeError, ValueError, PtmError) as err:
             self.reset()
             msg = f"malformed filter session state: {type(err).__name__}: {err}"
@@ -315,10 +359,9 @@ class FilterSession:
         if not 1 <= self._built_at <= len(self._visits):
             msg = f"the filter was built on {self._built_at} of {len(self._visits)} visits"
             raise DataError(msg)
-        inf = self.config.inference
         flt = TopologyFilter.from_state_dict(
             state,
-            RbpfConfig(particles=inf.particles, resample=inf.resample),
+            rbpf_config(self.config),
             make_prior(self.config.model.prior),
             self.config.model.odometry,
             appearance=appearance,
@@ -347,7 +390,10 @@ class FilterSession:
             msg = "no visit has been processed yet"
             raise DataError(msg)
         return rbpf_inference(
-            flt, self.config, **({} if self._run is not None else {"replays": self.replays})
+            flt,
+            self.config,
+            greedy=self.greedy,
+            **({} if self._run is not None else {"replays": self.replays}),
         )
 
     def to_ptm(self, *, frame_id: str = "odom", **extra: Any) -> Ptm:
@@ -381,13 +427,32 @@ def filter_visits(
     return session
 
 
-def rbpf_inference(flt: TopologyFilter, config: PtmConfig, **details: Any) -> Inference:
-    """A particle filter's current ensemble as an :class:`Inference`."""
+def rbpf_config(config: PtmConfig) -> RbpfConfig:
+    """The particle filter's settings: ``inference.particles`` and ``resample``, and ``inference.timeline``
+    topologies recorded after each visit."""
+    inf = config.inference
+    return RbpfConfig(particles=inf.particles, resample=inf.resample, record_top=inf.timeline)
+
+
+def filter_timeline(history: Sequence[FilterState]) -> tuple[TimelineStep, ...]:
+    """The PTM after each visit, as the filter recorded it (:attr:`ptm_ros.rbpf.FilterState.top`): the
+    posterior of thesis Algorithm 8 over the topologies of the visits so far; empty when none recorded."""
+    if not any(h.top for h in history):
+        return ()
+    return tuple(TimelineStep(h.n_visits, h.top) for h in history)
+
+
+def rbpf_inference(
+    flt: TopologyFilter, config: PtmConfig, *, greedy: Labels | None = None, **details: Any
+) -> Inference:
+    """A particle filter's current ensemble as an :class:`Inference`, with its timeline
+    (:func:`filter_timeline`, under :data:`~ptm_ros.ptm.TIMELINE_KEY` when recorded) and ``greedy``."""
     inf = config.inference
     probs = flt.ptm_weights()
     logw = flt.log_weights()
     ranked = dict(top_k(probs, inf.top))
     updates = np.array([h.update_s for h in flt.history])
+    timeline = filter_timeline(flt.history)
     return Inference(
         probabilities=ranked,
         positions={lab: flt.place_positions(lab) for lab in ranked},
@@ -399,8 +464,10 @@ def rbpf_inference(flt: TopologyFilter, config: PtmConfig, **details: Any) -> In
             "log_evidence": flt.log_evidence,
             "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
             "update_ms_p95": float(np.percentile(updates, 95) * 1e3) if len(updates) else 0.0,
+            **({TIMELINE_KEY: timeline_list(timeline)} if timeline else {}),
             **details,
         },
+        greedy=greedy,
     )
 
 
@@ -414,9 +481,12 @@ def build_ptm(
     **extra: Any,
 ) -> Ptm:
     """The ptm.json content of an inference result, with the visits the map is unsure of
-    (``extra["doubts"]``, :func:`ptm_ros.doubts.find_doubts`)."""
+    (``extra["doubts"]``, :func:`ptm_ros.doubts.find_doubts`) and the greedy baseline's answer
+    (``extra["greedy"]``, :func:`ptm_ros.ptm.greedy_dict`) when the inference has one."""
     landmarks = [Landmark.from_visit(v) for v in visits]
     inf = config.inference
+    if inference.greedy is not None:
+        extra = {**extra, GREEDY_KEY: greedy_dict(inference.greedy, GreedyConfig().gate_probability)}
     ptm = make_ptm(
         landmarks,
         inference.probabilities,
@@ -462,6 +532,31 @@ def infer(
         if session is None:
             session = FilterSession(config, fitted_to=visits, registrar=registrar)
         return filter_visits(session, visits, progress=progress).inference()
+    return replace(
+        _infer_batch(visits, config, registrar, progress, sweeps), greedy=_greedy_of(visits, config)
+    )
+
+
+def _greedy_of(visits: Sequence[Visit], config: PtmConfig) -> Labels | None:
+    """The greedy baseline's answer on a whole run (None: not asked for by ``inference.greedy``, or its
+    pose graph could not be solved)."""
+    if not config.inference.greedy:
+        return None
+    try:
+        return greedy_association(visits, config.model.odometry, GreedyConfig())
+    except ModelError:
+        return None
+
+
+def _infer_batch(
+    visits: Sequence[Visit],
+    config: PtmConfig,
+    registrar: Registrar | None,
+    progress: Progress | None,
+    sweeps: Callable[[int, int], None] | None,
+) -> Inference:
+    """:func:`infer` for the batch estimators, ``exact`` and ``mcmc``."""
+    inf = config.inference
     model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
     if inf.method == "exact":
         if len(visits) > inf.max_exact_visits:

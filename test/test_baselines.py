@@ -10,6 +10,7 @@ import pytest
 from scipy import optimize, stats
 
 from ptm_ros.baselines import (
+    GreedyAssociation,
     GreedyConfig,
     LoopClosureConfig,
     greedy_association,
@@ -165,6 +166,22 @@ def test_greedy_recovers_square_driven_twice_with_small_noise():
 def test_greedy_trivial_inputs():
     assert greedy_association([], ODOMETRY, GreedyConfig()) == ()
     assert greedy_association(visits_at([(1, 2, 3)]), ODOMETRY, GreedyConfig()) == (0,)
+
+
+def test_greedy_one_visit_at_a_time_decides_as_the_batch_and_never_revisits():
+    """Fed one visit at a time (as the filter session runs it), the decisions are the batch function's,
+    and the labels after visit k are the batch answer on the first k + 1 visits (decisions are final)."""
+    true = headings_along([*SQUARE, (0.0, 4.0), *SQUARE], (8.0, 0.0))
+    visits = drive(true, ODOMETRY, np.random.default_rng(4))
+    greedy = GreedyAssociation(ODOMETRY)
+    for k in range(len(visits)):
+        assert greedy.add(visits[: k + 1]) == greedy.labels[-1]
+        assert greedy.labels == greedy_association(visits[: k + 1], ODOMETRY, GreedyConfig())
+    assert len(set(greedy.labels)) < len(greedy.labels)  # it closed loops
+    n = len(visits)
+    with pytest.raises(ModelError, match=f"decided {n} visits: expected {n + 1}, got {n}"):
+        greedy.add(visits)
+    assert len(greedy.labels) == len(visits)
 
 
 def test_greedy_commits_to_a_wrong_merge_the_ptm_keeps_uncertain():

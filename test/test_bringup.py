@@ -268,14 +268,21 @@ def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path):
     # the same files (ptm-run's report figures include the surprise trace and the map)
     written = {p.name for p in up.iterdir()}
     assert written - BRINGUP_ONLY_FILES == {p.name for p in off.iterdir()}
-    assert {"route_graph.geojson", "map.pgm", "map.png", "ptm_surprise.png", "report.html"} <= written
+    assert {
+        "route_graph.geojson",
+        "map.pgm",
+        "map.png",
+        "ptm_surprise.png",
+        "ptm_timeline.png",
+        "report.html",
+    } <= written
     for d in (up, off):
         html = (d / "report.html").read_text()
         assert "ptm_surprise.png" in html and "map.png" in html and "absolute trajectory error" in html
 
     # the same PTM: at the end of a bag the filter node's ensemble is ptm-run's (exact replay, seeded)
     online, offline = load_ptm(up / "ptm.json"), load_ptm(off / "ptm.json")
-    assert online.landmarks == offline.landmarks and len(online.landmarks) == 10
+    assert online.landmarks == offline.landmarks and len(online.landmarks) == 8
     assert [t.labels for t in online.topologies] == [t.labels for t in offline.topologies]
     p_on = np.array([t.probability for t in online.topologies])
     p_off = np.array([t.probability for t in offline.topologies])
@@ -284,6 +291,20 @@ def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path):
     assert set(doc_on) - set(doc_off) == GRAPH_ONLY_KEYS and set(doc_off) <= set(doc_on)
     assert (doc_on["bag"], doc_on["detector"]) == (doc_off["bag"], doc_off["detector"])
     assert doc_on["doubts"] == doc_off["doubts"]
+    # how the mass moved, visit by visit, and the greedy answer beside it (issue #25): the same, printed
+    assert doc_on["greedy"] == doc_off["greedy"] and doc_on["greedy"]["labels"] != list(
+        online.topologies[0].labels
+    )
+    steps_on, steps_off = (d["inference"]["timeline"] for d in (doc_on, doc_off))
+    assert [s["visits"] for s in steps_on] == list(range(1, 9))
+    for a, b in zip(steps_on, steps_off, strict=True):
+        assert [t["labels"] for t in a["topologies"]] == [t["labels"] for t in b["topologies"]]
+        np.testing.assert_allclose(
+            [t["probability"] for t in a["topologies"]],
+            [t["probability"] for t in b["topologies"]],
+            atol=1e-9,
+        )
+    assert "how the mass moved as the visits arrived" in proc.stdout and "greedy baseline" in proc.stdout
     assert [e.message for e in Draft202012Validator(ptm_schema()).iter_errors(doc_on)] == []
     # scored the same way, on the same trajectory (the map publisher's, at every odometry sample)
     ate_on, ate_off = doc_on["trajectory_error"], doc_off["trajectory_error"]

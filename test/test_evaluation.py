@@ -684,3 +684,38 @@ def test_cli_calibration_errors(tmp_path: Path, capsys: pytest.CaptureFixture[st
     with pytest.raises(SystemExit) as exc:  # one ptm.json at a time without --calibration
         eval_main([str(run / "ptm.json"), str(far / "ptm.json"), "--ground-truth", str(far)])
     assert exc.value.code == 2
+
+
+def test_the_timeline_against_the_truth_of_the_visits_so_far():
+    """Issue #25: after each visit the mass the PTM listed on the truth cut to the visits so far (or
+    None, bounded by the least listed mass and the unlisted rest), and the first decision of a
+    single-answer method that contradicts the truth of the visits so far."""
+    from ptm_ros.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
+    from ptm_ros.ptm import TimelineStep
+
+    truth = (3, 1, 3, 7)  # any ids: visits 0 and 2 are one place
+    assert [cut(truth, n) for n in range(1, 5)] == [(0,), (0, 1), (0, 1, 0), (0, 1, 0, 2)]
+    steps = (
+        TimelineStep(1, (((0,), 1.0),)),
+        TimelineStep(2, (((0, 1), 0.8), ((0, 0), 0.2))),
+        TimelineStep(3, (((0, 1, 2), 0.7), ((0, 0, 1), 0.25))),
+        TimelineStep(4, (((0, 1, 0, 2), 0.9), ((0, 1, 2, 3), 0.06))),
+    )
+    assert timeline_masses(steps, truth) == (1.0, 0.8, None, 0.9)
+    assert timeline_masses(steps, (0, 0, 1, 2)) == (1.0, 0.2, 0.25, None)
+    assert [unlisted_bound(st) for st in steps] == pytest.approx([0.0, 0.0, 0.05, 0.04])
+    assert unlisted_bound(TimelineStep(1, ())) == 1.0
+    with pytest.raises(ModelError, match="labels of 3 visits cannot be cut to 4"):
+        timeline_masses(steps, truth[:3])
+    assert first_wrong_visit((5, 6, 5, 8), truth) is None  # the truth, under other ids
+    assert first_wrong_visit((0, 0, 1, 2), truth) == 1  # joined visit 1 to visit 0's place
+    assert first_wrong_visit((0, 1, 2, 0), truth) == 2  # missed the return to visit 0's place
+    assert first_wrong_visit((0, 1, 0, 1), truth) == 3
+    with pytest.raises(ModelError, match="labels of 3 visits against a truth of 4"):
+        first_wrong_visit((0, 1, 0), truth)
+
+
+def test_a_score_with_place_ids_keeps_the_true_topology():
+    ptm = make_ptm([Landmark(k, float(k), (*XY4[k], 0.0)) for k in range(4)], {(0, 1, 2, 0): 1.0})
+    assert score_ptm(ptm, XY4, true_places=[4, 2, 9, 4]).true_labels == (0, 1, 2, 0)
+    assert score_ptm(ptm, XY4).true_labels is None

@@ -14,6 +14,7 @@ from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
 from ptm_ros.odometry import (
     MetricResult,
     OdometryConfig,
+    SweptArea,
     log_integrand,
     mapped_area,
     metric_log_likelihood,
@@ -22,6 +23,7 @@ from ptm_ros.odometry import (
     optimize_poses,
     place_area,
     relative_odometry,
+    swept_area,
 )
 from ptm_ros.partitions import blocks
 from ptm_ros.visits import Visit
@@ -422,15 +424,18 @@ def test_cubic_prior_lowers_the_likelihood_and_is_weights_account_for_it() -> No
 # behaviour on a loop, laser matches
 
 
-def test_square_loop_closure_wins_and_wrong_closure_loses() -> None:
+@pytest.mark.parametrize(("area_m2", "factor"), [(0.0, 1.5), (1000.0, 4.0)])
+def test_square_loop_closure_wins_and_wrong_closure_loses(area_m2: float, factor: float) -> None:
+    """The right merge wins by the Occam factor ``log A/(4π σ²)`` (σ² = σ_T² plus the odometry's):
+    about 2.3 nats with the learned band of the 40 m path (A ≈ 74 m²), about 5 with A = 1000 m²."""
     visits = square_loop()
-    cfg = OdometryConfig(n_samples=1000)
+    cfg = OdometryConfig(n_samples=1000, area_m2=area_m2)
 
     def loglik(labels: tuple[int, ...]) -> float:
         return metric_log_likelihood(labels, visits, cfg, rng=np.random.default_rng(0)).log_likelihood
 
     closed, open_, wrong = loglik((0, 1, 2, 3, 0)), loglik((0, 1, 2, 3, 4)), loglik((0, 1, 0, 2, 3))
-    assert closed > open_ + 3.0  # the Bayes factor of the right merge (≈ 5 nats with A = 1000 m²)
+    assert closed > open_ + factor
     assert wrong < closed - 50.0  # merging visits 14 m apart in odometry
     assert wrong < open_ - 50.0
 
@@ -536,8 +541,61 @@ def test_the_area_is_learned_from_the_visits_extent() -> None:
     assert mapped_area(np.zeros((1, 2)), floor=3.0) == 9.0
     visits = square_loop()
     assert place_area(visits, OdometryConfig(area_m2=123.0)) == 123.0
-    learned = place_area(visits, OdometryConfig())
-    assert learned == mapped_area([v.pose[:2] for v in visits], OdometryConfig().penalty_radius)
+    extent = place_area(visits, OdometryConfig(area_model="extent"))
+    assert extent == mapped_area([v.pose[:2] for v in visits], OdometryConfig().penalty_radius)
+
+
+def test_the_swept_area_is_the_band_around_the_path() -> None:
+    """The default ``A``: the area within r = √π σ_T of the path through the visits, each point counted
+    once (a capsule for one segment, overlaps not doubled), against the exact area of simple shapes and
+    a Monte Carlo estimate of a random walk's band."""
+    r = 1.0
+    assert swept_area(np.zeros((1, 2)), r) == pytest.approx(math.pi, rel=0.05)
+    assert swept_area([[0.0, 0.0], [10.0, 0.0]], r) == pytest.approx(20.0 + math.pi, rel=0.02)
+    # there and back, and an L whose arms share a quarter disc: overlaps count once
+    assert swept_area([[0.0, 0.0], [10.0, 0.0], [0.0, 0.0]], r) == pytest.approx(20.0 + math.pi, rel=0.02)
+    assert swept_area([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]], r) == pytest.approx(40.0 + math.pi, rel=0.02)
+    assert swept_area(np.zeros((0, 2)), r) == 0.0
+    rng = np.random.default_rng(5)
+    walk = np.cumsum(rng.normal(scale=2.0, size=(30, 2)), axis=0)
+    lo, hi = walk.min(axis=0) - r, walk.max(axis=0) + r
+    q = rng.uniform(lo, hi, size=(200_000, 2))
+    a, b = walk[:-1], walk[1:]
+    ab = b - a
+    t = np.clip(np.einsum("qsk,sk->qs", q[:, None] - a, ab) / np.sum(ab * ab, axis=1), 0.0, 1.0)
+    near = np.min(np.sum((q[:, None] - a - t[..., None] * ab) ** 2, axis=2), axis=1) <= r * r
+    assert swept_area(walk, r) == pytest.approx(np.mean(near) * np.prod(hi - lo), rel=0.03)
+
+
+def test_the_swept_area_of_a_path_agrees_with_its_prefixes() -> None:
+    """Extending a path only adds cells, on one lattice: the area grows monotonically, the incremental
+    and the from-scratch areas are equal, and the memo keys on the radius and the positions."""
+    rng = np.random.default_rng(8)
+    walk = np.cumsum(rng.normal(scale=3.0, size=(40, 2)), axis=0)
+    incremental = [swept_area(walk[: n + 1], 0.9) for n in range(len(walk))]
+    assert np.all(np.diff(incremental) >= 0.0)
+    assert incremental[-1] == SweptArea(0.9).extended(walk).area
+    assert incremental[7] == SweptArea(0.9).extended(walk[:8]).area
+    assert swept_area(walk, 0.5) < swept_area(walk, 0.9)
+    # a path through the same points in another order covers other cells
+    assert swept_area(walk[::-1], 0.9) == pytest.approx(incremental[-1])
+    assert swept_area(walk[[0, 5, 1, 6, 2]], 0.9) != swept_area(walk[:7], 0.9)
+
+
+def test_the_default_area_is_the_swept_band_floored() -> None:
+    """``place_area`` at the defaults: the band of radius √π σ_T around the visits' path, at least
+    ``penalty_radius²``; a configured ``area_m2`` wins; an unknown model is a configuration error."""
+    visits = square_loop()
+    cfg = OdometryConfig()
+    local = between(np.asarray(visits[0].pose), np.array([v.pose for v in visits]))
+    band = swept_area(local[:, :2], math.sqrt(math.pi) * cfg.sigma_topology)
+    assert band > cfg.penalty_radius**2
+    assert place_area(visits, cfg) == band
+    assert place_area(visits[:1], cfg) == cfg.penalty_radius**2
+    assert place_area(visits, OdometryConfig(sigma_topology=1.0)) > band
+    assert place_area(visits, OdometryConfig(area_m2=50.0)) == 50.0
+    with pytest.raises(ConfigError, match="area_model"):
+        OdometryConfig(area_model="disc")
 
 
 def test_single_visit_and_non_canonical_labels() -> None:

@@ -123,6 +123,9 @@ def test_config_validation():
         RbpfConfig(particles=2.5)
     with pytest.raises(ConfigError, match="resample"):
         RbpfConfig(resample="multinomial")
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ConfigError, match="record_top"):
+            RbpfConfig(record_top=bad)
     with pytest.raises(ConfigError, match="OdometryConfig"):
         TopologyFilter(RbpfConfig(), DirichletProcessPrior(), odometry=None)
 
@@ -309,6 +312,24 @@ def test_full_filter_equals_exact_posterior_odometry(odometry_case):
     # the steps' increments add up to the evidence; every update reports its topologies
     assert math.isclose(sum(s.log_evidence_increment for s in flt.history), flt.log_evidence)
     assert [s.n_visits for s in flt.history] == list(range(1, 7))
+
+
+def test_each_update_records_the_ptm_of_the_visits_so_far(odometry_case):
+    """``record_top`` k: after every visit the history holds the k most probable topologies of the
+    filter's PTM then, with their probabilities (a timeline of the posterior, eq. 38–39); none without."""
+    visits, _, _ = odometry_case
+    config = RbpfConfig(particles=bell(6), record_top=3)
+    flt = TopologyFilter(config, make_prior(PRIOR), ODO)
+    assert [s.top for s in full_filter(visits, ODO).history] == [()] * len(visits)
+    for k, v in enumerate(visits):
+        state = flt.update(v)
+        ranked = sorted(flt.ptm_weights().items(), key=lambda kv: -kv[1])[:3]
+        assert [lab for lab, _ in state.top] == [lab for lab, _ in ranked]
+        np.testing.assert_allclose([p for _, p in state.top], [p for _, p in ranked], rtol=1e-12)
+        assert len(state.top) == min(3, bell(k + 1)) and all(len(lab) == k + 1 for lab, _ in state.top)
+        assert flt.history[-1] is state
+    restored = TopologyFilter.from_state_dict(copy.deepcopy(flt.state_dict()), config, make_prior(PRIOR), ODO)
+    assert restored.history == flt.history
 
 
 def test_a_learned_area_moves_the_weights_exactly(odometry_case):

@@ -624,3 +624,41 @@ def test_map_comparison_without_reference_draws_the_route_graph(tmp_path: Path) 
     md = (tmp_path / REPORT_MD).read_text(encoding="utf-8")
     assert f"![{ROUTES_CAPTION}]({MAP_COMPARISON})" in md and MAP_COMPARISON in html_links(html_path)
     assert red_pixels(tmp_path / MAP_COMPARISON) == 0
+
+
+def timeline_ptm() -> Ptm:
+    """:func:`loop_ptm` with the timeline the filter would have written, and a greedy answer that joins
+    visit 3 to visit 1's place."""
+    from ptm_ros.ptm import TimelineStep, greedy_dict, timeline_list
+
+    ptm = loop_ptm()
+    steps = [TimelineStep(n, ((TRUTH[:n], 0.9), ((0, 1, 2, 3, 4, 5, 6, 7)[:n], 0.1))) for n in range(4, 9)]
+    steps = [TimelineStep(n, ((TRUTH[:n], 1.0),)) for n in range(1, 4)] + steps
+    steps[3] = TimelineStep(4, (((0, 1, 2, 1), 0.6), ((0, 1, 2, 3), 0.4)))
+    inference = {**RBPF_INFERENCE, "timeline": timeline_list(steps)}
+    return replace(ptm, inference=inference, extra={"greedy": greedy_dict((0, 1, 2, 1, 0, 3, 2, 1), 0.99)})
+
+
+def test_timeline_figure_draws_the_mass_of_the_truth_and_of_the_greedy_answer(tmp_path: Path) -> None:
+    """Issue #25: per visit the most probable topology's mass (bars), the truth's and the greedy answer's
+    (cut to the visits so far; an unlisted one at the most it can hold), and where greedy went wrong."""
+    from ptm_ros.ptm import ptm_timeline
+    from ptm_ros.report import TIMELINE, timeline_figure
+
+    ptm = timeline_ptm()
+    steps = ptm_timeline(ptm)
+    fig = timeline_figure(steps, truth=TRUTH, greedy=(0, 1, 2, 1, 0, 3, 2, 1))
+    (ax,) = fig.axes
+    assert artist(ax, "truth").get_ydata() == pytest.approx([1, 1, 1, 0.4, 0.9, 0.9, 0.9, 0.9])
+    assert artist(ax, "greedy").get_ydata() == pytest.approx([1, 1, 1, 0.6, 0, 0, 0, 0])  # unlisted: <= 0
+    assert artist(ax, "commit").get_xdata() == [3, 3]
+    assert len([a for a in ax.get_children() if a.get_gid() == "top"]) == 8
+    plain = timeline_figure(steps).axes[0]
+    assert artist(plain, "second").get_ydata() == pytest.approx([0, 0, 0, 0.4, 0.1, 0.1, 0.1, 0.1])
+    assert not [a for a in plain.get_children() if a.get_gid() in ("truth", "greedy", "commit")]
+    with pytest.raises(DataError, match="at least one step"):
+        timeline_figure(())
+    html = write_report(tmp_path, ptm, score=score_ptm(ptm, TRUE_XY, true_places=TRUTH))
+    assert TIMELINE in html_links(html) and imread(tmp_path / TIMELINE).shape[0] > 100
+    write_report(tmp_path / "none", loop_ptm())
+    assert not (tmp_path / "none" / TIMELINE).exists()

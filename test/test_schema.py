@@ -193,3 +193,49 @@ def test_the_documentation_check_names_unknown_keys(validator):
     schema = validator.schema
     assert undocumented(doc, schema, schema) == ["$.inference.novel", "$.diagnostics.novel_counter"]
     assert undocumented(MINIMAL, schema, schema) == []
+
+
+def test_the_timeline_and_the_greedy_answer_round_trip_and_bad_ones_are_refused(validator):
+    """Issue #25: ``inference.timeline`` (the filter's PTM after each visit) and ``greedy`` (the greedy
+    baseline's labels) validate, read back as written, and malformed ones fail with the field named."""
+    from ptm_ros.errors import DataError
+    from ptm_ros.ptm import (
+        TimelineStep,
+        from_json_dict,
+        greedy_dict,
+        ptm_greedy,
+        ptm_timeline,
+        timeline_list,
+    )
+
+    steps = (
+        TimelineStep(1, (((0,), 1.0),)),
+        TimelineStep(2, (((0, 1), 0.7), ((0, 0), 0.3))),
+        TimelineStep(3, (((0, 1, 0), 0.6), ((0, 1, 2), 0.4))),
+        TimelineStep(4, (((0, 1, 2, 0), 0.91),)),
+    )
+    doc = copy.deepcopy(MINIMAL)
+    doc["inference"]["timeline"] = timeline_list(steps)
+    doc["greedy"] = greedy_dict((0, 1, 0, 0), 0.99)
+    assert doc["greedy"] == {"labels": [0, 1, 0, 0], "places": 2, "gate_probability": 0.99}
+    assert errors(validator, doc) == [] and undocumented(doc, validator.schema, validator.schema) == []
+    ptm = from_json_dict(json.loads(json.dumps(doc)))
+    assert ptm_timeline(ptm) == steps and ptm_greedy(ptm) == (0, 1, 0, 0)
+    assert ptm_timeline(from_json_dict(MINIMAL)) == () and ptm_greedy(from_json_dict(MINIMAL)) is None
+    for edit, match in (
+        (lambda d: d["inference"]["timeline"].pop(0), "timeline step 0 is for 2 visits, expected 1"),
+        (
+            lambda d: d["inference"]["timeline"][2]["topologies"][0].update(labels=[0, 2, 0]),
+            "not a canonical",
+        ),
+        (lambda d: d["inference"]["timeline"][1]["topologies"][0].update(probability=1.5), "outside"),
+        (lambda d: d["inference"]["timeline"][1].pop("topologies"), "KeyError"),
+    ):
+        bad = copy.deepcopy(doc)
+        edit(bad)
+        with pytest.raises(DataError, match=match):
+            ptm_timeline(from_json_dict(bad))
+    for labels in ([0, 1, 0], [1, 0, 0, 0]):
+        bad = {**copy.deepcopy(doc), "greedy": {**doc["greedy"], "labels": labels}}
+        with pytest.raises(DataError, match="greedy: labels"):
+            ptm_greedy(from_json_dict(bad))

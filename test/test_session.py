@@ -208,3 +208,54 @@ def test_exact_enumeration_too_large_names_the_limit_and_the_alternatives(sim_vi
         ConfigError, match=r"inference.max_exact_visits is 2 \(at most 12\); use --method rbpf or "
     ):
         infer(sim_visits[:3], config)
+
+
+def test_the_ptm_carries_the_filters_timeline_and_the_greedy_answer(sim_visits, tmp_path):
+    """Issue #25: ptm.json's ``inference.timeline`` is the filter's PTM after every visit (the
+    ``inference.timeline`` most probable topologies of the visits so far, the last one the PTM's own top)
+    and ``greedy`` the greedy baseline's answer on the same visits; a live session's timeline at the end is
+    the offline one (its last replay ran with the priors of the whole run), and a restored session, having
+    decided the restored visits again, ends with the same greedy answer and timeline."""
+    from ptm_ros.baselines import GreedyConfig, greedy_association
+    from ptm_ros.ptm import ptm_greedy, ptm_timeline
+
+    config = load_config(
+        None, {"model": {"use_laser": False}, "inference": {"particles": 30, "timeline": 2, "greedy": True}}
+    )
+    offline = FilterSession(config, fitted_to=sim_visits)
+    live = FilterSession(config, refit_max_visits=0)
+    for n, v in enumerate(sim_visits):
+        offline.add(v)
+        live.add(v)
+        assert live.greedy == greedy_association(sim_visits[: n + 1], config.model.odometry, GreedyConfig())
+    ptm = offline.to_ptm()
+    steps = ptm_timeline(ptm)
+    assert [st.visits for st in steps] == list(range(1, len(sim_visits) + 1))
+    assert len(steps[0].topologies) == 1 and all(len(st.topologies) == 2 for st in steps[1:])
+    assert [(t.labels, t.probability) for t in ptm.topologies[:2]] == list(steps[-1].topologies)
+    assert ptm_greedy(ptm) == offline.greedy == live.greedy
+    assert ptm.extra["greedy"]["places"] == max(live.greedy) + 1
+    assert ptm_timeline(live.to_ptm()) == steps
+    assert infer(sim_visits, config).greedy == offline.greedy
+    exact = load_config(
+        None, {"model": {"use_laser": False}, "inference": {"method": "exact", "greedy": True}}
+    )
+    assert infer(sim_visits[:5], exact).greedy == greedy_association(
+        sim_visits[:5], config.model.odometry, GreedyConfig()
+    )
+    assert "timeline" not in infer(sim_visits[:5], exact).details
+    untimed = FilterSession(replace(config, inference=replace(config.inference, timeline=0, greedy=False)))
+    untimed.add(sim_visits[0])
+    assert ptm_timeline(untimed.to_ptm()) == () and "timeline" not in untimed.to_ptm().inference
+    assert untimed.greedy is None and "greedy" not in untimed.to_ptm().extra  # off by default (O(N²))
+    assert infer(sim_visits[:5], load_config(None, {"model": {"use_laser": False}})).greedy is None
+    half = FilterSession(config, refit_max_visits=0)
+    for v in sim_visits[:4]:
+        half.add(v)
+    save_filter_state(tmp_path / "s.npz", half.state_dict(), meta={})
+    resumed = FilterSession(config, refit_max_visits=0)
+    resumed.load_state(load_filter_state(tmp_path / "s.npz")[0])
+    assert resumed.greedy == half.greedy
+    for v in sim_visits[4:]:
+        resumed.add(v)
+    assert resumed.greedy == live.greedy and ptm_timeline(resumed.to_ptm()) == steps

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError
-from ptm_ros.io.simulator import MAX_ARC_TURN, CameraConfig, SimConfig, plan_trajectory, simulate
+from ptm_ros.io.simulator import MAX_ARC_TURN, CameraConfig, SimConfig, cast_rays, plan_trajectory, simulate
 from ptm_ros.io.worlds import (
     CALIBRATION_FAMILIES,
     MIN_PLACE_SEPARATION,
@@ -120,6 +120,26 @@ def test_default_visits_match_the_brief() -> None:
     assert get_world("multi-loop").default_visits == 33
     assert len(get_world("multi-loop").visits()) == 33
     assert get_world("t-junction").visits(8) == ("w", "j", "s", "j", "e", "j", "w", "j")
+
+
+def test_twin_junctions_look_alike_within_the_laser_patch_as_the_route_enters_them() -> None:
+    """``j1`` entered heading east and ``j2`` heading south: the same walls at the same ranges in every
+    direction up to 3.9 m (beyond, j2 sees j1's cross corridor ahead); one texture at ``j2``, and at ``j1``
+    the same but for the walls behind and on the right (the corridor west and the wall across from the
+    branch). The two are 5 m apart, 49 m along the route."""
+    world = get_world("twin-junctions")
+    j1, j2 = world.place("j1"), world.place("j2")
+    angles = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    origins = np.array([[j1.x, j1.y], [j2.x, j2.y]])
+    hits = cast_rays(world.segments, origins, np.stack([angles, angles - math.pi / 2]))
+    np.testing.assert_allclose(np.minimum(hits.range[0], 3.9), np.minimum(hits.range[1], 3.9), atol=1e-9)
+    seen = hits.range[0] < 3.9
+    at_j1, at_j2 = world.wall_textures[hits.wall[0][seen]], world.wall_textures[hits.wall[1][seen]]
+    assert set(at_j2.tolist()) == {0} and set(at_j1.tolist()) == {0, 1}
+    own = angles[seen][at_j1 == 1]
+    assert np.all((own <= -math.pi / 4 + 1e-9) | (own >= 3 * math.pi / 4 - 1e-9))
+    assert math.hypot(j1.x - j2.x, j1.y - j2.y) == 5.0
+    assert world.visits() == ("j1", "c-e", "c-ne", "c-nw", "j2", "end-p", "j2", "j1")
 
 
 def test_get_world_lists_names_on_error() -> None:

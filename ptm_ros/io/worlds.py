@@ -18,6 +18,11 @@ consecutive pair (the last to the first included) joined by a corridor. The worl
 * ``multi-loop``: a 4 x 3 grid of corridors (six loops) with a dead end, driven through several loops
   like the simulation of thesis Figs. 39-40 (33 visits by default).
 * ``t-junction``: a tiny T of three 5 m corridors for fast tests (6 visits per cycle, 3 by default).
+* ``twin-junctions``: two T-junctions 5 m apart on one corridor, alike to the laser, the second reached
+  from the first only around a 15 x 12 m loop of identical corridors; the first has a wall of another
+  texture across from its branch (weak evidence, to the camera only). After the loop the odometry cannot
+  tell whether the robot is back at the first junction or at its twin; the drive on to the first tells
+  them apart (8 visits by default: ``make demo``'s world).
 
 Calibration families (issue #23): worlds with exact perceptual aliasing, each with a *control* of the same
 geometry whose textures all differ (only the laser's view of the geometry can still alias there). Their
@@ -474,6 +479,46 @@ def t_junction() -> World:
     )
 
 
+def twin_junctions() -> World:
+    """Two identical T-junctions 5 m apart on one corridor, the second reached around a 15 x 12 m loop.
+
+    The route enters the first junction ``j1`` heading east (a branch on its left, the corridor on
+    ahead), drives the loop through the corners ``c-e``, ``c-ne``, ``c-nw`` and reaches the second
+    junction ``j2`` heading south, with the same branch on its left: a dead end ``end-p`` 5 m east, driven
+    to and back (a U-turn). It then returns south to ``j1``. The laser sees the same walls at both
+    junctions; the camera sees one difference: the corridor west of ``j1`` (to the dead end ``end-w``,
+    never reached in the default 8 visits) and ``j1``'s wall across from the branch carry a texture of
+    their own, every other wall shares one.
+    """
+    places = [
+        Place("end-w", 0.0, 0.0, "corridor-end"),
+        Place("j1", 5.0, 0.0, "junction"),
+        Place("c-e", 20.0, 0.0, "corner"),
+        Place("c-ne", 20.0, 12.0, "corner"),
+        Place("c-nw", 5.0, 12.0, "corner"),
+        Place("j2", 5.0, 5.0, "junction"),
+        Place("end-p", 10.0, 5.0, "corridor-end"),
+    ]
+    corridors = [  # listed first, the west corridor's texture also takes j1's wall across from j2
+        ("end-w", "j1", 1),
+        ("j1", "c-e", 0),
+        ("c-e", "c-ne", 0),
+        ("c-ne", "c-nw", 0),
+        ("c-nw", "j2", 0),
+        ("j2", "j1", 0),
+        ("j2", "end-p", 0),
+    ]
+    return build_world(
+        "twin-junctions",
+        "two identical T-junctions 5 m apart on one corridor, the second reached from the first around a "
+        "15 x 12 m loop of identical corridors; the robot then returns to the first",
+        places,
+        corridors,
+        route=["j1", "c-e", "c-ne", "c-nw", "j2", "end-p", "j2", "j1", "end-w"],
+        default_visits=8,
+    )
+
+
 def ring_world(
     name: str,
     description: str,
@@ -666,6 +711,7 @@ WORLDS: Mapping[str, Callable[[], World]] = {
     "two-loop": two_loop,
     "multi-loop": multi_loop,
     "t-junction": t_junction,
+    "twin-junctions": twin_junctions,
     "distinct-loop": distinct_loop,
     "aliased-ring": aliased_ring,
     "distinct-ring": distinct_ring,

@@ -686,6 +686,7 @@ def write_outputs(
                 occupancy_map=files.get("map_png"),
                 map_comparison=map_comparison(walls, reference, alignment, extra, files["route_graph"]),
                 notes=doubt_lines(find_doubts(ptm))
+                + greedy_notes(ptm, score.true_labels if score is not None else None)
                 + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
                 + map_quality_notes(extra.get(MAP_QUALITY_KEY))
                 + inference_notes(ptm.inference),
@@ -890,6 +891,32 @@ def versus_notes(versus: Mapping[str, Any] | None) -> list[str]:
         f"topologies re-weighted); same-place probabilities of {versus['pairs_in_play']} visit pairs "
         f"differ by {versus['pair_mean_diff']:.3f} on average, {versus['pairs_differing']} by more than 0.1"
     ]
+
+
+def greedy_notes(ptm: Ptm, truth: Labels | None = None) -> list[str]:
+    """A line on the greedy baseline's answer (ptm.json's ``greedy``, :func:`ptm_ros.ptm.ptm_greedy`): its
+    topology and places and, against the true topology ``truth``, whether it is right and, if not, the
+    decision where it went wrong (final: it never comes back); none without an answer."""
+    from ptm_ros.evaluation import first_wrong_visit
+    from ptm_ros.ptm import ptm_greedy
+    from ptm_ros.report import label_string
+
+    greedy = ptm_greedy(ptm)
+    if greedy is None:
+        return []
+    line = (
+        f"greedy baseline (nearest place on odometry, every decision final): {label_string(greedy, 40)}, "
+        f"{max(greedy) + 1} places"
+    )
+    if truth is None:
+        return [line]
+    k = first_wrong_visit(greedy, truth)
+    if k is None:
+        return [f"{line}: the true topology"]
+    j, t = greedy.index(greedy[k]), truth.index(truth[k])
+    did = "opened a new place" if j == k else f"closed a loop onto the place of visit {j}"
+    real = "a new place" if t == k else f"a return to the place of visit {t}"
+    return [f"{line}: wrong, from visit {k} on: there it {did}, and visit {k} is {real}"]
 
 
 def map_quality_notes(quality: Mapping[str, Any] | None) -> list[str]:

@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from ptm_ros.partitions import Labels
+    from ptm_ros.ptm import Ptm, TimelineStep
     from ptm_ros.tools.pipeline import RunCheckpoint
 
 PROG = "ptm-run"
@@ -181,13 +183,81 @@ def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
     return RunCheckpoint(path, every=args.autosave or 0, resume=args.resume)
 
 
+#: Rows of the printed timeline: a longer one shows only the visits where the mass moved (:func:`eventful`).
+TIMELINE_ROWS = 20
+#: A visit where the most probable topology holds less than this is one where the mass is split.
+SURE_MASS = 0.95
+
+
+def eventful(steps: Sequence[TimelineStep], greedy_wrong: int | None = None) -> list[int]:
+    """Indices of the timeline steps worth a row when there are too many: the first and last visits,
+    those after which the most probable topology held less than :data:`SURE_MASS` or was not the
+    previous one extended (the mass moved), and the greedy baseline's first wrong decision."""
+    keep = {0, len(steps) - 1} | ({greedy_wrong} if greedy_wrong is not None else set())
+    for k, st in enumerate(steps):
+        best, p = st.topologies[0] if st.topologies else ((), 0.0)
+        before = steps[k - 1].topologies[0][0] if k > 0 and steps[k - 1].topologies else None
+        if p < SURE_MASS or (before is not None and best[:-1] != before):
+            keep.add(k)
+    return sorted(keep)
+
+
+def timeline_lines(ptm: Ptm, truth: Labels | None = None) -> list[str]:
+    """The printed timeline: after each visit the mass of the most probable topologies of the visits so
+    far (``*`` the true one, ``g`` the greedy baseline's answer so far) and, with the true topology
+    ``truth``, its mass and whether the greedy answer so far is right; at most :data:`TIMELINE_ROWS` rows
+    (the :func:`eventful` ones when more); no lines without a timeline in ptm.json."""
+    from ptm_ros.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
+    from ptm_ros.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.report import label_string
+
+    steps = ptm_timeline(ptm)
+    if not steps:
+        return []
+    greedy = ptm_greedy(ptm)
+    wrong = first_wrong_visit(greedy, truth) if greedy is not None and truth is not None else None
+    rows = list(range(len(steps))) if len(steps) <= TIMELINE_ROWS else eventful(steps, wrong)[:TIMELINE_ROWS]
+    masses = timeline_masses(steps, truth) if truth is not None else ()
+    marks = "* the true one, g the greedy baseline's answer" if truth is not None else "g the greedy answer"
+    lines = [
+        "how the mass moved as the visits arrived (the particle filter's PTM after each visit: its most "
+        f"probable topologies of the visits so far, {marks}):",
+        "  visit  "
+        + ("truth   " if truth is not None else "")
+        + ("greedy  " if truth is not None and greedy is not None else "")
+        + "topologies",
+    ]
+    shown = -1
+    for k in rows:
+        st = steps[k]
+        if k > shown + 1:
+            lines.append(f"  … {k - shown - 1} visits with one topology holding >= {SURE_MASS} of the mass")
+        shown = k
+        head = f"  {st.visits - 1:5d}  "
+        if truth is not None:
+            m = masses[k]
+            head += (f"{m:.3f}" if m is not None else f"<{unlisted_bound(st):.3f}").ljust(8)
+            if greedy is not None:
+                head += ("wrong" if wrong is not None and st.visits > wrong else "right").ljust(8)
+        cells = []
+        for lab, p in st.topologies:
+            mark = "*" if truth is not None and lab == cut(truth, st.visits) else ""
+            mark += "g" if greedy is not None and lab == cut(greedy, st.visits) else ""
+            cells.append(f"{p:.3f} {label_string(lab, 24)}{mark}")
+        lines.append(head + "  ".join(cells))
+    if shown < len(steps) - 1:
+        lines.append(f"  … {len(steps) - 1 - shown} more visits: ptm.json's inference.timeline")
+    return lines
+
+
 def format_summary(result, top: int, total_s: float | None = None) -> str:
-    """Human-readable lines: visits, the most probable topologies, the score if any, and (``total_s``)
-    the run's whole wall time with its phases."""
+    """Human-readable lines: visits, the most probable topologies, the score if any, how the mass moved as
+    the visits arrived (:func:`timeline_lines`), the greedy baseline's answer beside it, and
+    (``total_s``) the run's whole wall time with its phases."""
     from ptm_ros.doubts import doubt_lines, find_doubts
     from ptm_ros.landmarks import landmark_accounting
     from ptm_ros.report import CONSISTENT_MASS_MEANING, inference_line, label_string
-    from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, inference_notes, map_quality_notes
+    from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, greedy_notes, inference_notes, map_quality_notes
 
     ptm = result.ptm
     lines = [f"{len(ptm.landmarks)} landmark visits, {ptm.timing.get('wall_s', 0.0):.2f} s to the PTM"]
@@ -210,6 +280,9 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
         lines.append(f"  ({CONSISTENT_MASS_MEANING})")
         if s.get("true_topology_mass") is not None:
             lines.append(f"mass on the true topology = {s['true_topology_mass']:.3f}")
+    truth = result.score.true_labels if result.score is not None else None
+    lines.extend(timeline_lines(ptm, truth))
+    lines.extend(greedy_notes(ptm, truth))
     ate = result.trajectory_error
     if ate:
         lines.append(
