@@ -9,7 +9,13 @@ the nodes take it) and runs ``ptm-run`` on the same bag with the same parameters
   (``agreement``), occupied cells online / offline, grid sizes;
 * the map publisher's work: maps drawn during the replay, the time of the last one, keyframe scans.
 
-Writes ``bench/online_map.json``.
+The live map is measured as the map publisher draws it by default: ``ptm-bringup --bag`` sets the
+thinning to none (``ptm_ros.mapping.every_sample``: every odometry sample and scan, so that its files
+are ``ptm-run``'s), and this benchmark gives both tools a ROS parameter file
+(:func:`default_thinning`) that puts the default ``mapping.*`` thinning back; the nodes apply it after
+the bringup's own settings, ``ptm-run`` does not draw from the stream and is unaffected.
+
+Writes ``bench/online_map.json`` (with the thinning used, ``mapping``).
 
     PYTHONPATH=. .venv/bin/python bench/bench_online_map.py [--only intel ...] [--rate 0] [--work out/bench]
 """
@@ -29,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -36,6 +43,7 @@ sys.path.insert(0, str(BENCH))
 
 from run_all import prepare_runs  # noqa: E402 - a sibling benchmark script
 
+from ptm_ros.mapping import MappingConfig, every_sample  # noqa: E402
 from ptm_ros.occupancy import OCCUPIED, UNKNOWN, aligned_windows, load_map  # noqa: E402
 from ptm_ros.ptm import load_ptm  # noqa: E402
 
@@ -50,11 +58,32 @@ def ros_env() -> dict[str, str]:
     return env
 
 
+def thinning() -> dict[str, float]:
+    """The default values of the ``mapping`` fields that :func:`ptm_ros.mapping.every_sample` (what
+    ``ptm-bringup --bag`` applies) sets to no thinning."""
+    default = MappingConfig()
+    unthinned = every_sample(default)
+    return {
+        name: getattr(default, name)
+        for name in vars(default)
+        if getattr(default, name) != getattr(unthinned, name)
+    }
+
+
+def default_thinning(path: Path) -> Path:
+    """A ROS parameter file (all nodes) with :func:`thinning`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"mapping": thinning()}}}))
+    return path
+
+
 def bench_run(name: str, bag: Path, work: Path, rate: float) -> dict[str, Any]:
     bin_dir = Path(sys.executable).parent
     online, offline = work / "online" / name, work / "offline" / name
+    params = default_thinning(work / "default_thinning.yaml")
     t0 = time.perf_counter()
     cmd = [str(bin_dir / "ptm-bringup"), "--bag", str(bag), "--rate", str(rate), "--out", str(online)]
+    cmd += ["--params", str(params)]
     proc = subprocess.run(
         [*cmd, "--no-report"],
         env=ros_env(),
@@ -65,7 +94,16 @@ def bench_run(name: str, bag: Path, work: Path, rate: float) -> dict[str, Any]:
     wall_online = time.perf_counter() - t0
     t0 = time.perf_counter()
     off = subprocess.run(
-        [str(bin_dir / "ptm-run"), str(bag), "--out", str(offline), "--no-report", "--quiet"],
+        [
+            str(bin_dir / "ptm-run"),
+            str(bag),
+            "--out",
+            str(offline),
+            "--params",
+            str(params),
+            "--no-report",
+            "--quiet",
+        ],
         env=ros_env(),
         capture_output=True,
         text=True,
@@ -117,6 +155,7 @@ def main() -> int:
         "generated": time.strftime("%Y-%m-%d %H:%M:%S"),
         "command": "PYTHONPATH=. .venv/bin/python bench/bench_online_map.py",
         "rate": args.rate,
+        "mapping": thinning(),
         "load_average": list(os.getloadavg()),
         "runs": rows,
     }

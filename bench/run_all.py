@@ -9,23 +9,29 @@
    resumable) and corrupted bags through ``ptm-run``/``ptm-eval`` with a larger budget than the test's
    (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities fitted leave one run out
    (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised in ``results.md``) and the model's
-   odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``)
-   and ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``), when present.
+   odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
+   ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``) and the occupancy
+   maps of every simulated world and real run against their references (``bench_maps.py``:
+   ``maps_quality.json``, summarised in ``results.md``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
    landmark patches (:mod:`ptm_ros.baselines`); for the pipeline also the absolute trajectory errors of
    the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``) and the
    route graph's edge segments through the walls of the run's own map (``route_edges_crossing_walls``,
-   recorded, not asserted). Every
+   recorded, not asserted) and the map's quality against the same scans at the ground-truth poses
+   (``map_leak``, ``map_free_area_ratio``, ``map_wall_precision``, ``map_wall_recall``:
+   :mod:`ptm_ros.map_quality`, issue #24). Every
    run with scans is also calibrated for the laser's time offset (``ptm-calibrate``, no ground truth);
    where it chooses a non-zero offset the pipeline runs again with it (``ptm-rbpf calibrated``). Every
    run is also replayed with landmarks fixed in the environment (``--detector ground-truth``: a
    simulated world's own places, on a real run landmarks placed every 5 m along the true path, the
    protocol of the thesis' Intel experiment, Ch. 4.5), with the filter (``ptm-rbpf gt-landmarks``) and, on the
    real runs, with MCMC (``ptm-mcmc gt-landmarks``; the thesis used MC³ there). Writes
-   ``bench/results.json``, ``bench/results.md`` and the occupancy maps of the real runs,
-   ``bench/maps/<run>.png`` (downscaled to at most 300 kB).
+   ``bench/results.json``, ``bench/results.md`` and the occupancy maps of every run,
+   ``bench/maps/<run>.png``, with the map beside its reference, ``bench/maps/<run>-vs-reference.png``
+   (the report's ``map_comparison.png``; both downscaled to at most 300 kB; ``<run>-calibrated…`` for
+   the calibrated rerun).
 
 ``--only NAME ...`` restricts both parts to the named runs and component scripts (e.g.
 ``--only intel``, ``--only bench_nodes.py``).
@@ -68,6 +74,7 @@ COMPONENTS = (
     "bench_fuzz.py",
     "bench_fitness_loo.py",
     "bench_odometry_noise.py",
+    "bench_maps.py",
     "bench_demo.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
@@ -181,7 +188,33 @@ def pipeline_row(name: str, kind: str, bag: Path, gt: Path, out: Path, config, m
     row["ate_odometry_m"] = ate.get("ate_odometry_m")
     row["map_s"] = result.ptm.timing.get("map_s")
     row["route_edges_crossing_walls"] = route_edges_crossing_walls(result.files)
+    row.update(map_quality_row(result.ptm.extra.get("map_quality")))
     return result, row
+
+
+#: The map-quality figures of a results row (``map_<key>``: the keys of ptm.json's ``map_quality``).
+MAP_QUALITY_KEYS = ("leak", "free_area_ratio", "wall_precision", "wall_recall")
+
+
+def map_quality_row(quality: Mapping | None) -> dict:
+    """``map_leak``, ``map_free_area_ratio``, ``map_wall_precision``, ``map_wall_recall`` of ptm.json's
+    ``map_quality`` (:mod:`ptm_ros.map_quality`; None without a map or a ground truth)."""
+    return {f"map_{k}": (quality or {}).get(k) for k in MAP_QUALITY_KEYS}
+
+
+def copy_map_figures(name: str, result) -> dict:
+    """``map.png`` and the report's side-by-side ``map_comparison.png`` of a pipeline result copied to
+    ``bench/maps/<name>.png`` and ``bench/maps/<name>-vs-reference.png`` (downscaled, :func:`copy_map`);
+    their paths relative to ``bench/`` (``map_png``, ``map_comparison_png``), those that exist."""
+    from ptm_ros.report import MAP_COMPARISON
+
+    out = {}
+    if "map_png" in result.files:
+        out["map_png"] = copy_map(result.files["map_png"], MAPS / f"{name}.png")
+    if result.report_path is not None and (result.report_path.parent / MAP_COMPARISON).is_file():
+        src = result.report_path.parent / MAP_COMPARISON
+        out["map_comparison_png"] = copy_map(src, MAPS / f"{name}-vs-reference.png")
+    return {k: v.relative_to(BENCH).as_posix() for k, v in out.items()}
 
 
 def route_edges_crossing_walls(files: Mapping[str, Path]) -> int | None:
@@ -196,7 +229,7 @@ def route_edges_crossing_walls(files: Mapping[str, Path]) -> int | None:
         return None
     grid = load_map(files["map_yaml"])
     doc = json.loads(Path(files["route_graph"]).read_text())
-    return crossing_segments(doc, ClassGrid(grid.data, grid.origin, grid.resolution))
+    return crossing_segments(doc, ClassGrid(grid.classes(), grid.origin, grid.resolution))
 
 
 def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
@@ -210,7 +243,11 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
     config = load_config()
     result, row = pipeline_row(name, kind, bag, gt, work / "out" / name, config, "ptm-rbpf")
     rows = [row]
-    out = {"run": name, "rows": rows}
+    out = {
+        "run": name,
+        "rows": rows,
+        "figures": [{"method": row["method"], **copy_map_figures(name, result)}],
+    }
     run = read_run(bag)
     if run.scans is not None:  # the laser's time offset, from the bag alone (ptm-calibrate)
         t0 = time.perf_counter()
@@ -220,6 +257,7 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
             dest = work / "out" / f"{name}-calibrated"
             result, row = pipeline_row(name, kind, bag, gt, dest, cal.applied(config), "ptm-rbpf calibrated")
             rows.append(row)
+            out["figures"].append({"method": row["method"], **copy_map_figures(f"{name}-calibrated", result)})
     fixed = replace(config, detector=replace(config.detector, kind="ground-truth"))
     methods = [("rbpf", "ptm-rbpf gt-landmarks")] + (
         [("mcmc", "ptm-mcmc gt-landmarks")] if kind == "real" else []
@@ -228,8 +266,6 @@ def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
         cfg = replace(fixed, inference=replace(fixed.inference, method=method))
         _, row = pipeline_row(name, kind, bag, gt, work / "out" / f"{name}-gt-{method}", cfg, label)
         rows.append(row)
-    if kind == "real" and "map_png" in result.files:  # the calibrated run's map when there is one
-        out["map_png"] = copy_map(result.files["map_png"], MAPS / f"{name}.png").relative_to(BENCH).as_posix()
     visits = detect_visits(run, config)
     t0 = time.perf_counter()
     labels = greedy_association(visits, config.model.odometry, GreedyConfig())
@@ -347,19 +383,86 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
                 f"| {name} | {cal['scans']} | " + " | ".join(cells) + f" | {cal['time_offset']:g} | "
                 f"{cal['wall_s']:.1f} |"
             )
-    maps = [(run["run"], run["map_png"]) for run in runs if run.get("map_png")]
-    if maps:
-        lines += ["", "## Occupancy maps of the real runs", ""]
-        lines += [
-            "Scans placed along the smoothed trajectory of the most probable topology (`ptm-run`'s map.png; "
-            "the calibrated run's where there is one)."
-        ]
-        lines += [""] + [f"- [{name}]({path})" for name, path in maps] + [""]
-        lines += [f"![{name}]({path})" for name, path in maps]
+    lines += map_section(runs)
+    lines += maps_quality_section(BENCH / "maps_quality.json")
     lines += loo_section(BENCH / "fitness_loo.json")
     lines += ["", "Component benchmarks (their own JSON files beside this one):", ""]
     lines += [f"- `{c['script']}`: exit {c['exit_code']}, {c['wall_s']:.1f} s" for c in components]
     (BENCH / "results.md").write_text("\n".join(lines) + "\n")
+
+
+def map_section(runs: list[dict]) -> list[str]:
+    """The occupancy maps of every run (simulated and real): their quality against the reference, per
+    pipeline row with a map, and the figures (the map, and the map beside its reference)."""
+    rows = [r for run in runs for r in run["rows"] if r.get("map_leak") is not None]
+    maps = [(run["run"], f) for run in runs for f in run.get("figures", ()) if f.get("map_png")]
+    if not rows and not maps:
+        return []
+    lines = ["", "## Occupancy maps against the reference (issue #24)", ""]
+    lines += [
+        "The map (`ptm-run`'s `map.pgm`: scans placed along the smoothed trajectory of the most probable "
+        "topology) against a reference made of the same scans at the ground-truth poses, with only the "
+        "beams that returned, carried onto it by the ATE alignment (`ptm_ros.map_quality`): `leak` = share "
+        "of the map's free cells more than 0.3 m from every cell the reference saw (issue: <= 0.02); "
+        "`free_area_ratio` = the map's free area over the reference's (issue: 0.8-1.25); wall precision / "
+        "recall = share of the map's occupied cells within 0.2 m of a reference wall / of the reference's "
+        "walls within 0.2 m of one of the map's; `route_edges_crossing_walls` = route-graph edge segments "
+        "through the map's own walls.",
+        "",
+    ]
+    if rows:
+        cols = ("run", "method", "time_offset_s", *(f"map_{k}" for k in MAP_QUALITY_KEYS))
+        cols += ("ate_smoothed_m", "route_edges_crossing_walls")
+        lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        lines += ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in rows]
+    if maps:
+        lines += [
+            "",
+            "Figures: the map (`map.png`) and the map beside its reference (the report's "
+            "`map_comparison.png`: leaked free cells in red), at the default parameters and, where the "
+            "calibration chose an offset, calibrated.",
+            "",
+        ]
+        for name, f in maps:
+            figs = [f"[map]({f['map_png']})"]
+            if f.get("map_comparison_png"):
+                figs.append(f"[beside the reference]({f['map_comparison_png']})")
+            lines.append(f"- {name} ({f['method']}): " + ", ".join(figs))
+        lines.append("")
+        lines += [
+            f"![{name} ({f['method']})]({f.get('map_comparison_png') or f['map_png']})" for name, f in maps
+        ]
+    return lines
+
+
+def maps_quality_section(path: Path) -> list[str]:
+    """Every simulated world's and real run's map quality (``bench_maps.py``'s JSON): the map at the
+    default parameters (and calibrated), the same occupancy model at the true poses, the model before
+    issue #24 on the same trajectory."""
+    if not path.is_file():
+        return []
+    doc = json.loads(path.read_text())
+    lines = [
+        "",
+        "### Every simulated world and real run (`bench/bench_maps.py`)",
+        "",
+        f"`bench/maps_quality.json` (generated {doc['generated']}; `bench/maps_quality.md` discusses it): "
+        "leak, free-area ratio, wall precision and recall of the map; `model leak` = the same occupancy "
+        "model with the scans at the true poses (what the ray model alone leaks); `before` = the model at "
+        "the start of issue #24 on the same trajectory (maps `bench/maps/<run>-before.png`).",
+        "",
+        "| run | method | leak | free-area ratio | wall precision | wall recall | ATE (m) | model leak "
+        "| before: leak | before: free-area ratio |",
+        "|" + "---|" * 10,
+    ]
+    for run in doc["runs"]:
+        for r in run["rows"]:
+            d = r.get("diagnosis") or {}
+            cells = [r.get(f"map_{k}") for k in MAP_QUALITY_KEYS] + [r.get("ate_smoothed_m")]
+            cells += [(d.get("model") or {}).get("leak")]
+            cells += [(d.get("before") or {}).get(k) for k in ("leak", "free_area_ratio")]
+            lines.append(f"| {run['run']} | {r['method']} | " + " | ".join(fmt(c) for c in cells) + " |")
+    return lines
 
 
 def loo_section(path: Path) -> list[str]:

@@ -119,6 +119,36 @@ def _share(count: int, total: int) -> float:
     return count / total if total else math.nan
 
 
+def _motion(theta: float, t: ArrayLike | Sequence[float]) -> tuple[FloatArray, FloatArray]:
+    """Rotation matrix and shift of ``x ↦ R_theta x + t``."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]]), np.asarray(t, dtype=float).reshape(2)
+
+
+def leaked_cells(
+    product: ClassGrid,
+    reference: ClassGrid,
+    *,
+    theta: float = 0.0,
+    t: ArrayLike | Sequence[float] = (0.0, 0.0),
+    leak_radius: float = LEAK_RADIUS,
+) -> NDArray[np.bool_]:
+    """``(H, W)`` mask of the product's free cells whose centre, carried into the reference frame by
+    ``x ↦ R_theta x + t``, lies more than ``leak_radius`` from every cell the reference has seen (the
+    leak's numerator, module docstring)."""
+    if not leak_radius >= 0:
+        msg = f"leak_radius must be >= 0, got {leak_radius}"
+        raise DataError(msg)
+    rot, shift = _motion(theta, t)
+    free = np.asarray(product.classes) == FREE
+    free_in_ref = product.centres(free) @ rot.T + shift
+    far = reference.distance_at(reference.seen_cells(), free_in_ref, leak_radius) > leak_radius
+    out = np.zeros(free.shape, dtype=bool)
+    rows, cols = np.nonzero(free)
+    out[rows[far], cols[far]] = True
+    return out
+
+
 def map_quality(
     product: ClassGrid,
     reference: ClassGrid,
@@ -133,18 +163,13 @@ def map_quality(
     if not (leak_radius >= 0 and wall_radius >= 0):
         msg = f"radii must be >= 0, got leak_radius={leak_radius}, wall_radius={wall_radius}"
         raise DataError(msg)
-    c, s = math.cos(theta), math.sin(theta)
-    rot = np.array([[c, -s], [s, c]])
-    shift = np.asarray(t, dtype=float).reshape(2)
+    rot, shift = _motion(theta, t)
     pc = np.asarray(product.classes)
     rc = np.asarray(reference.classes)
     free, walls = pc == FREE, pc == OCCUPIED
     ref_free, ref_walls = rc == FREE, rc == OCCUPIED
-    free_in_ref = product.centres(free) @ rot.T + shift
     leaked = int(
-        np.count_nonzero(
-            reference.distance_at(reference.seen_cells(), free_in_ref, leak_radius) > leak_radius
-        )
+        np.count_nonzero(leaked_cells(product, reference, theta=theta, t=t, leak_radius=leak_radius))
     )
     walls_in_ref = product.centres(walls) @ rot.T + shift
     precise = int(

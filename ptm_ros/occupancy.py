@@ -33,13 +33,24 @@ segment's interior meets (the cells Amanatides–Woo visits), vectorised over th
 Layout: ``log_odds[row, col]``, row 0 = lowest y, column 0 = lowest x; ``origin`` is the world pose of
 the lower-left corner of cell (0, 0) (yaw always 0). This is the ``nav_msgs/OccupancyGrid`` data order
 (:func:`to_ros_data`). The nav2 ``map_server`` image is the same grid flipped vertically (image row 0
-= highest y). Map files (docs.ros.org map_server "Map format"; nav2 ``nav2_map_server/src/map_io.cpp``):
-a YAML with ``image, mode, resolution, origin [x, y, yaw], negate, occupied_thresh, free_thresh`` and a
-binary PGM; with ``negate: 0`` a pixel ``v`` reads as occupancy ``p = (255 - v) / 255`` and, in trinary
-mode, as occupied when ``p > occupied_thresh``, free when ``p < free_thresh``, unknown otherwise.
-:func:`save_map` writes occupied 0, free 254 and unknown as the grey level in the middle of the unknown
-band of *these* thresholds (140 for the defaults): nav2's own saver writes unknown as 205, which
-reads back as free whenever ``free_thresh > 50/255``, as with nav2's default 0.25.
+= highest y). Map files (docs.ros.org map_server "Map format"; nav2 ``nav2_map_server/src/map_io.cpp``,
+``loadMapFromFile``): a YAML with ``image, mode, resolution, origin [x, y, yaw], negate,
+occupied_thresh, free_thresh`` and an image; with ``negate: 0`` a pixel of grey level ``v`` reads as
+occupancy ``p = (255 - v) / 255``, then by ``mode`` (``OccupancyConfig.mode``):
+
+* ``trinary`` (the default; a binary PGM): 100 when ``p > occupied_thresh``, 0 when ``p < free_thresh``,
+  -1 otherwise. :func:`save_map` writes occupied 0, free 254 and unknown as the grey level in the middle
+  of the unknown band of *these* thresholds (140 for the defaults): nav2's own saver writes unknown as
+  205, which reads back as free whenever ``free_thresh > 50/255``, as with nav2's default 0.25.
+* ``scale`` (an RGBA PNG: the mode needs transparency, and nav2's saver writes it as true colour with
+  alpha): -1 for a pixel that is not opaque, else 100 / 0 as in trinary mode and
+  ``rint(100 (p - free_thresh) / (occupied_thresh - free_thresh))`` in between. :func:`save_map` writes
+  each observed cell as ``v = round(255 (1 - P(occupied)))``, opaque, and never observed cells
+  transparent, so the grey levels between the thresholds keep how sure the map is.
+
+The published ``/map`` (:func:`to_ros_data`) is what map_server publishes after loading the saved files
+(:func:`map_cells`, the one reading of a pixel :func:`load_map` uses too), so a subscriber sees exactly
+the cells of the saved map in either mode.
 """
 
 from __future__ import annotations
@@ -47,6 +58,8 @@ from __future__ import annotations
 import json
 import math
 import re
+import struct
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +81,10 @@ PIXEL_OCCUPIED = 0
 PIXEL_FREE = 254
 #: Names of the map files :func:`save_map_files` writes (``map.pgm``, ``map.yaml``, ``map.png``).
 MAP_STEM = "map"
+#: map_server modes :func:`save_map` writes, with the name of the image beside ``STEM.yaml``
+#: (scale mode needs an image with transparency: a PNG, and ``STEM.png`` is the figure of the map).
+MAP_IMAGES = {"trinary": "{stem}.pgm", "scale": "{stem}_scale.png"}
+OPAQUE = 255
 
 
 @dataclass(frozen=True)
@@ -87,6 +104,9 @@ class OccupancyConfig:
         occupied_thresh: map_server threshold: occupancy above it is occupied.
         free_thresh: map_server threshold: occupancy below it is free.
         max_cells: largest grid built (a guard against a stray pose far away).
+        mode: map_server mode of the saved map and of ``/map`` (module docstring): ``trinary``
+            (``map.pgm``; 100 / 0 / -1) or ``scale`` (``map_scale.png``; 100 / 0 / -1 and the occupancy
+            between the thresholds as 1..99).
     """
 
     resolution: float = 0.05
@@ -99,6 +119,7 @@ class OccupancyConfig:
     occupied_thresh: float = 0.65
     free_thresh: float = 0.25
     max_cells: int = 50_000_000
+    mode: str = "trinary"
 
     def __post_init__(self) -> None:
         positive = {"resolution": self.resolution, "max_range": self.max_range, "clamp": self.clamp}
@@ -135,6 +156,9 @@ class OccupancyConfig:
         if self.max_cells < 1:
             msg = f"OccupancyConfig.max_cells must be >= 1, got {self.max_cells}"
             raise ConfigError(msg)
+        if self.mode not in MAP_IMAGES:
+            msg = f"OccupancyConfig.mode must be one of {sorted(MAP_IMAGES)}, got {self.mode!r}"
+            raise ConfigError(msg)
 
 
 @dataclass(frozen=True)
@@ -162,8 +186,9 @@ class OccupancyGrid:
 
 @dataclass(frozen=True)
 class MapFile:
-    """A trinary map read back from map_server files: ``data (H, W)`` in {-1, 0, 100}, row 0 = lowest
-    y (the ``nav_msgs/OccupancyGrid`` order), and the YAML fields."""
+    """A map read back from map_server files: ``data (H, W)`` as map_server publishes it (row 0 = lowest
+    y, the ``nav_msgs/OccupancyGrid`` order; {-1, 0, 100} in trinary mode, -1 and 0..100 in scale mode),
+    and the YAML fields."""
 
     data: NDArray[np.int8] = field(repr=False)
     origin: tuple[float, float, float]
@@ -172,6 +197,11 @@ class MapFile:
     free_thresh: float
     negate: bool
     image: Path
+    mode: str = "trinary"
+
+    def classes(self) -> NDArray[np.int8]:
+        """``(H, W)`` trinary classes of the cells (:func:`classes_of`)."""
+        return classes_of(self.data)
 
 
 def unknown_pixel(free_thresh: float, occupied_thresh: float) -> int:
@@ -399,10 +429,67 @@ def probabilities(grid: OccupancyGrid) -> FloatArray:
 
 
 def to_ros_data(grid: OccupancyGrid, config: OccupancyConfig | None = None) -> NDArray[np.int8]:
-    """``nav_msgs/OccupancyGrid.data`` as map_server publishes the files of :func:`save_map` (trinary
-    mode): ``(H*W,)`` int8, row-major from row 0 = lowest y, only 100 / 0 / -1 (:func:`trinary` with the
-    thresholds of the saved YAML), so a subscriber of ``/map`` sees the cells ``map.pgm`` holds."""
-    return trinary(grid, config).reshape(-1)
+    """``nav_msgs/OccupancyGrid.data`` as map_server publishes the files of :func:`save_map`: ``(H*W,)``
+    int8, row-major from row 0 = lowest y (:func:`cells`), so a subscriber of ``/map`` sees the cells the
+    saved map holds: only 100 / 0 / -1 in trinary mode, also 1..99 in scale mode."""
+    return cells(grid, config).reshape(-1)
+
+
+def cells(grid: OccupancyGrid, config: OccupancyConfig | None = None) -> NDArray[np.int8]:
+    """``(H, W)`` values map_server publishes for the grid saved in ``config.mode`` (row 0 = lowest y):
+    :func:`trinary` in trinary mode; in scale mode the reading (:func:`map_cells`) of the pixels
+    :func:`save_map` writes, quantisation included."""
+    cfg = config if config is not None else OccupancyConfig()
+    if cfg.mode == "trinary":
+        return trinary(grid, cfg)
+    grey, alpha = _scale_pixels(grid)
+    read = map_cells(
+        grey, alpha, mode="scale", occupied_thresh=cfg.occupied_thresh, free_thresh=cfg.free_thresh
+    )
+    return read[::-1].copy()
+
+
+def classes_of(values: ArrayLike) -> NDArray[np.int8]:
+    """Trinary classes of map_server cell values: 100 stays occupied, 0 free, everything else (-1 and a
+    scale map's 1..99, cells between the thresholds) unknown."""
+    v = np.asarray(values)
+    return np.where(v == OCCUPIED, OCCUPIED, np.where(v == FREE, FREE, UNKNOWN)).astype(np.int8)
+
+
+def map_cells(
+    grey: ArrayLike,
+    alpha: ArrayLike | None = None,
+    *,
+    mode: str = "trinary",
+    occupied_thresh: float,
+    free_thresh: float,
+    negate: bool = False,
+) -> NDArray[np.int8]:
+    """The cell values map_server (nav2 ``map_io.cpp``, ``loadMapFromFile``) reads from an image's grey
+    levels ``grey (H, W)`` (the mean of its colour channels, 0..255) and its ``alpha (H, W)`` (255 =
+    opaque; None: no alpha channel), in image order. Occupancy ``p = 1 - shade`` (``shade`` with
+    ``negate``), ``shade = grey / 255``; trinary mode averages the alpha into the shade as a fourth
+    channel when there is one; scale mode reads a pixel that is not opaque as unknown (module
+    docstring)."""
+    g = np.asarray(grey, dtype=float)
+    a = None if alpha is None else np.asarray(alpha, dtype=float)
+    if mode == "trinary" and a is not None:
+        g = (3.0 * g + a) / 4.0
+    shade = g / 255.0
+    occ = shade if negate else 1.0 - shade
+    out = np.full(g.shape, UNKNOWN, dtype=np.int8)
+    between = (occ >= free_thresh) & (occ <= occupied_thresh)
+    if mode == "scale":
+        level = np.rint((occ - free_thresh) / (occupied_thresh - free_thresh) * 100.0)
+        out[between] = level[between].astype(np.int8)
+    elif mode != "trinary":
+        msg = f"map_server mode {mode!r} is not supported (trinary, scale)"
+        raise DataError(msg)
+    out[occ > occupied_thresh] = OCCUPIED
+    out[occ < free_thresh] = FREE
+    if mode == "scale" and a is not None:
+        out[a != OPAQUE] = UNKNOWN
+    return out
 
 
 def trinary(grid: OccupancyGrid, config: OccupancyConfig | None = None) -> NDArray[np.int8]:
@@ -423,32 +510,84 @@ def _pixels(classes: NDArray[np.int8], config: OccupancyConfig) -> NDArray[np.ui
     return pix[::-1]  # image row 0 = highest y
 
 
+def _scale_pixels(grid: OccupancyGrid) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Grey levels ``round(255 (1 - p))`` and alpha (opaque where observed, else transparent) of the
+    scale-mode image, image row 0 = highest y."""
+    grey = np.rint(255.0 * (1.0 - probabilities(grid))).astype(np.uint8)
+    alpha = np.where(grid.observed, OPAQUE, 0).astype(np.uint8)
+    return grey[::-1], alpha[::-1]
+
+
+def write_png(path: Path, grey: NDArray[np.uint8], alpha: NDArray[np.uint8]) -> Path:
+    """An 8-bit RGBA PNG (colour type 6, as nav2's saver writes scale maps) of ``(H, W)`` grey levels
+    (R = G = B) and alpha, row 0 at the top; written with zlib, every row unfiltered."""
+    h, w = grey.shape
+    rgba = np.stack([grey, grey, grey, alpha], axis=-1).astype(np.uint8).reshape(h, 4 * w)
+    raw = np.concatenate([np.zeros((h, 1), dtype=np.uint8), rgba], axis=1).tobytes()
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+        )
+
+    header = struct.pack(">IIBBBBB", w, h, 8, 6, 0, 0, 0)
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6))
+    path.write_bytes(png + chunk(b"IEND", b""))
+    return path
+
+
+def read_image(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """Grey levels (mean of the colour channels, 0..255) and alpha (0..255, None without an alpha
+    channel) of a map image, ``(H, W)`` each, image row 0 first: a binary PGM (:func:`read_pgm`) or an
+    8-bit PNG (read with matplotlib)."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        return read_pgm(path).astype(float), None
+    from matplotlib.image import imread
+
+    try:
+        img = np.rint(np.asarray(imread(path), dtype=float) * 255.0)
+    except (OSError, ValueError, SyntaxError) as err:
+        msg = f"cannot read the PNG {path}: {err}"
+        raise DataError(msg) from err
+    if img.ndim == 2:
+        return img, None
+    channels = img.shape[2]
+    if channels in (2, 4):
+        return img[..., : channels - 1].mean(axis=2), img[..., channels - 1]
+    return img.mean(axis=2), None
+
+
 def save_map(
     grid: OccupancyGrid, stem: str | Path, config: OccupancyConfig | None = None
 ) -> tuple[Path, Path]:
-    """Write ``STEM.pgm`` (binary P5, trinary) and ``STEM.yaml`` for nav2's map_server; returns both paths.
+    """Write the map_server image and ``STEM.yaml`` for nav2's map_server in ``config.mode``; returns
+    both paths. Trinary: ``STEM.pgm`` (binary P5); scale: ``STEM_scale.png`` (RGBA, :data:`MAP_IMAGES`).
 
-    Loading them with map_server's rule (``negate: 0``, ``mode: trinary``) gives back :func:`trinary`.
+    Loading them with map_server's rule (``negate: 0``) gives back :func:`cells`.
     """
     cfg = config if config is not None else OccupancyConfig()
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    pgm = stem.with_name(stem.name + ".pgm")
+    image = stem.with_name(MAP_IMAGES[cfg.mode].format(stem=stem.name))
     yml = stem.with_name(stem.name + ".yaml")
-    pix = _pixels(trinary(grid, cfg), cfg)
-    header = f"P5\n# ptm_ros occupancy grid, {grid.resolution} m/cell\n{grid.width} {grid.height}\n255\n"
-    pgm.write_bytes(header.encode("ascii") + np.ascontiguousarray(pix).tobytes())
+    if cfg.mode == "scale":
+        write_png(image, *_scale_pixels(grid))
+    else:
+        pix = _pixels(trinary(grid, cfg), cfg)
+        header = f"P5\n# ptm_ros occupancy grid, {grid.resolution} m/cell\n{grid.width} {grid.height}\n255\n"
+        image.write_bytes(header.encode("ascii") + np.ascontiguousarray(pix).tobytes())
     x, y, yaw = grid.origin
     yml.write_text(
-        f"image: {json.dumps(pgm.name)}\n"
-        "mode: trinary\n"
+        f"image: {json.dumps(image.name)}\n"
+        f"mode: {cfg.mode}\n"
         f"resolution: {grid.resolution!r}\n"
         f"origin: [{x!r}, {y!r}, {yaw!r}]\n"
         "negate: 0\n"
         f"occupied_thresh: {cfg.occupied_thresh!r}\n"
         f"free_thresh: {cfg.free_thresh!r}\n"
     )
-    return pgm, yml
+    return image, yml
 
 
 _PGM_HEADER = re.compile(rb"\AP5(?:\s+|#[^\n]*\n)+?(\d+)(?:\s+|#[^\n]*\n)+?(\d+)(?:\s+|#[^\n]*\n)+?(\d+)\s")
@@ -478,8 +617,8 @@ def read_pgm(path: str | Path) -> NDArray[np.uint8]:
 
 
 def load_map(yaml_path: str | Path) -> MapFile:
-    """Read a map_server YAML and its PGM the way nav2 does in trinary mode (the round trip of
-    :func:`save_map`)."""
+    """Read a map_server YAML and its image (a binary PGM or a PNG) the way nav2 does in trinary or scale
+    mode (:func:`map_cells`; the round trip of :func:`save_map`)."""
     import yaml
 
     yaml_path = Path(yaml_path)
@@ -502,19 +641,16 @@ def load_map(yaml_path: str | Path) -> MapFile:
         msg = f"{yaml_path}: missing or malformed map field: {err!r}"
         raise DataError(msg) from err
     mode = str(doc.get("mode", "trinary"))
-    if mode != "trinary":
-        msg = f"{yaml_path}: only mode 'trinary' is supported, got {mode!r}"
+    if mode not in MAP_IMAGES:
+        msg = f"{yaml_path}: only modes {sorted(MAP_IMAGES)} are supported, got {mode!r}"
         raise DataError(msg)
     if len(origin) != 3:
         msg = f"{yaml_path}: origin must have 3 elements, got {len(origin)}"
         raise DataError(msg)
     if not image.is_absolute():
         image = yaml_path.parent / image
-    pix = read_pgm(image).astype(float)
-    occ = pix / 255.0 if negate else (255.0 - pix) / 255.0
-    data = np.full(pix.shape, UNKNOWN, dtype=np.int8)
-    data[occ < free_th] = FREE
-    data[occ > occ_th] = OCCUPIED
+    grey, alpha = read_image(image)
+    data = map_cells(grey, alpha, mode=mode, occupied_thresh=occ_th, free_thresh=free_th, negate=negate)
     return MapFile(
         data=data[::-1].copy(),
         origin=(origin[0], origin[1], origin[2]),
@@ -523,6 +659,7 @@ def load_map(yaml_path: str | Path) -> MapFile:
         free_thresh=free_th,
         negate=negate,
         image=image,
+        mode=mode,
     )
 
 
@@ -570,11 +707,12 @@ def save_png(
 def save_map_files(
     grid: OccupancyGrid, out_dir: str | Path, config: OccupancyConfig, *, trajectory: ArrayLike | None = None
 ) -> tuple[Path, Path, Path]:
-    """The map files of a run in ``out_dir``: ``map.pgm`` + ``map.yaml`` (:func:`save_map`) and ``map.png``
-    (:func:`save_png`, with the ``(T, >=2)`` ``trajectory`` the scans were placed along drawn over it).
-    ``ptm-run`` and the map publisher both write their maps with it; returns the three paths."""
+    """The map files of a run in ``out_dir``: the map_server image (``map.pgm``, or ``map_scale.png`` in
+    scale mode) + ``map.yaml`` (:func:`save_map`) and ``map.png`` (:func:`save_png`, with the
+    ``(T, >=2)`` ``trajectory`` the scans were placed along drawn over it). ``ptm-run`` and the map
+    publisher both write their maps with it; returns the three paths (image, YAML, figure)."""
     out = Path(out_dir)
-    pgm, yml = save_map(grid, out / MAP_STEM, config)
+    image, yml = save_map(grid, out / MAP_STEM, config)
     title = f"occupancy grid ({grid.resolution:g} m cells, {grid.scans} scans), smoothed MAP trajectory"
     png = save_png(grid, out / f"{MAP_STEM}.png", trajectory=trajectory, title=title)
-    return pgm, yml, png
+    return image, yml, png

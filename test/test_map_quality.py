@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import DataError
-from ptm_ros.map_quality import ClassGrid, map_quality
+from ptm_ros.map_quality import ClassGrid, leaked_cells, map_quality
 
 RES = 0.05
 UNK, FREE, OCC = -1, 0, 100
@@ -53,6 +53,21 @@ def test_a_constructed_leak_is_measured_exactly() -> None:
     assert q.free_area_ratio == pytest.approx(q.free_cells / (28 * 48))
     assert q.wall_cells == 30 * 50 - 28 * 48 - 3  # the corridor opened three wall cells
     assert q.wall_precision == 1.0 and q.wall_recall == 1.0  # their neighbours lie within 0.2 m
+
+
+def test_leaked_cells_are_the_corridor_beyond_the_radius() -> None:
+    """The mask the report draws in red: exactly the 18 x 3 corridor cells of the measure above."""
+    res = 0.04
+    reference = ClassGrid(room(), (0.0, 0.0, 0.0), res)
+    product = ClassGrid(corridor_out(room()), (0.0, 0.0, 0.0), res)
+    mask = leaked_cells(product, reference)
+    expected = np.zeros(product.classes.shape, dtype=bool)
+    expected[18:21, 62:] = True
+    np.testing.assert_array_equal(mask, expected)
+    assert int(mask.sum()) == map_quality(product, reference).leaked_cells
+    assert not leaked_cells(reference, reference).any()
+    with pytest.raises(DataError, match="leak_radius"):
+        leaked_cells(product, reference, leak_radius=-1.0)
 
 
 def test_seen_cells_count_even_when_unknown() -> None:

@@ -55,17 +55,17 @@ def no_laser() -> PtmConfig:
 # ------------------------------------------------------------------------------------------- parameters
 
 
-def filter_and_map_publisher(ros, overrides, out_dir):
-    """A topology filter node (``overrides``) and a map publisher writing to ``out_dir``, in ``ros``."""
+def filter_and_map_publisher(ros, overrides, out_dir, map_overrides=()):
+    """A topology filter node (``overrides``) and a map publisher writing to ``out_dir`` (and
+    ``map_overrides``), in ``ros``."""
     from rclpy.parameter import Parameter
 
     from ptm_ros.nodes.map_publisher import MapPublisherNode
     from ptm_ros.nodes.topology_filter import TopologyFilterNode
 
     flt = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
-    mp = ros.add(
-        MapPublisherNode(context=ros.context, parameter_overrides=[Parameter("out_dir", value=str(out_dir))])
-    )
+    mine = [Parameter("out_dir", value=str(out_dir)), *map_overrides]
+    mp = ros.add(MapPublisherNode(context=ros.context, parameter_overrides=mine))
     return flt, mp
 
 
@@ -777,22 +777,27 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
 
 
 #: nav2_costmap_2d's costs (cost_values.hpp) and its static layer's reading of a map cell
-#: (StaticLayer::interpretValue) with the documented defaults ``trinary_costmap: true``,
-#: ``lethal_cost_threshold: 100``, ``unknown_cost_value: -1`` and ``track_unknown_space: true``.
+#: (StaticLayer::interpretValue) with the documented defaults ``lethal_cost_threshold: 100``,
+#: ``unknown_cost_value: -1`` and ``track_unknown_space: true``; ``trinary_costmap: true`` (the default)
+#: reads every other value as free, ``false`` (for scale maps) as ``value / 100 * 254``, truncated.
 NAV2_FREE, NAV2_LETHAL, NAV2_NO_INFORMATION = 0, 254, 255
 
 
-def nav2_static_layer_costs(data: np.ndarray) -> np.ndarray:
+def nav2_static_layer_costs(data: np.ndarray, *, trinary_costmap: bool = True) -> np.ndarray:
     value = np.asarray(data, dtype=np.int16)
-    return np.where(value == -1, NAV2_NO_INFORMATION, np.where(value >= 100, NAV2_LETHAL, NAV2_FREE))
+    other = NAV2_FREE if trinary_costmap else (value / 100.0 * NAV2_LETHAL).astype(np.int16)
+    return np.where(value == -1, NAV2_NO_INFORMATION, np.where(value >= 100, NAV2_LETHAL, other))
 
 
 @pytest.mark.dds
+@pytest.mark.parametrize("mode", ["trinary", "scale"])
 def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
-    sim_bag, sim_visits, tmp_path, monkeypatch
+    mode, sim_bag, sim_visits, tmp_path, monkeypatch
 ):
     """A subscriber with nav2's static-layer QoS (reliable, transient local, depth 1) joining after the
-    map was drawn reads walls as lethal, unseen cells as no-information, and exactly map.pgm's classes."""
+    map was drawn reads walls as lethal, unseen cells as no-information, and exactly the cells of the
+    saved map as map_server loads it: in trinary mode (``trinary_costmap: true``) map.pgm's classes, in
+    scale mode (``trinary_costmap: false``) also map_scale.png's occupancy between the thresholds."""
     from nav_msgs.msg import OccupancyGrid as GridMsg
     from nav_msgs.msg import Odometry
     from rclpy.parameter import Parameter
@@ -809,7 +814,9 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
     )
     overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=30)]
     with ros_context(monkeypatch) as ros:
-        flt, mp = filter_and_map_publisher(ros, overrides, tmp_path)
+        flt, mp = filter_and_map_publisher(
+            ros, overrides, tmp_path, [Parameter("occupancy.mode", value=mode)]
+        )
         probe = ros.node("probe")
         visits = probe.create_publisher(String, "landmark_visits", common.STREAM_QOS)
         odom_pub = probe.create_publisher(Odometry, "landmark_odom", common.MAP_STREAM_QOS)
@@ -838,11 +845,23 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
 
         grid = wait_for(the_saved_map)
         data = np.asarray(grid.data, dtype=np.int8).reshape(grid.info.height, grid.info.width)
-        assert set(np.unique(data).tolist()) <= {-1, 0, 100}  # map_server's trinary values only
-        costs = nav2_static_layer_costs(data)
-        expected = np.select(
-            [saved.data == 100, saved.data == 0], [NAV2_LETHAL, NAV2_FREE], NAV2_NO_INFORMATION
-        )
+        assert saved.mode == mode
+        trinary_costmap = mode == "trinary"
+        costs = nav2_static_layer_costs(data, trinary_costmap=trinary_costmap)
+        if trinary_costmap:
+            assert set(np.unique(data).tolist()) <= {-1, 0, 100}  # map_server's trinary values only
+            expected = np.select(
+                [saved.data == 100, saved.data == 0], [NAV2_LETHAL, NAV2_FREE], NAV2_NO_INFORMATION
+            )
+        else:  # the saved occupancy between the thresholds, as map_server's scale mode reads it
+            between = (saved.data > 0) & (saved.data < 100)
+            assert np.count_nonzero(between) > 100
+            expected = np.select(
+                [saved.data == -1, saved.data == 100, between],
+                [NAV2_NO_INFORMATION, NAV2_LETHAL, (saved.data / 100.0 * NAV2_LETHAL).astype(np.int16)],
+                NAV2_FREE,
+            )
+            assert np.any((costs > NAV2_FREE) & (costs < NAV2_LETHAL))
         np.testing.assert_array_equal(costs, expected)  # the same occupied, free and unknown cells
         assert np.sum(costs == NAV2_LETHAL) > 100 and np.sum(costs == NAV2_FREE) > 1000
         assert np.sum(costs == NAV2_NO_INFORMATION) > 0  # the margin and the unseen outside

@@ -14,8 +14,11 @@ from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.occupancy import (
     OccupancyConfig,
     build_grid,
+    cells,
+    classes_of,
     grid_traversal,
     load_map,
+    map_cells,
     probabilities,
     read_pgm,
     save_map,
@@ -304,6 +307,7 @@ def test_build_grid_errors() -> None:
         ({"free_thresh": 0.001}, "1/255 < free_thresh"),
         ({"free_thresh": 0.5, "occupied_thresh": 0.501}, "no 8-bit grey level"),
         ({"max_cells": 0}, "max_cells must be >= 1"),
+        ({"mode": "raw"}, "mode must be one of"),
     ],
 )
 def test_config_errors(kwargs: dict[str, float], match: str) -> None:
@@ -359,9 +363,102 @@ def test_load_map_errors(tmp_path: Path) -> None:
     (tmp_path / "b.yaml").write_text(base)
     with pytest.raises(DataError, match="free_thresh"):
         load_map(tmp_path / "b.yaml")
-    (tmp_path / "c.yaml").write_text(base + "free_thresh: 0.25\nmode: scale\n")
-    with pytest.raises(DataError, match="only mode 'trinary'"):
+    (tmp_path / "c.yaml").write_text(base + "free_thresh: 0.25\nmode: raw\n")
+    with pytest.raises(DataError, match="only modes"):
         load_map(tmp_path / "c.yaml")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\nnot a png")
+    (tmp_path / "d.yaml").write_text(base.replace("bad.pgm", "bad.png") + "free_thresh: 0.25\nmode: scale\n")
+    with pytest.raises(DataError, match="cannot read the PNG"):
+        load_map(tmp_path / "d.yaml")
+
+
+def half_plane_room(cfg: OccupancyConfig):
+    """The room seen by beams into the upper half plane only (the lower wall stays unknown)."""
+    poses = ROOM_POSES * [1.0, 1.0, 0.0]
+    angles = np.deg2rad(np.arange(0.0, 180.0, 0.5))
+    return build_grid(poses, [room_ranges(p, angles) for p in poses], 0.0, np.deg2rad(0.5), 30.0, config=cfg)
+
+
+def test_map_cells_read_pixels_as_nav2_map_server_does() -> None:
+    # nav2 map_io.cpp loadMapFromFile, worked by hand for occupied_thresh 0.65, free_thresh 0.25:
+    # occ = (255 - v) / 255; v = 89: occ 0.651 > 0.65; v = 90: occ 0.647, scale rint(99.26) = 99;
+    # v = 140: 0.451 -> rint(50.2) = 50; v = 150: 0.412 -> 40; v = 191: 0.2510 -> rint(0.245) = 0 (between);
+    # v = 192: 0.247 < 0.25 (free); v = 254: free.
+    grey = np.array([[0, 89, 90, 140, 150, 191, 192, 254]])
+    th = {"occupied_thresh": 0.65, "free_thresh": 0.25}
+    np.testing.assert_array_equal(map_cells(grey, mode="trinary", **th), [[100, 100, -1, -1, -1, -1, 0, 0]])
+    np.testing.assert_array_equal(map_cells(grey, mode="scale", **th), [[100, 100, 99, 50, 40, 0, 0, 0]])
+    # scale mode: a pixel that is not opaque is unknown, whatever its grey level
+    alpha = np.array([[255, 0, 255, 254, 255, 255, 255, 0]])
+    np.testing.assert_array_equal(
+        map_cells(grey, alpha, mode="scale", **th), [[100, -1, 99, -1, 40, 0, 0, -1]]
+    )
+    # trinary mode averages the alpha in as a fourth channel: v = 254 transparent reads (3*254 + 0) / 4
+    # = 190.5, occ 0.253 (unknown); v = 0 transparent stays 0 (occupied)
+    np.testing.assert_array_equal(
+        map_cells(np.array([[254, 0]]), np.array([[0, 0]]), mode="trinary", **th), [[-1, 100]]
+    )
+    # negate: black is free, white occupied
+    np.testing.assert_array_equal(
+        map_cells(np.array([[0, 255]]), mode="trinary", negate=True, **th), [[0, 100]]
+    )
+    with pytest.raises(DataError, match="not supported"):
+        map_cells(grey, mode="raw", **th)
+
+
+def test_scale_map_files_round_trip(tmp_path: Path) -> None:
+    from PIL import Image  # an independent PNG decoder (matplotlib's own dependency)
+
+    cfg = OccupancyConfig(resolution=0.1, margin=0.5, mode="scale")
+    grid = half_plane_room(cfg)
+    expected = cells(grid, cfg)
+    image, yml = save_map(grid, tmp_path / "maps" / "room", cfg)
+    assert image.name == "room_scale.png" and yml.name == "room.yaml"
+    assert yaml.safe_load(yml.read_text()) == {
+        "image": "room_scale.png",
+        "mode": "scale",
+        "resolution": grid.resolution,
+        "origin": list(grid.origin),
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.25,
+    }
+    with Image.open(image) as im:
+        assert im.mode == "RGBA" and im.size == (grid.width, grid.height)  # nav2's saver: true colour + alpha
+        rgba = np.asarray(im).astype(float)
+    # map_server's scale rule applied here by hand (image row 0 = highest y)
+    occ = 1.0 - rgba[..., :3].mean(axis=2) / 255.0
+    level = np.rint((occ - 0.25) / 0.4 * 100.0)
+    by_hand = np.where(occ > 0.65, 100, np.where(occ < 0.25, 0, level))
+    by_hand = np.where(rgba[..., 3] != 255, -1, by_hand)[::-1]
+    np.testing.assert_array_equal(by_hand, expected)
+    # never observed cells are transparent (unknown); the others keep their occupancy to half a grey level
+    np.testing.assert_array_equal(expected == -1, ~grid.observed)
+    p = probabilities(grid)
+    np.testing.assert_allclose(occ[::-1][grid.observed], p[grid.observed], atol=0.5 / 255 + 1e-12)
+    # walls, free space and cells in between (passed by a few beams only) as 1..99
+    assert {-1, 0, 100} <= set(np.unique(expected).tolist())
+    between = (expected > 0) & (expected < 100)
+    assert np.count_nonzero(between) > 10
+    loaded = load_map(yml)
+    assert loaded.mode == "scale" and loaded.image == image
+    np.testing.assert_array_equal(loaded.data, expected)
+    # its classes are the trinary map's, but where the 8-bit grey level rounds p across a threshold
+    near = (np.abs(p - 0.65) <= 0.5 / 255) | (np.abs(p - 0.25) <= 0.5 / 255)
+    np.testing.assert_array_equal(loaded.classes()[~near], trinary(grid, cfg)[~near])
+    np.testing.assert_array_equal(loaded.classes(), classes_of(expected))
+
+
+def test_ros_data_in_scale_mode_is_what_map_server_publishes_of_the_saved_map(tmp_path: Path) -> None:
+    cfg = OccupancyConfig(resolution=0.1, margin=0.5, mode="scale")
+    grid = half_plane_room(cfg)
+    data = to_ros_data(grid, cfg)
+    assert data.dtype == np.int8 and data.shape == (grid.width * grid.height,)
+    _, yml = save_map(grid, tmp_path / "room", cfg)
+    np.testing.assert_array_equal(data, load_map(yml).data.reshape(-1))
+    assert data.min() == -1 and data.max() == 100 and np.any((data > 0) & (data < 100))
+    # the same grid in trinary mode: 100 / 0 / -1 only
+    assert set(np.unique(to_ros_data(grid, replace(cfg, mode="trinary"))).tolist()) == {-1, 0, 100}
 
 
 def test_save_png(tmp_path: Path) -> None:

@@ -6,6 +6,7 @@ import itertools
 import json
 import math
 import re
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -24,7 +25,17 @@ from ptm_ros.map_quality import ClassGrid
 from ptm_ros.occupancy import FREE, OCCUPIED, load_map
 from ptm_ros.partitions import bell, canonical, num_places
 from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
-from ptm_ros.report import CHAINS_KEY, SRQ, SRQ_KEY, SURPRISE, TRACE, find_chain_trace
+from ptm_ros.report import (
+    CHAINS_KEY,
+    MAP_COMPARISON,
+    REFERENCE_CAPTION,
+    ROUTES_CAPTION,
+    SRQ,
+    SRQ_KEY,
+    SURPRISE,
+    TRACE,
+    find_chain_trace,
+)
 from ptm_ros.routes import RouteConfig, crossing_segments
 from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
@@ -107,7 +118,7 @@ def check_route_graph(path: Path, ptm: Ptm, map_yaml: Path | None = None) -> dic
     assert all(s in directed or tuple(sorted(s)) in dropped for s in steps)  # every passage is an edge
     if map_yaml is not None:
         grid = load_map(map_yaml)
-        assert crossing_segments(doc, ClassGrid(grid.data, grid.origin, grid.resolution)) == 0
+        assert crossing_segments(doc, ClassGrid(grid.classes(), grid.origin, grid.resolution)) == 0
     return doc
 
 
@@ -213,6 +224,7 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     assert quality["leak"] < 0.02 and 0.8 < quality["free_area_ratio"] < 1.25, quality
     assert quality["wall_precision"] > 0.9 and quality["wall_recall"] > 0.9, quality
     assert "free-space leak" in md
+    assert f"![{REFERENCE_CAPTION}]({MAP_COMPARISON})" in md and (tmp_path / MAP_COMPARISON).is_file()
     assert (
         eval_main([str(tmp_path / "ptm.json"), "--ground-truth", str(tjunction_bag / "ground_truth.json")])
         == 0
@@ -243,6 +255,27 @@ def test_route_graph_is_kept_off_the_walls_and_logged(tmp_path):
     assert (
         route_notes(json.loads(write_route_graph(ptm, tmp_path / "s.geojson").read_text())["metadata"]) == []
     )
+
+
+@pytest.mark.slow
+def test_a_scale_map_without_ground_truth_and_the_route_graph_beside_it(tjunction_bag, tmp_path):
+    """occupancy.mode scale: map_scale.png + map.yaml (mode scale) whose trinary view is the map the
+    route graph and the report use; without a ground truth the report shows the map next to the route
+    graph."""
+    bag = tmp_path / "bag"
+    shutil.copytree(tjunction_bag, bag, ignore=shutil.ignore_patterns("ground_truth.json"))
+    config = small_config(model={"use_laser": False}, occupancy={"mode": "scale"})
+    result = run_offline(bag, tmp_path / "o", config)
+    assert result.score is None and "map_quality" not in result.ptm.extra
+    names = {"ptm.json", "config.yaml", "route_graph.geojson", "map_scale.png", "map.yaml", "map.png"}
+    assert {p.name for p in result.files.values()} == names and not (tmp_path / "o" / "map.pgm").exists()
+    saved = load_map(tmp_path / "o" / "map.yaml")
+    assert saved.mode == "scale" and saved.image.name == "map_scale.png"
+    assert np.any((saved.data > 0) & (saved.data < 100))  # the occupancy between the thresholds
+    # the route graph is kept off the walls of that map as map_server reads it (its trinary view)
+    check_route_graph(tmp_path / "o" / "route_graph.geojson", result.ptm, tmp_path / "o" / "map.yaml")
+    md = (tmp_path / "o" / "report.md").read_text()
+    assert f"![{ROUTES_CAPTION}]({MAP_COMPARISON})" in md and (tmp_path / "o" / MAP_COMPARISON).is_file()
 
 
 def test_cli_warns_about_skipped_input(monkeypatch, tmp_path, capsys):

@@ -24,8 +24,11 @@ from ptm_ros.report import (
     CONSISTENT_MASS_MEANING,
     HISTOGRAM,
     MAP_CAPTION,
+    MAP_COMPARISON,
+    REFERENCE_CAPTION,
     REPORT_HTML,
     REPORT_MD,
+    ROUTES_CAPTION,
     SCORES,
     SRQ,
     SRQ_KEY,
@@ -35,9 +38,12 @@ from ptm_ros.report import (
     TOPOLOGIES,
     TRACE,
     TRACE_SCHEMA,
+    MapComparison,
     ReportConfig,
     chain_srq,
     chain_states,
+    draw_map_comparison,
+    draw_route_graph,
     draw_srq,
     find_chain_trace,
     fired_indices,
@@ -546,6 +552,78 @@ def test_report_shows_the_occupancy_map_and_notes(tmp_path: Path) -> None:
     assert f"map_{HISTOGRAM}" in html_links(html_path)
     with pytest.raises(DataError, match="does not exist"):
         write_report(out, loop_ptm(), occupancy_map=tmp_path / "missing.png")
+
+
+# --- the map side by side with its reference or its route graph --------------------------------------
+
+
+def walled_room(width: int = 60) -> np.ndarray:
+    """Classes of a walled room at 0.1 m: a one-cell wall ring, free inside, unknown beyond."""
+    c = np.full((40, width), -1, dtype=np.int8)
+    c[5:-5, 5:55] = 100
+    c[6:-6, 6:54] = 0
+    return c
+
+
+def red_pixels(path: Path) -> int:
+    rgb = imread(path)[..., :3]
+    return int(np.count_nonzero((rgb[..., 0] > 0.7) & (rgb[..., 1] < 0.3) & (rgb[..., 2] < 0.3)))
+
+
+def test_map_comparison_shows_the_leak_in_red_next_to_the_reference(tmp_path: Path) -> None:
+    from ptm_ros.map_quality import ClassGrid, map_quality
+
+    r = 0.08  # m: 0.3 m falls between 3 cells (0.24 m) and 4 (0.32 m)
+    room = walled_room(80)  # the room and 25 columns of unknown east of it
+    reference = ClassGrid(room, (0.0, 0.0, 0.0), r, seen=room != -1)
+    # The product turned a quarter clockwise (np.rot90(k=-1): cell [i, j] holds the room's [H-1-j, i]) with
+    # its origin at (d0, d1 - W r): a product cell centre (x, y) is the room's (y - d1 + W r, H r - x + d0),
+    # i.e. x_ref = R(-90°) x_p + t with t = (W r - d1, H r + d0).
+    d = np.array([3.0, 7.0])
+    t = np.array([80 * r - d[1], 40 * r + d[0]])
+
+    def product_of(classes: np.ndarray) -> ClassGrid:
+        turned = np.ascontiguousarray(np.rot90(classes, k=-1))
+        return ClassGrid(turned, (d[0], d[1] - classes.shape[1] * r, 0.0), r)
+
+    clean = product_of(walled_room(80))
+    leaky = walled_room(80)
+    leaky[15:25, 54:] = 0  # a free corridor out through the east wall (column 54), 2 m beyond the reference
+    config = ReportConfig()
+    drawn = {}
+    for name, product in (("clean", clean), ("leaky", product_of(leaky))):
+        q = map_quality(product, reference, theta=-np.pi / 2, t=t)
+        comparison = MapComparison(product, reference, theta=-np.pi / 2, t=(t[0], t[1]), quality=q.as_dict())
+        drawn[name] = (q, draw_map_comparison(comparison, tmp_path / f"{name}.png", config=config))
+    assert drawn["clean"][0].leaked_cells == 0 and red_pixels(drawn["clean"][1]) == 0
+    assert drawn["leaky"][0].leaked_cells == 10 * 22  # columns 58..79: 0.32 m and more from the wall
+    assert red_pixels(drawn["leaky"][1]) > 50
+    # without the motion the map lies elsewhere and most of it leaks: the figure follows the motion given
+    wrong = MapComparison(product_of(walled_room(80)), reference)
+    assert red_pixels(draw_map_comparison(wrong, tmp_path / "wrong.png", config=config)) > 500
+    html_path = write_report(tmp_path / "r", loop_ptm(), map_comparison=comparison)
+    md = (tmp_path / "r" / REPORT_MD).read_text(encoding="utf-8")
+    assert f"![{REFERENCE_CAPTION}]({MAP_COMPARISON})" in md
+    assert MAP_COMPARISON in html_links(html_path)
+    assert imread(tmp_path / "r" / MAP_COMPARISON).shape[1] == 12 * config.dpi  # two panels side by side
+
+
+def test_map_comparison_without_reference_draws_the_route_graph(tmp_path: Path) -> None:
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.routes import route_graph
+
+    ptm = loop_ptm()
+    doc = route_graph(ptm)
+    fig = Figure()
+    places, edges = draw_route_graph(fig.add_subplot(), doc)
+    nodes = [f for f in doc["features"] if f["geometry"]["type"] == "Point"]
+    assert places == len(nodes) == len(set(ptm.map_topology.labels))
+    assert edges == sum(f["geometry"]["type"] == "MultiLineString" for f in doc["features"]) > 0
+    grid = ClassGrid(walled_room(), (-1.0, -1.0, 0.0), 0.3)  # covers the loop (0..10 m)
+    html_path = write_report(tmp_path, ptm, map_comparison=MapComparison(grid, route_graph=doc))
+    md = (tmp_path / REPORT_MD).read_text(encoding="utf-8")
+    assert f"![{ROUTES_CAPTION}]({MAP_COMPARISON})" in md and MAP_COMPARISON in html_links(html_path)
+    assert red_pixels(tmp_path / MAP_COMPARISON) == 0
 
 
 def timeline_ptm() -> Ptm:

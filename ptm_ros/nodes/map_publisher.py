@@ -19,21 +19,23 @@ the keyframes of revisited passages when ``refinement.enabled``: the function ``
 publishes
 
 * ``map`` (nav_msgs/OccupancyGrid, reliable + transient local; ``occupancy.*`` parameters): the scans
-  drawn along the smoothed trajectory, in the frame of the ensemble (the odometry's);
+  drawn along the smoothed trajectory, in the frame of the ensemble (the odometry's), with the values
+  map_server publishes for the saved map in ``occupancy.mode`` (trinary: 100 / 0 / -1; scale: also
+  1..99, :func:`ptm_ros.occupancy.to_ros_data`);
 * ``ptm_trajectory`` (nav_msgs/Path, reliable + transient local): the smoothed trajectory the scans were
   drawn along, one pose per odometry sample the map was drawn from (``ptm-bringup`` reads it for the
   trajectory errors and the route graph).
 
 Service ``~/save_map`` (std_srvs/Trigger) draws the map from everything received and writes
-``<out_dir>/map.pgm`` + ``map.yaml`` (nav2 map_server format: ``ros2 run nav2_map_server map_server
---ros-args -p yaml_filename:=map.yaml`` loads it) and ``map.png``; its response message is JSON
-``{"yaml", "pgm", "png", "width", "height", "resolution", "scans", "trajectory", "maps", "map_ms",
-"complete", "input"}`` (``trajectory``: the poses of the map's ``ptm_trajectory``; maps drawn so far,
-the time the latest took; ``input``: the map's counters; ``complete``: the
-ensemble is complete and every keyframe scan the detector's end marker counts was received, so the map
-covers the whole input). A map needs the visits of the ensemble (matched by stamp) and their session's
-odometry; until both are there it waits. A new detector session (visit 0 of another session id; odometry
-going back in time or jumping) starts the map afresh.
+``<out_dir>/map.pgm`` (``map_scale.png`` in scale mode) + ``map.yaml`` (nav2 map_server format: ``ros2 run
+nav2_map_server map_server --ros-args -p yaml_filename:=map.yaml`` loads it) and ``map.png``; its response
+message is JSON ``{"yaml", "image", "png", "width", "height", "resolution", "scans", "trajectory", "maps",
+"map_ms", "complete", "input"}`` (``trajectory``: the poses of the map's ``ptm_trajectory``; maps drawn so
+far, the time the latest took; ``input``: the map's counters; ``complete``: the ensemble is complete and
+every keyframe scan the detector's end marker counts was received, so the map covers the whole input). A
+map needs the visits of the ensemble (matched by stamp) and their session's odometry; until both are there
+it waits. A new detector session (visit 0 of another session id; odometry going back in time or jumping)
+starts the map afresh.
 
 Service ``~/save_ptm`` (std_srvs/Trigger) writes the latest document to ``<out_dir>/ptm.json`` (it
 refuses, ``success: false``, while it has no document or one without visits, as ``ptm-run`` does); its
@@ -122,7 +124,7 @@ PUBLISHES: Publishes = {
 
 def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float, config: OccupancyConfig) -> GridMsg:
     """The ``nav_msgs/OccupancyGrid`` of a grid as map_server would publish its saved ``map.yaml``
-    (:func:`ptm_ros.occupancy.to_ros_data`: 100 / 0 / -1 with ``config``'s thresholds)."""
+    (:func:`ptm_ros.occupancy.to_ros_data`: ``config``'s mode and thresholds)."""
     msg = GridMsg()
     msg.header.frame_id = frame_id
     msg.header.stamp = time_msg(stamp)
@@ -468,7 +470,7 @@ class MapPublisherNode(Node):
             return response
         out = Path(self.get_parameter("out_dir").value)
         try:
-            pgm, yml, png = save_map_files(
+            image, yml, png = save_map_files(
                 result.grid, out, self.config.occupancy, trajectory=result.trajectory
             )
         except OSError as err:
@@ -479,7 +481,7 @@ class MapPublisherNode(Node):
         response.message = json.dumps(
             {
                 "yaml": str(yml),
-                "pgm": str(pgm),
+                "image": str(image),
                 "png": str(png),
                 "width": grid.width,
                 "height": grid.height,

@@ -590,7 +590,7 @@ class Bringup:
         return 0
 
     def save_map(self) -> dict[str, Any] | None:
-        """Ask the map publisher to write the occupancy map (``DIR/map.yaml`` + ``map.pgm`` + ``map.png``);
+        """Ask the map publisher to write the occupancy map (``DIR/map.yaml`` + its image + ``map.png``);
         with a bag, until the map covers every keyframe scan the detector sent (at most
         :data:`MAP_TIMEOUT_S`). A bag without scans has no map (logged, not an error). Returns the map
         publisher's answer (the files, the trajectory's length), None without a map."""
@@ -622,7 +622,7 @@ class Bringup:
         saved map of ``info``, its trajectory, the detector's surprise trace)."""
         if info is None:
             return NodeOutputs(surprise=self.surprise_trace())
-        files = {f"map_{kind}": Path(info[kind]) for kind in ("pgm", "yaml", "png")}
+        files = {f"map_{kind}": Path(info[kind]) for kind in ("image", "yaml", "png")}
         return NodeOutputs(files, self.map_trajectory(info), self.surprise_trace())
 
     def map_trajectory(self, info: dict[str, Any]) -> tuple[Any, Any] | None:

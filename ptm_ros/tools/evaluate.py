@@ -296,7 +296,7 @@ def map_quality_of_run(
     if run.scans is None or len(run.scans.stamps) == 0:
         return None
     m = load_map(yml)
-    return map_quality_against(run, ClassGrid(m.data, m.origin, m.resolution), truth, alignment, config)
+    return map_quality_against(run, ClassGrid(m.classes(), m.origin, m.resolution), truth, alignment, config)
 
 
 def ground_truth_of(ptm_path: Path) -> Path:

@@ -13,7 +13,8 @@ tools write one set of outputs, issue #24):
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
 * ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
   its nodes on the map's trajectory and its edges kept off the map's walls (:func:`write_route_graph`);
-* ``map.pgm`` + ``map.yaml`` (nav2 ``map_server``) and ``map.png`` — the occupancy grid
+* ``map.pgm`` (``map_scale.png`` with ``occupancy.mode: scale``) + ``map.yaml`` (nav2 ``map_server``) and
+  ``map.png`` — the occupancy grid
   (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
@@ -43,6 +44,7 @@ from __future__ import annotations
 
 import functools
 import heapq
+import json
 import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -98,7 +100,7 @@ OUTPUT_FILES = {
     "ptm": "ptm.json",
     "config": "config.yaml",
     "route_graph": "route_graph.geojson",
-    "map_pgm": f"{MAP_STEM}.pgm",
+    "map_image": f"{MAP_STEM}.pgm",  # the map_server image: MAP_IMAGES[occupancy.mode]
     "map_yaml": f"{MAP_STEM}.yaml",
     "map_png": f"{MAP_STEM}.png",
     "state": "filter_state.npz",
@@ -255,7 +257,9 @@ def run_diagnostics(run: RunData, extractor: VisitExtractor) -> dict[str, Any]:
 @dataclass(frozen=True)
 class RunResult:
     """What ``run_offline`` wrote: ``files`` maps the keys of :data:`OUTPUT_FILES` to the files written;
-    ``trajectory_error`` is ``ptm.extra["trajectory_error"]`` (None without a ground truth)."""
+    ``trajectory_error`` is ``ptm.extra["trajectory_error"]`` (None without a ground truth);
+    ``trajectory`` the ``(T, 3)`` smoothed MAP trajectory at the run's odometry stamps that the map was
+    drawn along (None when none was drawn), so that a caller can redraw or rescore the map."""
 
     ptm: Ptm
     ptm_path: Path
@@ -265,6 +269,7 @@ class RunResult:
     files: Mapping[str, Path] = field(default_factory=dict)
     trajectory_error: Mapping[str, Any] | None = None
     resumed_visits: int = 0
+    trajectory: np.ndarray | None = None
 
 
 #: ``meta["tool"]`` of that file.
@@ -563,7 +568,7 @@ class MetricMap:
         trajectory: ``(T, 3)`` the smoothed MAP trajectory at the run's odometry stamps
             (:func:`map_trajectory`); None when none was drawn.
         walls: the classes of ``map.pgm`` (:func:`class_grid`, :func:`map_classes`); None without a map.
-        files: the map files written (keys ``map_pgm``, ``map_yaml``, ``map_png`` of :data:`OUTPUT_FILES`).
+        files: the map files written (keys ``map_image``, ``map_yaml``, ``map_png`` of :data:`OUTPUT_FILES`).
     """
 
     trajectory: np.ndarray | None = None
@@ -575,7 +580,7 @@ def saved_map(
     run: RunData, files: Mapping[str, Path], trajectory: tuple[np.ndarray, np.ndarray] | None
 ) -> MetricMap:
     """The :class:`MetricMap` of a map drawn elsewhere (the map publisher's, saved by its ``~/save_map``):
-    its ``files`` (keys ``map_pgm``, ``map_yaml``, ``map_png``; none without a map), the classes of
+    its ``files`` (keys ``map_image``, ``map_yaml``, ``map_png``; none without a map), the classes of
     ``map.yaml`` read back (:func:`map_classes`), and the ``trajectory`` ``(stamps (K,), poses (K, 3))``
     it was drawn along at the run's odometry stamps (:func:`ptm_ros.geometry.interpolate_poses`: exact
     where the run's stamps are among the trajectory's, as when the map was drawn from every sample)."""
@@ -589,13 +594,13 @@ def saved_map(
 
 
 def map_classes(yaml_path: Path) -> ClassGrid:
-    """The classes of a saved map (``map.yaml`` + ``map.pgm``, :func:`ptm_ros.occupancy.load_map`): the
-    :func:`class_grid` of the grid it was saved from."""
+    """The classes of a saved map (``map.yaml`` + its image, :func:`ptm_ros.occupancy.load_map`): the
+    :func:`class_grid` of the grid it was saved from, in either map_server mode."""
     from ptm_ros.map_quality import ClassGrid
     from ptm_ros.occupancy import load_map
 
     saved = load_map(yaml_path)
-    return ClassGrid(saved.data, saved.origin, saved.resolution)
+    return ClassGrid(saved.classes(), saved.origin, saved.resolution)
 
 
 def write_outputs(
@@ -637,13 +642,16 @@ def write_outputs(
     ph = phases if phases is not None else Phases(quiet=True)
     extra = dict(ptm.extra)
     traj, walls = metric.trajectory, metric.walls
+    reference, alignment = None, None
     if truth is not None and traj is not None:
         ate = trajectory_errors(run, traj, truth)
         if ate is not None:
             extra[TRAJECTORY_ERROR_KEY] = {**ate, "ground_truth": str(truth_file)}
             if walls is not None:
                 with ph.step("map quality"):
-                    quality = map_quality_against(run, walls, truth, ate["alignment"], used)
+                    alignment = ate["alignment"]
+                    reference = reference_classes(run, truth, used)
+                    quality = map_quality_against(run, walls, truth, alignment, used, reference=reference)
                 if quality is not None:
                     extra[MAP_QUALITY_KEY] = quality
     ptm = replace(ptm, extra=extra)
@@ -676,6 +684,7 @@ def write_outputs(
                 score=score,
                 surprise_trace=surprise,
                 occupancy_map=files.get("map_png"),
+                map_comparison=map_comparison(walls, reference, alignment, extra, files["route_graph"]),
                 notes=doubt_lines(find_doubts(ptm))
                 + greedy_notes(ptm, score.true_labels if score is not None else None)
                 + ate_notes(extra.get(TRAJECTORY_ERROR_KEY))
@@ -692,6 +701,7 @@ def write_outputs(
         diagnostics=dict(extra.get("diagnostics") or {}),
         files=files,
         trajectory_error=extra.get(TRAJECTORY_ERROR_KEY),
+        trajectory=traj,
     )
 
 
@@ -772,34 +782,68 @@ def reference_grid(run: RunData, truth: GroundTruthTrajectory, config: PtmConfig
     return grid_along(truth.stamps[order], truth.poses_corrected[order], sc, cfg)
 
 
+def reference_classes(run: RunData, truth: GroundTruthTrajectory, config: PtmConfig) -> ClassGrid | None:
+    """:func:`reference_grid` as trinary classes (whatever ``occupancy.mode``) with its seen cells; None
+    without a reference."""
+    ref = reference_grid(run, truth, config)
+    if ref is None:
+        return None
+    trinary = replace(config, occupancy=replace(config.occupancy, mode="trinary"))
+    return replace(class_grid(ref, trinary), seen=ref.observed)
+
+
 def map_quality_against(
     run: RunData,
     product: Any,
     truth: GroundTruthTrajectory,
     alignment: Mapping[str, float],
     config: PtmConfig,
+    *,
+    reference: ClassGrid | None = None,
 ) -> dict[str, Any] | None:
     """:func:`ptm_ros.map_quality.map_quality` of a map (a :class:`~ptm_ros.map_quality.ClassGrid` in the
-    odometry frame) against :func:`reference_grid`, carried into the ground truth's frame by
-    ``alignment`` (``theta``, ``x``, ``y``: :func:`trajectory_errors`' ATE alignment); None without a
-    reference."""
+    odometry frame) against :func:`reference_classes` (or ``reference``, made by it already), carried
+    into the ground truth's frame by ``alignment`` (``theta``, ``x``, ``y``: :func:`trajectory_errors`'
+    ATE alignment); None without a reference."""
     from ptm_ros.map_quality import map_quality
 
-    ref = reference_grid(run, truth, config)
-    if ref is None:
+    if reference is None:
+        reference = reference_classes(run, truth, config)
+    if reference is None:
         return None
-    reference = replace(class_grid(ref, config), seen=ref.observed)
     quality = map_quality(product, reference, theta=alignment["theta"], t=(alignment["x"], alignment["y"]))
     return quality.as_dict()
 
 
-def class_grid(grid: Any, config: PtmConfig) -> Any:
-    """The map_server classes of an occupancy grid (:func:`ptm_ros.occupancy.trinary`) as a
-    :class:`~ptm_ros.map_quality.ClassGrid`."""
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.occupancy import trinary
+def map_comparison(
+    walls: ClassGrid | None,
+    reference: ClassGrid | None,
+    alignment: Mapping[str, float] | None,
+    extra: Mapping[str, Any],
+    route_graph: Path,
+) -> Any | None:
+    """The report's side-by-side map figure (:class:`ptm_ros.report.MapComparison`): the map next to its
+    ``reference`` carried by the ATE ``alignment`` when there is one, else next to the route graph written
+    to ``route_graph``; None without a map."""
+    from ptm_ros.report import MapComparison
 
-    return ClassGrid(trinary(grid, config.occupancy), grid.origin, grid.resolution)
+    if walls is None:
+        return None
+    if reference is not None and alignment is not None:
+        t = (float(alignment["x"]), float(alignment["y"]))
+        quality = extra.get(MAP_QUALITY_KEY)
+        return MapComparison(walls, reference, theta=float(alignment["theta"]), t=t, quality=quality)
+    return MapComparison(walls, route_graph=json.loads(route_graph.read_text()))
+
+
+def class_grid(grid: Any, config: PtmConfig) -> Any:
+    """The trinary classes of an occupancy grid as its saved map reads back in ``occupancy.mode``
+    (:func:`ptm_ros.occupancy.cells`, :func:`~ptm_ros.occupancy.classes_of`: in trinary mode
+    :func:`~ptm_ros.occupancy.trinary`) as a :class:`~ptm_ros.map_quality.ClassGrid`."""
+    from ptm_ros.map_quality import ClassGrid
+    from ptm_ros.occupancy import cells, classes_of
+
+    return ClassGrid(classes_of(cells(grid, config.occupancy)), grid.origin, grid.resolution)
 
 
 def inference_notes(inference: Mapping[str, Any]) -> list[str]:
@@ -912,8 +956,8 @@ def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> A
 def write_occupancy_map(
     run: RunData, trajectory: np.ndarray, out: Path, config: PtmConfig, *, grid: Any | None = None
 ) -> dict[str, Path]:
-    """``map.pgm`` + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory`` over
-    it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
+    """The map_server image + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory``
+    over it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
     run has no usable scan."""
     from ptm_ros.occupancy import save_map_files
 
@@ -921,8 +965,8 @@ def write_occupancy_map(
         grid = occupancy_grid(run, trajectory, config)
     if grid is None:
         return {}
-    pgm, yml, png = save_map_files(grid, out, config.occupancy, trajectory=trajectory)
-    return {"map_pgm": pgm, "map_yaml": yml, "map_png": png}
+    image, yml, png = save_map_files(grid, out, config.occupancy, trajectory=trajectory)
+    return {"map_image": image, "map_yaml": yml, "map_png": png}
 
 
 def write_route_graph(
