@@ -57,7 +57,7 @@ from ptm_ros.io.simulator import SimConfig, simulate, write_run  # noqa: E402
 from ptm_ros.io.worlds import WORLDS, get_world  # noqa: E402
 from ptm_ros.map_quality import leaked_cells, map_quality  # noqa: E402
 from ptm_ros.mapping import grid_along  # noqa: E402
-from ptm_ros.occupancy import _scan_beams, grid_traversal, save_png  # noqa: E402
+from ptm_ros.occupancy import grid_traversal, save_png, scan_beams  # noqa: E402
 from ptm_ros.tools.calibrate import calibrate_run  # noqa: E402
 from ptm_ros.tools.pipeline import class_grid, reference_classes  # noqa: E402
 
@@ -106,7 +106,7 @@ def leak_passes(
     h, w = leak.shape
     dist, no_return = [], []
     for k, idx in enumerate(keep):
-        beams, _ = _scan_beams(
+        beams, _ = scan_beams(
             poses[k],
             np.asarray(sc.ranges[idx], dtype=float),
             angle_min=a0[k],

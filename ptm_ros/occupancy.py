@@ -264,7 +264,7 @@ def _per_scan(value: ArrayLike, n: int, name: str) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class _Beams:
+class Beams:
     """The usable beams of one scan in world coordinates."""
 
     origin: FloatArray  # (2,)
@@ -272,7 +272,7 @@ class _Beams:
     hit: NDArray[np.bool_]  # (B,)
 
 
-def _scan_beams(
+def scan_beams(
     pose: FloatArray,
     ranges: FloatArray,
     *,
@@ -282,7 +282,7 @@ def _scan_beams(
     range_max: float,
     max_range: float,
     missing_ray_length: float,
-) -> tuple[_Beams, int]:
+) -> tuple[Beams, int]:
     """Beam end points of one scan (module docstring: returns truncated at ``max_range``, no-return beams
     at ``missing_ray_length``; zero-length beams dropped) and the number of skipped ranges."""
     angles = angle_min + angle_increment * np.arange(len(ranges))
@@ -295,7 +295,7 @@ def _scan_beams(
     used = length > 0.0
     heading = pose[2] + angles[valid][used]
     ends = pose[:2] + length[used, None] * np.column_stack([np.cos(heading), np.sin(heading)])
-    return _Beams(pose[:2].copy(), ends, hit[used]), int(len(ranges) - valid.sum())
+    return Beams(pose[:2].copy(), ends, hit[used]), int(len(ranges) - valid.sum())
 
 
 def build_grid(
@@ -341,8 +341,8 @@ def build_grid(
         msg = "range_max must be > 0 for every scan"
         raise DataError(msg)
 
-    def beams_of(t: int) -> tuple[_Beams, int]:
-        return _scan_beams(
+    def beams_of(t: int) -> tuple[Beams, int]:
+        return scan_beams(
             P[t],
             np.asarray(ranges[t], dtype=float).reshape(-1),
             angle_min=a0[t],

@@ -902,7 +902,8 @@ class TopologyFilter:
         self._log_evidence += increment
         w = np.exp(new.log_w)
         update_s = time.perf_counter() - start
-        order = np.argsort(-new.log_w, kind="stable")[: self.config.record_top]
+        k = self.config.record_top
+        order = np.argsort(-new.log_w, kind="stable")[:k] if k else np.zeros(0, dtype=np.intp)
         state = FilterState(
             n_visits=n + 1,
             n_topologies=len(new.labels),
