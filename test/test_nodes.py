@@ -4,6 +4,7 @@ session against the offline pipeline, the graph / marker / path content, and the
 
 from __future__ import annotations
 
+import faulthandler
 import io
 import json
 import math
@@ -404,9 +405,16 @@ def test_params_files_are_checked_before_rclpy_reads_them(tmp_path):
 
 @pytest.fixture
 def node_domain(monkeypatch):
-    """A private domain, localhost discovery, for a node run in this process by run_node."""
+    """A private domain, localhost discovery, for a node run in this process by run_node.
+
+    run_node is a process's entry point: it leaves a faulthandler watchdog armed that prints every
+    thread's stack STOP_REPORT_S later. In the pytest process that dump would strike during a later test
+    while its executor threads run (faulthandler reads their frames without the GIL: a suspect for a
+    segmentation fault of the suite in CI), so it is disarmed here."""
     monkeypatch.setenv("ROS_DOMAIN_ID", str(next_domain_id()))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    yield
+    faulthandler.cancel_dump_traceback_later()
 
 
 @pytest.mark.dds
