@@ -46,8 +46,8 @@ from ptm_ros.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.detectors import Detector, EquidistantDetector
 from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
-from ptm_ros.laser import LaserConfig, passage_patch, scan_to_points
-from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig
+from ptm_ros.laser import LaserConfig, ScanPoints, passage_patch, scan_to_points
+from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig, RunInput, learn_time_offset
 from ptm_ros.visits import MAX_COORDINATE, Visit, pose_field
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
@@ -92,9 +92,24 @@ class ExtractorDiagnostics:
     visits_without_patch: int = 0
     stalled_topics: int = 0
     laser_odometry: dict[str, int] = field(default_factory=dict)  # LaserOdometryCounters when enabled
+    time_offset: dict[str, float | int | None] = field(
+        default_factory=dict
+    )  # the learned offset, once learned
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
+
+
+@dataclass
+class _Held:
+    """The messages held while the time offset is learned (``LaserOdometryConfig.learn_time_offset``),
+    in processing order, and the odometry and scan points the estimate reads."""
+
+    messages: list[tuple[float, int, Any]] = field(default_factory=list)
+    odom_t: list[float] = field(default_factory=list)
+    odom_p: list[NDArray[np.float64]] = field(default_factory=list)
+    scan_t: list[float] = field(default_factory=list)
+    scan_points: list[NDArray[np.float64]] = field(default_factory=list)
 
 
 @dataclass
@@ -135,6 +150,9 @@ class VisitExtractor:
         #: s, <= 0: the scans' time frame relative to the stamps (``LaserOdometryConfig.time_offset``; applies
         #: to the odometry whether or not the laser odometry runs)
         self.time_offset = lo_cfg.time_offset
+        self._lo_config = lo_cfg
+        learn = lo_cfg.learn_time_offset and not lo_cfg.time_offset and self.config.use_scans
+        self._held: _Held | None = _Held() if learn else None
         self.laser_odometry = (
             LaserOdometry(lo_cfg, self.laser) if self.config.use_scans and lo_cfg.enabled else None
         )
@@ -218,6 +236,8 @@ class VisitExtractor:
         """End of data: process everything queued and complete every pending visit."""
         self._flushing = True
         out = self._drain(math.inf)
+        if self._held is not None:
+            out += self._learn_time_offset()
         if self.detector.flush():
             self._fire(self._processed)
         self._resolve_requests()
@@ -278,13 +298,55 @@ class VisitExtractor:
         while self._queue and self._queue[0][0] <= horizon:
             stamp, topic, _, payload = heapq.heappop(self._queue)
             self._processed = stamp
-            if topic == ODOM:
-                self._process_odometry(stamp, payload)
-            elif topic == SCAN:
-                self._process_scan(stamp, payload)
-            else:
-                self._process_image(stamp, payload)
-            out += self._complete(stamp)
+            if self._held is None:
+                out += self._process(stamp, topic, payload)
+            elif self._hold(self._held, stamp, topic, payload):
+                out += self._learn_time_offset()
+        return out
+
+    def _process(self, stamp: float, topic: int, payload: Any) -> list[Visit]:
+        if topic == ODOM:
+            self._process_odometry(stamp, payload)
+        elif topic == SCAN:
+            self._process_scan(stamp, payload)
+        else:
+            self._process_image(stamp, payload)
+        return self._complete(stamp)
+
+    # ------------------------------------------------------------------------- learned time offset
+
+    def _hold(self, held: _Held, stamp: float, topic: int, payload: Any) -> bool:
+        """Hold one message while the time offset is learned; True once ``learn_scans`` scans are in."""
+        held.messages.append((stamp, topic, payload))
+        if topic == ODOM:
+            held.odom_t.append(stamp)
+            held.odom_p.append(payload)
+        elif topic == SCAN:
+            res = self._scan_points(payload)
+            if res is not None:
+                held.scan_t.append(stamp)
+                held.scan_points.append(res.points)
+        return len(held.scan_t) >= self._lo_config.learn_scans
+
+    def _learn_time_offset(self) -> list[Visit]:
+        """Learn the time offset from the held messages (:func:`~ptm_ros.laser_odometry.learn_time_offset`;
+        0 with fewer than two odometry samples or no scan), then process them all with it."""
+        held, self._held = self._held, None
+        if held is None:
+            return []
+        if len(held.odom_t) >= 2 and held.scan_t:
+            run = RunInput.of(held.odom_t, held.odom_p, held.scan_t, held.scan_points)
+            est = learn_time_offset(run, self._lo_config, self.laser)
+            self.time_offset = est.offset
+            self.diagnostics.time_offset = {
+                "learned": est.offset,
+                "first_estimate": est.first,
+                "refined_estimate": est.refined,
+                "scans": est.scans,
+            }
+        out: list[Visit] = []
+        for stamp, topic, payload in held.messages:
+            out += self._process(stamp, topic, payload)
         return out
 
     # ------------------------------------------------------------------------------- processing
@@ -322,11 +384,18 @@ class VisitExtractor:
         t = [q for q, _ in self._raw]
         return interpolate_poses(t, [w for _, w in self._raw], stamp + offset)[0]
 
-    def _process_scan(self, stamp: float, scan: ScanFields) -> None:
+    def _scan_points(self, scan: ScanFields) -> ScanPoints | None:
+        """The scan's points (robot frame) within the laser's ``max_range``; None when malformed."""
         ranges, amin, ainc, rmin, rmax = scan
         try:
-            res = scan_to_points(ranges, amin, ainc, rmin, min(rmax, self.laser.max_range))
+            return scan_to_points(ranges, amin, ainc, rmin, min(rmax, self.laser.max_range))
         except PtmError:
+            return None
+
+    def _process_scan(self, stamp: float, scan: ScanFields) -> None:
+        ranges, amin, ainc, rmin, rmax = scan
+        res = self._scan_points(scan)
+        if res is None:
             self.diagnostics.skip("scan-malformed")
             return
         self.diagnostics.scan_beams_dropped += res.dropped

@@ -49,7 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import between, compose, interpolate_poses, inverse, moved, transform_points
+from ptm_ros.geometry import between, compose, interpolate_poses, inverse, moved, transform_points, wrap_angle
 from ptm_ros.laser import LaserConfig, ScanMap, voxel_downsample
 
 FloatArray = NDArray[np.float64]
@@ -85,6 +85,15 @@ class LaserOdometryConfig:
             stays the odometry at their stamp (ptm.json's landmark pose). ``ptm-calibrate`` estimates it
             from a bag (:func:`time_offset_scores`, :func:`best_time_offset`): ``-0.15`` on MIT-CSAIL, 0 on
             Intel, ACES and the simulator (issue #8's closing notes).
+        learn_time_offset: with ``time_offset`` 0, learn the offset from the run itself (issue #23: the
+            parameters learned from the run): the first ``learn_scans`` scans are held, the offset is
+            estimated on them (:func:`learn_time_offset`, no ground truth), and every message is then
+            processed with it from the first one on (:class:`ptm_ros.landmarks.VisitExtractor`). A
+            non-zero ``time_offset`` is used as given; ``ptm-calibrate`` writes its choice with this off.
+        learn_scans: scans the learned offset is estimated on (the visits come out once they are in).
+        learn_min_offset: a learned offset smaller than this in magnitude is taken as 0 (s): the
+            resolution of ``ptm-calibrate``'s candidates, below which a wrong time frame shows neither in
+            the heading corrections nor in the map.
         degenerate_ratio: with ``refine``, a translation direction the scan constrains less than this
             fraction of its best-constrained one (eigenvalues of the point-to-plane information) keeps the
             wheel odometry's motion, scaled by the learned :attr:`LaserOdometry.wheel_scale`
@@ -112,6 +121,9 @@ class LaserOdometryConfig:
     match_yaw: float = 0.02
     match_interval: float = 0.09
     time_offset: float = 0.0
+    learn_time_offset: bool = True
+    learn_scans: int = 300
+    learn_min_offset: float = 0.05
     degenerate_ratio: float = 0.05
     scale_prior_m: float = 5.0
 
@@ -120,11 +132,11 @@ class LaserOdometryConfig:
         if isinstance(dr, bool) or not (isinstance(dr, int | float) and 0.0 <= dr < 1.0):
             msg = f"LaserOdometryConfig.degenerate_ratio must be a number in [0, 1), got {dr!r}"
             raise ConfigError(msg)
-        for name in ("enabled", "refine"):
+        for name in ("enabled", "refine", "learn_time_offset"):
             if not isinstance(getattr(self, name), bool):
                 msg = f"LaserOdometryConfig.{name} must be a bool, got {getattr(self, name)!r}"
                 raise ConfigError(msg)
-        for name in ("window", "min_points"):
+        for name in ("window", "min_points", "learn_scans"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 msg = f"LaserOdometryConfig.{name} must be an integer >= 1, got {value!r}"
@@ -151,6 +163,10 @@ class LaserOdometryConfig:
         to = self.time_offset
         if isinstance(to, bool) or not (isinstance(to, int | float) and -1.0 <= to <= 0.0):
             msg = f"LaserOdometryConfig.time_offset must be a number of seconds in [-1, 0], got {to!r}"
+            raise ConfigError(msg)
+        lm = self.learn_min_offset
+        if isinstance(lm, bool) or not (isinstance(lm, int | float) and 0.0 <= lm <= 1.0):
+            msg = f"LaserOdometryConfig.learn_min_offset must be a number of seconds in [0, 1], got {lm!r}"
             raise ConfigError(msg)
         if not (math.isfinite(self.scale_prior_m) and self.scale_prior_m > 0.0):
             msg = f"LaserOdometryConfig.scale_prior_m must be a finite length > 0, got {self.scale_prior_m!r}"
@@ -372,6 +388,77 @@ class OffsetScore:
     rejected: int
 
 
+@dataclass(frozen=True)
+class RunInput:
+    """A run's wheel odometry and scans, checked for :func:`time_offset_scores` / :func:`learn_time_offset`:
+    odometry ``stamps (T,)`` and ``poses (T, 3)`` (T >= 2), scans ``scan_stamps (S,)`` increasing and their
+    ``scan_points`` (robot frame)."""
+
+    stamps: FloatArray
+    poses: FloatArray
+    scan_stamps: FloatArray
+    scan_points: Sequence[ArrayLike]
+
+    @classmethod
+    def of(
+        cls,
+        odom_stamps: ArrayLike,
+        odom_poses: ArrayLike,
+        scan_stamps: ArrayLike,
+        scan_points: Sequence[ArrayLike],
+    ) -> RunInput:
+        """Raises ModelError on mismatched inputs."""
+        t = np.asarray(odom_stamps, dtype=float).reshape(-1)
+        u = np.asarray(odom_poses, dtype=float).reshape(-1, 3)
+        st = np.asarray(scan_stamps, dtype=float).reshape(-1)
+        if len(t) != len(u) or len(st) != len(scan_points) or len(t) < 2:
+            msg = (
+                f"need matching stamps/poses: {len(t)}/{len(u)} odometry (at least 2), "
+                f"{len(st)}/{len(scan_points)} scans"
+            )
+            raise ModelError(msg)
+        return cls(t, u, st, scan_points)
+
+
+@dataclass(frozen=True)
+class YawCorrections:
+    """The signed heading corrections (rad) of the matched scans of one laser-odometry pass at ``offset``
+    (:func:`yaw_corrections`), at the scans' ``stamps``, with the pass's counters."""
+
+    offset: float
+    stamps: FloatArray
+    yaw: FloatArray
+    counters: LaserOdometryCounters
+
+
+def yaw_corrections(
+    run: RunInput, offset: float, config: LaserOdometryConfig, laser: LaserConfig | None = None
+) -> YawCorrections:
+    """Run the laser odometry (:class:`LaserOdometry`) over the scans, each taken at the wheel odometry of
+    ``stamp + offset`` (interpolated, as the visit extractor does; scans outside the odometry's time span
+    are left out), and keep the heading correction of every matched scan step.
+
+    Raises:
+        ModelError: an offset outside [-1, 0].
+    """
+    if not -1.0 <= offset <= 0.0:
+        msg = f"time offsets must be in [-1, 0] s, got {offset!r}"
+        raise ModelError(msg)
+    t, st = run.stamps, run.scan_stamps
+    keep = np.flatnonzero((st + offset >= t[0]) & (st + offset <= t[-1]))
+    wheel = interpolate_poses(t, run.poses, st[keep] + offset)
+    lo = LaserOdometry(config=config, laser=LaserConfig() if laser is None else laser)
+    stamps, yaw = [], []
+    for k, pose in zip(keep, wheel, strict=True):
+        matched = lo.counters.matched
+        guess = lo.correct(pose)
+        aligned = lo.on_scan(pose, run.scan_points[int(k)], float(st[k]))
+        if lo.counters.matched > matched:
+            stamps.append(float(st[k]))
+            yaw.append(float(between(guess, aligned)[2]))
+    return YawCorrections(float(offset), np.asarray(stamps), np.asarray(yaw), lo.counters)
+
+
 def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candidates and the configs
     odom_stamps: ArrayLike,
     odom_poses: ArrayLike,
@@ -383,52 +470,107 @@ def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candi
 ) -> list[OffsetScore]:
     """Score candidate ``time_offset`` values of a run without ground truth.
 
-    For each offset the laser odometry (:class:`LaserOdometry`) runs over the scans, each taken at the
-    wheel odometry of ``stamp + offset`` (interpolated, as the visit extractor does). When the offset is
+    For each offset the laser odometry runs over the scans (:func:`yaw_corrections`). When the offset is
     wrong the odometry turns before or after the scans do, and every matched scan during a turn needs a
     heading correction of about the turn rate times the error; the right offset minimises their RMS
-    (``rms_yaw_correction``, what :func:`best_time_offset` uses; the median is reported too). Scans
-    outside the odometry's time span are left out.
+    (``rms_yaw_correction``, what :func:`best_time_offset` uses; the median is reported too).
 
     Raises:
         ModelError: mismatched inputs, or an offset outside [-1, 0].
     """
     cfg = LaserOdometryConfig() if config is None else config
-    t = np.asarray(odom_stamps, dtype=float).reshape(-1)
-    u = np.asarray(odom_poses, dtype=float).reshape(-1, 3)
-    st = np.asarray(scan_stamps, dtype=float).reshape(-1)
-    if len(t) != len(u) or len(st) != len(scan_points) or len(t) < 2:
-        msg = (
-            f"need matching stamps/poses: {len(t)}/{len(u)} odometry (at least 2), "
-            f"{len(st)}/{len(scan_points)} scans"
-        )
-        raise ModelError(msg)
+    run = RunInput.of(odom_stamps, odom_poses, scan_stamps, scan_points)
     out = []
     for offset in offsets:
-        if not -1.0 <= offset <= 0.0:
-            msg = f"time offsets must be in [-1, 0] s, got {offset!r}"
-            raise ModelError(msg)
-        keep = np.flatnonzero((st + offset >= t[0]) & (st + offset <= t[-1]))
-        wheel = interpolate_poses(t, u, st[keep] + offset)
-        lo = LaserOdometry(config=cfg, laser=LaserConfig() if laser is None else laser)
-        yaw = []
-        for k, pose in zip(keep, wheel, strict=True):
-            matched = lo.counters.matched
-            guess = lo.correct(pose)
-            aligned = lo.on_scan(pose, scan_points[int(k)], float(st[k]))
-            if lo.counters.matched > matched:
-                yaw.append(abs(float(between(guess, aligned)[2])))
-        y = np.asarray(yaw)
+        yc = yaw_corrections(run, offset, cfg, laser)
+        y = np.abs(yc.yaw)
         out.append(
             OffsetScore(
                 offset=float(offset),
                 median_yaw_correction=float(np.median(y)) if len(y) else math.nan,
                 rms_yaw_correction=float(np.sqrt(np.mean(y**2))) if len(y) else math.nan,
-                matched=lo.counters.matched,
-                rejected=lo.counters.rejected,
+                matched=yc.counters.matched,
+                rejected=yc.counters.rejected,
             )
         )
     return out
+
+
+#: Half-width (s) of the central difference giving the wheel odometry's turn rate (:func:`offset_slope`).
+TURN_RATE_DT = 0.1
+#: Width (s) of the moving mean that :func:`offset_slope` removes (the slow drift of the correction).
+DRIFT_WINDOW_S = 5.0
+
+
+def _high_pass(x: FloatArray, t: FloatArray, width: float) -> FloatArray:
+    """``x`` minus its mean over the samples within ``width / 2`` of each stamp ``t`` (increasing)."""
+    c = np.concatenate([[0.0], np.cumsum(x)])
+    lo = np.searchsorted(t, t - width / 2, side="left")
+    hi = np.searchsorted(t, t + width / 2, side="right")
+    return x - (c[hi] - c[lo]) / (hi - lo)
+
+
+def offset_slope(run: RunInput, yc: YawCorrections) -> tuple[float, float]:
+    """The time-offset error of a laser-odometry pass (:func:`yaw_corrections`) and the turning it is
+    measured on: ``(δ - o, Σ ω̃²)``.
+
+    A scan taken at ``s + δ`` (the true offset) and posed at the wheel odometry of ``s + o`` (the pass's
+    ``o``) starts with a heading error ``ω(s)(o - δ)``, ``ω`` the wheel turn rate; the matches remove it,
+    so the running sum of the corrections follows ``(δ - o) ω(s)`` plus a drift that the matches correct
+    (the wheel odometry's heading bias) and varies slowly. Both the running sum and ``ω`` (central
+    difference over ±:data:`TURN_RATE_DT`) lose their moving mean over :data:`DRIFT_WINDOW_S`, and the
+    least-squares slope of one on the other is ``δ - o``. ``(0, 0)`` when the robot never turned.
+    """
+    if len(yc.stamps) < 2:
+        return 0.0, 0.0
+    at = yc.stamps + yc.offset
+    before = interpolate_poses(run.stamps, run.poses, at - TURN_RATE_DT)[:, 2]
+    after = interpolate_poses(run.stamps, run.poses, at + TURN_RATE_DT)[:, 2]
+    rate = _high_pass(wrap_angle(after - before) / (2 * TURN_RATE_DT), yc.stamps, DRIFT_WINDOW_S)
+    total = _high_pass(np.cumsum(yc.yaw), yc.stamps, DRIFT_WINDOW_S)
+    energy = float(rate @ rate)
+    return (float(rate @ total) / energy if energy > 0.0 else 0.0), energy
+
+
+@dataclass(frozen=True)
+class OffsetEstimate:
+    """The time offset learned from a run (:func:`learn_time_offset`).
+
+    Attributes:
+        offset: the ``time_offset`` to use (s): 0 unless the first estimate reached ``learn_min_offset``.
+        first: the estimate of the pass at offset 0 (s).
+        refined: the estimate after the second pass, at ``first`` (s; None without one).
+        scans: scans the estimate used; matched: the first pass's matched scans.
+    """
+
+    offset: float
+    first: float
+    refined: float | None
+    scans: int
+    matched: int
+
+
+def learn_time_offset(
+    run: RunInput, config: LaserOdometryConfig | None = None, laser: LaserConfig | None = None
+) -> OffsetEstimate:
+    """The laser's time offset, learned from the run without ground truth (``learn_time_offset``).
+
+    A pass at offset 0 gives :func:`offset_slope`'s ``δ``; the matches take up part of each heading error
+    within the step (the correction limits, the map's inertia), so ``δ`` comes out short of the true
+    offset, and a second pass at ``δ`` measures the rest (one fixed-point step). An estimate of magnitude
+    below ``learn_min_offset`` is 0 (the stamps as they are); the result is clamped to [-1, 0].
+    """
+    cfg = LaserOdometryConfig() if config is None else config
+    first_pass = yaw_corrections(run, 0.0, cfg, laser)
+    first, _ = offset_slope(run, first_pass)
+    n = len(run.scan_stamps)
+    if abs(first) < cfg.learn_min_offset:
+        return OffsetEstimate(0.0, first, None, n, first_pass.counters.matched)
+    start = min(0.0, max(-1.0, first))
+    delta, _ = offset_slope(run, yaw_corrections(run, start, cfg, laser))
+    refined = min(0.0, max(-1.0, start + delta))
+    offset = refined if abs(refined) >= cfg.learn_min_offset else 0.0
+    return OffsetEstimate(offset, first, refined, n, first_pass.counters.matched)
 
 
 def best_time_offset(scores: Sequence[OffsetScore], min_gain: float = 0.05) -> float:

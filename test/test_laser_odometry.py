@@ -24,8 +24,13 @@ from ptm_ros.laser import scan_to_points
 from ptm_ros.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
+    LaserOdometryCounters,
     OffsetScore,
+    RunInput,
+    YawCorrections,
     best_time_offset,
+    learn_time_offset,
+    offset_slope,
     scan_time_poses,
     time_offset_scores,
 )
@@ -319,6 +324,42 @@ def test_the_time_offset_is_recovered_from_the_heading_corrections(delay):
     assert max(s.median_yaw_correction for s in scores) < 1.5 * min(s.median_yaw_correction for s in scores)
 
 
+def test_offset_slope_is_the_offset_error_under_a_slow_drift():
+    """The running sum of the corrections is (δ - o)·ω plus a slow drift: the slope recovers δ - o."""
+    t = np.arange(0.0, 60.0, 0.02)
+    heading = 0.8 * np.sin(0.5 * t) + 0.3 * np.sin(1.3 * t)  # a robot turning left and right
+    poses = np.stack([np.zeros_like(t), np.zeros_like(t), wrap_angle(heading)], axis=1)
+    run = RunInput.of(t, poses, t[::5], [np.zeros((0, 2))] * len(t[::5]))
+    stamps = t[10:-10:5]
+    rate = 0.4 * np.cos(0.5 * stamps) + 0.39 * np.cos(1.3 * stamps)  # d heading / dt
+    for offset, delta in ((0.0, -0.15), (-0.1, -0.25), (-0.2, -0.2)):
+        total = (delta - offset) * rate + 0.002 * stamps  # plus a heading bias the matches remove
+        yaw = np.diff(total, prepend=0.0)
+        yc = YawCorrections(offset, stamps, yaw, LaserOdometryCounters())
+        slope, energy = offset_slope(run, yc)
+        assert slope == pytest.approx(delta - offset, abs=0.01) and energy > 0.0
+    standing = RunInput.of(t, np.zeros_like(poses), t[::5], [np.zeros((0, 2))] * len(t[::5]))
+    still = YawCorrections(0.0, stamps, np.full(len(stamps), 1e-3), LaserOdometryCounters())
+    assert offset_slope(standing, still) == (0.0, 0.0)  # never turned: nothing to learn from
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.15])
+def test_the_time_offset_is_learned_from_the_run(delay):
+    """learn_time_offset (two passes of the laser odometry over the first 300 scans) finds the delay of
+    a simulated laser, and 0 for one on time."""
+    run = _delayed_run(delay)
+    est = learn_time_offset(
+        RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], _points(run)[:300])
+    )
+    assert est.scans == 300 and est.matched > 280
+    if delay:
+        assert est.offset == pytest.approx(-delay, abs=0.04) and est.refined == est.offset
+        assert abs(est.first) >= LaserOdometryConfig().learn_min_offset  # the first pass falls short ...
+        assert abs(est.offset + delay) < abs(est.first + delay) + 0.01  # ... the second one gets closer
+    else:
+        assert est.offset == 0.0 and est.refined is None and abs(est.first) < 0.05
+
+
 def test_best_time_offset_keeps_the_stamps_unless_an_offset_is_clearly_better():
     def score(offset, rms):
         return OffsetScore(
@@ -355,7 +396,8 @@ def test_ptm_calibrate_writes_the_offset_into_the_parameters(tmp_path, capsys):
     assert report["schema"] == "ptm_ros.calibration/1" and report["scans"] == 400
     assert [s["offset"] for s in report["offsets"]] == [0.0, -0.15, -0.3]
     assert report["time_offset"] == -0.15
-    assert load_config(out).laser_odometry.time_offset == -0.15
+    written = load_config(out).laser_odometry
+    assert written.time_offset == -0.15 and not written.learn_time_offset  # fixed, not learned again
     assert calibrate.main([str(bag), "--offsets", "0.2"]) == 2
     assert "[-1, 0]" in capsys.readouterr().err
     assert calibrate.main([str(tmp_path / "missing")]) == 2
@@ -475,3 +517,48 @@ def test_keep_unobserved_reverts_only_the_weak_directions():
     weak = rot[:2, 0]
     assert abs(weak @ (turned[:2] - guess[:2])) < 1e-12
     assert np.allclose(rot[:2, 1] @ (turned[:2] - guess[:2]), rot[:2, 1] @ (pose[:2] - guess[:2]))
+
+
+@pytest.mark.slow
+def test_the_extractor_learns_the_offset_then_processes_every_message_with_it(tmp_path):
+    """With learn_time_offset (the default) the extractor holds the messages until learn_scans scans are
+    in, learns the offset, and then gives exactly the visits of an extractor told that offset; with fewer
+    scans than learn_scans it learns at the end of the data."""
+    from ptm_ros.config import load_config
+    from ptm_ros.io.bag import read_run
+    from ptm_ros.io.simulator import write_run
+    from ptm_ros.landmarks import ODOM, SCAN
+    from ptm_ros.tools.pipeline import detect_visits, merged_messages, run_extractor
+
+    run = read_run(write_run(_delayed_run(0.15), tmp_path / "late"))
+    detector = {"detector": {"kind": "equidistant"}}
+    learned = run_extractor(run, load_config(None, {**detector, "laser_odometry": {"learn_scans": 200}}))
+    scans_before_first_visit, visits = 0, []
+    for stamp, topic, k in merged_messages(run):  # as detect_visits feeds them, counting the scans
+        if topic == SCAN:
+            sc = run.scans
+            fields = (sc.ranges[k], sc.angle_min[k], sc.angle_increment[k], sc.range_min[k], sc.range_max[k])
+            visits += learned.on_scan(stamp, *fields)
+            scans_before_first_visit += not visits
+        elif topic == ODOM:
+            visits += learned.on_odometry(stamp, run.odometry.poses[k])
+    visits += learned.flush()
+    assert scans_before_first_visit >= 199  # nothing comes out while the offset is learned
+    offset = learned.time_offset
+    assert offset == pytest.approx(-0.15, abs=0.04)
+    assert (
+        learned.diagnostics.time_offset["learned"] == offset
+        and learned.diagnostics.time_offset["scans"] == 200
+    )
+    fixed = load_config(
+        None, {**detector, "laser_odometry": {"time_offset": offset, "learn_time_offset": False}}
+    )
+    told = detect_visits(run, fixed)
+    assert len(visits) >= 3
+    assert [(v.stamp, v.pose) for v in visits] == [(v.stamp, v.pose) for v in told]
+    # fewer scans than learn_scans: learned from all of them when the data ends
+    everything = load_config(None, {**detector, "laser_odometry": {"learn_scans": 100_000}})
+    at_end = run_extractor(run, everything)
+    assert len(detect_visits(run, everything, extractor=at_end)) == len(told)
+    assert at_end.diagnostics.time_offset["scans"] == len(run.scans.stamps)
+    assert at_end.time_offset == pytest.approx(-0.15, abs=0.04)

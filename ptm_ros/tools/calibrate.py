@@ -77,8 +77,9 @@ class Calibration:
     time_offset: float
 
     def applied(self, config: PtmConfig) -> PtmConfig:
-        """``config`` with ``laser_odometry.time_offset`` set to the chosen offset."""
-        return replace(config, laser_odometry=replace(config.laser_odometry, time_offset=self.time_offset))
+        """``config`` with ``laser_odometry.time_offset`` set to the chosen offset (and its learning off)."""
+        lo = replace(config.laser_odometry, time_offset=self.time_offset, learn_time_offset=False)
+        return replace(config, laser_odometry=lo)
 
     def as_dict(self) -> dict:
         """JSON-able (a non-finite score, at an offset where no scan matched, is None)."""
