@@ -74,7 +74,7 @@ from typing import Any
 import numpy as np
 
 from ptm_ros.geometry import wrap_angle
-from ptm_ros.io.synthetic import simulate_visits
+from ptm_ros.io.synthetic import odometry_visits, true_poses
 from ptm_ros.mcmc import McmcConfig, McmcSampler, run_mcmc
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.partitions import canonical, enumerate_partitions
@@ -94,17 +94,16 @@ MODEL = ModelConfig(odometry=ODOMETRY)
 
 def simulate(route, places, odo, *, seed=0, signatures=None, noise=1.0, sig_noise=0.3):
     """Visits along ``route`` (place indices) with odometry noise ``noise`` × the model's own."""
-    return simulate_visits(
-        route,
-        places,
+    appearance = None if signatures is None else signatures[np.asarray(route)]
+    return odometry_visits(
+        true_poses(route, places, end_heading="ahead"),
         odo,
         np.random.default_rng(seed),
         noise=noise,
-        appearance=signatures,
+        appearance=appearance,
         sig_noise=sig_noise,
         nonnegative=True,
-        end_heading="ahead",
-    )[0]
+    )
 
 
 def scenes() -> dict[str, tuple[list[Visit], tuple[int, ...]]]:

@@ -73,28 +73,6 @@ def odometry_visits(
     return visits
 
 
-def simulate_visits(
-    route: Sequence[int],
-    places: ArrayLike,
-    odometry: OdometryConfig,
-    rng: np.random.Generator,
-    *,
-    noise: float = 1.0,
-    appearance: FloatArray | None = None,
-    sig_noise: float = 0.1,
-    nonnegative: bool = False,
-    end_heading: EndHeading = "back",
-) -> tuple[list[Visit], FloatArray]:
-    """The visits of ``route`` (:func:`true_poses`, :func:`odometry_visits`) and their true poses;
-    ``appearance`` is per place, ``(P, K)``."""
-    true = true_poses(route, places, end_heading)
-    at_visits = None if appearance is None else appearance[np.asarray(route)]
-    visits = odometry_visits(
-        true, odometry, rng, noise=noise, appearance=at_visits, sig_noise=sig_noise, nonnegative=nonnegative
-    )
-    return visits, true
-
-
 def simulate_route(
     route: Sequence[int],
     places: ArrayLike,
@@ -104,14 +82,15 @@ def simulate_route(
     signatures: bool = False,
     sig_noise: float = 0.1,
 ) -> tuple[list[Visit], FloatArray]:
-    """:func:`simulate_visits` from ``default_rng(seed)``, with signatures of 4 components around a random
-    appearance per place (uniform in [1, 3)). The appearance is drawn first, with or without
-    ``signatures``, so a seed gives the same odometry either way."""
+    """The visits of ``route`` (:func:`true_poses`, :func:`odometry_visits` from ``default_rng(seed)``) and
+    their true poses. With ``signatures``, signatures of 4 components around a random appearance per place
+    (uniform in [1, 3)); the appearance is drawn first, with or without ``signatures``, so a seed gives the
+    same odometry either way."""
     rng = np.random.default_rng(seed)
     appearance = rng.uniform(1.0, 3.0, size=(np.shape(places)[0], 4))
-    return simulate_visits(
-        route, places, odometry, rng, appearance=appearance if signatures else None, sig_noise=sig_noise
-    )
+    true = true_poses(route, places)
+    at_visits = appearance[np.asarray(route)] if signatures else None
+    return odometry_visits(true, odometry, rng, appearance=at_visits, sig_noise=sig_noise), true
 
 
 def grid_route(
