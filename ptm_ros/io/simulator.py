@@ -46,11 +46,9 @@ from numpy.typing import NDArray
 
 from ptm_ros.detectors import landmark_passages
 from ptm_ros.errors import BagError, ConfigError
-from ptm_ros.geometry import between, wrap_angle
+from ptm_ros.geometry import FloatArray, between, wrap_angle
 from ptm_ros.io.groundtruth import GroundTruthTrajectory, Passage, Place, sim_gt_document
 from ptm_ros.io.worlds import World
-
-FloatArray = NDArray[np.float64]
 
 GROUND_TRUTH_SCHEMA = "ptm_ros.ground_truth/1"
 GROUND_TRUTH_FILE = "ground_truth.json"

@@ -13,13 +13,11 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-from ptm_ros.geometry import NoMatch, Registrar, RelativePose, between, compose
+from ptm_ros.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.visits import Visit, pose_field
-
-FloatArray = NDArray[np.float64]
 
 #: Heading at the last visit: towards the previous place (``back``) or straight on, away from it (``ahead``).
 EndHeading = Literal["back", "ahead"]
