@@ -47,11 +47,9 @@ from numpy.typing import NDArray
 from ptm_ros.detectors import landmark_passages
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.geometry import FloatArray, between, wrap_angle
-from ptm_ros.io.groundtruth import GroundTruthTrajectory, Passage, Place, sim_gt_document
+from ptm_ros.io.groundtruth import SIM_FILENAME, GroundTruthTrajectory, Passage, Place, sim_gt_document
 from ptm_ros.io.worlds import World
 
-GROUND_TRUTH_SCHEMA = "ptm_ros.ground_truth/1"
-GROUND_TRUTH_FILE = "ground_truth.json"
 #: Turns sharper than this (rad) are made on the spot instead of along an arc.
 MAX_ARC_TURN = 0.75 * math.pi
 #: Largest number of (ray, wall) pairs evaluated at once by the ray caster.
@@ -756,6 +754,6 @@ def write_run(run: SimRun, out_bag: str | Path, storage: Literal["mcap", "sqlite
                 )
             else:
                 bag.write_image(stamp, run.images[i])
-    with (out / GROUND_TRUTH_FILE).open("w", encoding="utf-8") as fh:
+    with (out / SIM_FILENAME).open("w", encoding="utf-8") as fh:
         json.dump(run.ground_truth(), fh)
     return out
