@@ -46,12 +46,15 @@ def odometry_visits(
     appearance: FloatArray | None = None,
     sig_noise: float = 0.1,
     nonnegative: bool = False,
+    yaw_bias: float = 0.0,
+    patches: Sequence[FloatArray | None] | None = None,
 ) -> list[Visit]:
     """Visits at the true poses ``true`` (``(N, 3)``) with odometry from ``odometry``'s noise model.
 
     Draws from ``rng``, per visit: the odometry noise (after the first visit), then the signature noise
     when ``appearance`` (``(N, K)``, the true appearance at each visit) is given. ``nonnegative`` takes the
-    signatures' absolute values.
+    signatures' absolute values; ``yaw_bias`` (rad/m) adds a systematic heading drift to the odometry;
+    ``patches`` are the visits' laser patches.
     """
     visits, u = [], true[0].copy()
     for i in range(len(true)):
@@ -61,14 +64,32 @@ def odometry_visits(
             travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
             var_xy = odometry.a_xy * travel + odometry.b_xy
             var_th = odometry.a_th * rotation + odometry.c_th * travel + odometry.b_th
-            u = compose(u, rel + noise * rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
+            error = noise * rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th]))
+            if yaw_bias:
+                error = error + np.array([0.0, 0.0, yaw_bias * travel])
+            u = compose(u, rel + error)
         sig = None
         if appearance is not None:
             sig = appearance[i] + rng.normal(0.0, sig_noise, appearance.shape[1])
             if nonnegative:
                 sig = np.abs(sig)
-        visits.append(Visit(i, float(i), pose_field(u), travel=travel, rotation=rotation, signature=sig))
+        patch = None if patches is None else patches[i]
+        visits.append(
+            Visit(i, float(i), pose_field(u), travel=travel, rotation=rotation, signature=sig, patch=patch)
+        )
     return visits
+
+
+def visits_at(poses: ArrayLike) -> list[Visit]:
+    """Visits at the odometry poses ``poses`` (``(N, 3)``), travel and rotation from the straight steps
+    between them."""
+    u = np.asarray(poses, dtype=float)
+    out = [Visit(0, 0.0, pose_field(u[0]))]
+    for k in range(1, len(u)):
+        o = between(u[k - 1], u[k])
+        travel, rotation = float(np.hypot(o[0], o[1])), abs(float(o[2]))
+        out.append(Visit(k, float(k), pose_field(u[k]), travel=travel, rotation=rotation))
+    return out
 
 
 def simulate_route(
