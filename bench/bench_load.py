@@ -37,7 +37,6 @@ import json
 import math
 import re
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -52,7 +51,7 @@ BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
 sys.path.insert(0, str(BENCH))
 
-from bench_nodes import CLK_TCK, MIB, Series, children_of, logged, process_name, ros_env  # noqa: E402
+from bench_nodes import CLK_TCK, MIB, Series, logged, start_replay, track_children  # noqa: E402
 
 SIM_FILE = "load_sim.json"
 VISIT_LINE = re.compile(
@@ -233,15 +232,7 @@ def run_replay(cmd: list[str], interval: float, log_file: Path, max_wall: float)
     visits completed so far and writes ptm.json) and is sampled until it exits."""
     log = Replay()
     t_start = log.t_start = time.monotonic()
-    proc = subprocess.Popen(
-        cmd,
-        env=ros_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        text=True,
-        start_new_session=True,  # our SIGINT reaches it only through us
-    )
+    proc = start_replay(cmd, new_session=True)  # our SIGINT reaches it only through us
 
     def read() -> None:
         assert proc.stdout is not None
@@ -276,9 +267,7 @@ def run_replay(cmd: list[str], interval: float, log_file: Path, max_wall: float)
                 print(f"[bench_load] stopping the replay ({log.interrupted})", flush=True)
                 proc.send_signal(signal.SIGINT)
                 stopped = True
-            for pid in children_of(proc.pid):
-                if pid not in series:
-                    series[pid] = Series(process_name(pid), pid)
+            track_children(proc.pid, series)
             for s in series.values():
                 if s.sample(now):  # threads come and go: keep each name's largest (latest) count
                     seen = log.threads.setdefault(s.name, {})

@@ -62,7 +62,6 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import math
 import multiprocessing as mp
 import pickle
 import platform
@@ -74,7 +73,8 @@ from typing import Any
 
 import numpy as np
 
-from ptm_ros.geometry import between, compose, wrap_angle
+from ptm_ros.geometry import wrap_angle
+from ptm_ros.io.synthetic import odometry_visits, true_poses
 from ptm_ros.mcmc import McmcConfig, McmcSampler, run_mcmc
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.partitions import canonical, enumerate_partitions
@@ -94,26 +94,16 @@ MODEL = ModelConfig(odometry=ODOMETRY)
 
 def simulate(route, places, odo, *, seed=0, signatures=None, noise=1.0, sig_noise=0.3):
     """Visits along ``route`` (place indices) with odometry noise ``noise`` × the model's own."""
-    rng = np.random.default_rng(seed)
-    pts = np.asarray(places, dtype=float)
-    true = []
-    for i, p in enumerate(route):
-        nxt = pts[route[i + 1]] if i + 1 < len(route) else 2 * pts[p] - pts[route[i - 1]]
-        true.append(np.array([*pts[p], math.atan2(*(nxt - pts[p])[::-1])]))
-    visits, u = [], true[0].copy()
-    for i, p in enumerate(route):
-        travel = rotation = 0.0
-        if i > 0:
-            rel = between(true[i - 1], true[i])
-            travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
-            var_xy = odo.a_xy * travel + odo.b_xy
-            var_th = odo.a_th * rotation + odo.c_th * travel + odo.b_th
-            u = compose(u, rel + noise * rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
-        sig = None
-        if signatures is not None:
-            sig = np.abs(signatures[p] + rng.normal(0.0, sig_noise, signatures.shape[1]))
-        visits.append(Visit(i, float(i), tuple(float(v) for v in u), travel, rotation, signature=sig))
-    return visits
+    appearance = None if signatures is None else signatures[np.asarray(route)]
+    return odometry_visits(
+        true_poses(route, places, end_heading="ahead"),
+        odo,
+        np.random.default_rng(seed),
+        noise=noise,
+        appearance=appearance,
+        sig_noise=sig_noise,
+        nonnegative=True,
+    )
 
 
 def scenes() -> dict[str, tuple[list[Visit], tuple[int, ...]]]:

@@ -159,6 +159,27 @@ def ros_env() -> dict[str, str]:
     return env
 
 
+def start_replay(cmd: list[str], *, new_session: bool = False) -> subprocess.Popen[str]:
+    """Start ``cmd`` (ptm-bringup) with :func:`ros_env`, its stdout and stderr in one text pipe, no stdin;
+    ``new_session``: in a session of its own (a terminal's SIGINT does not reach it)."""
+    return subprocess.Popen(
+        cmd,
+        env=ros_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        start_new_session=new_session,
+    )
+
+
+def track_children(pid: int, series: dict[int, Series]) -> None:
+    """Add a :class:`Series` for each child process of ``pid`` not sampled yet."""
+    for child in children_of(pid):
+        if child not in series:
+            series[child] = Series(process_name(child), child)
+
+
 def run_bringup(bag: Path, params: Path, rate: float, out: Path, interval: float) -> dict[str, Any]:
     """One ``ptm-bringup`` replay, sampled; the raw figures (see :func:`summarize`)."""
     cmd = [sys.executable, "-m", "ptm_ros.tools.bringup", "--bag", str(bag), "--rate", f"{rate:g}"]
@@ -166,14 +187,7 @@ def run_bringup(bag: Path, params: Path, rate: float, out: Path, interval: float
     lines: list[tuple[float, str]] = []
     load_start = os.getloadavg()
     t_start = time.monotonic()
-    proc = subprocess.Popen(
-        cmd,
-        env=ros_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        text=True,
-    )
+    proc = start_replay(cmd)
 
     def read() -> None:
         assert proc.stdout is not None
@@ -186,9 +200,7 @@ def run_bringup(bag: Path, params: Path, rate: float, out: Path, interval: float
     next_tick = time.monotonic()
     while proc.poll() is None:
         now = time.monotonic()
-        for pid in children_of(proc.pid):
-            if pid not in series:
-                series[pid] = Series(process_name(pid), pid)
+        track_children(proc.pid, series)
         for s in series.values():
             s.sample(now)
         next_tick += interval

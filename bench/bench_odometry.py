@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptm_ros.geometry import between, compose
+from ptm_ros.io.synthetic import odometry_visits
 from ptm_ros.odometry import MAX_VISITS, OdometryConfig, metric_log_likelihood
 from ptm_ros.visits import Visit
 
@@ -45,17 +45,7 @@ def synthetic_loop(
     n: int, cfg: OdometryConfig, rng: np.random.Generator
 ) -> tuple[list[Visit], tuple[int, ...]]:
     """``n`` visits of the lap-after-lap loop with noisy odometry, and the true topology."""
-    marks = landmark_poses()
-    true = marks[np.arange(n) % N_PLACES]
-    visits = [Visit(0, 0.0, tuple(true[0]))]
-    pose = true[0]
-    for k in range(1, n):
-        step = between(true[k - 1], true[k])
-        travel, rotation = float(np.hypot(step[0], step[1])), abs(float(step[2]))
-        s_xy = np.sqrt(cfg.a_xy * travel + cfg.b_xy)
-        s_th = np.sqrt(cfg.a_th * rotation + cfg.c_th * travel + cfg.b_th)
-        pose = compose(pose, step + rng.normal(0.0, [s_xy, s_xy, s_th]))
-        visits.append(Visit(k, float(k), tuple(pose), travel=travel, rotation=rotation))
+    visits = odometry_visits(landmark_poses()[np.arange(n) % N_PLACES], cfg, rng)
     return visits, tuple(int(i) for i in np.arange(n) % N_PLACES)
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
 import platform
 import time
@@ -33,62 +32,14 @@ from pathlib import Path
 import numpy as np
 from scipy.special import logsumexp
 
-from ptm_ros.geometry import RelativePose, between, compose
+from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.partitions import bell, canonical
 from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
 from ptm_ros.priors import PriorConfig, make_prior
 from ptm_ros.rbpf import RbpfConfig, TopologyFilter, run_filter
-from ptm_ros.visits import Visit
 
 PRIOR = PriorConfig()
-
-
-def simulate(route, places, odo, seed=0, *, signatures=False, sig_noise=0.1):
-    """Visits along ``route`` with odometry noise drawn from the model; returns (visits, true poses)."""
-    rng = np.random.default_rng(seed)
-    pts = np.asarray(places, dtype=float)
-    true = []
-    for i, p in enumerate(route):
-        nxt = pts[route[i + 1]] if i + 1 < len(route) else pts[route[i - 1]]
-        true.append(np.array([*pts[p], math.atan2(*(nxt - pts[p])[::-1])]))
-    base = rng.uniform(1.0, 3.0, size=(len(places), 4))  # as test/test_rbpf.py: same runs for a seed
-    visits, u = [], true[0].copy()
-    for i, p in enumerate(route):
-        travel = rotation = 0.0
-        if i > 0:
-            rel = between(true[i - 1], true[i])
-            travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
-            var_xy = odo.a_xy * travel + odo.b_xy
-            var_th = odo.a_th * rotation + odo.c_th * travel + odo.b_th
-            u = compose(u, rel + rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
-        sig = base[p] + rng.normal(0.0, sig_noise, 4) if signatures else None
-        visits.append(Visit(i, float(i), tuple(u), travel=travel, rotation=rotation, signature=sig))
-    return visits, np.array(true)
-
-
-def truth_registrar(true, route, sd=(0.05, 0.05, 0.01), seed=0):
-    def registrar(i, j):
-        if route[i] != route[j]:
-            return None
-        rng = np.random.default_rng([seed, i, j])
-        return RelativePose(i, j, between(true[i], true[j]) + rng.normal(0.0, sd), np.diag(np.square(sd)))
-
-    return registrar
-
-
-def grid_route(n, side=4, spacing=8.0, seed=0):
-    rng = np.random.default_rng(seed)
-    steps = ((1, 0), (-1, 0), (0, 1), (0, -1))
-    cur, prev, route = 0, -1, [0]
-    for _ in range(n - 1):
-        x, y = cur % side, cur // side
-        nb = [(x + dx) + (y + dy) * side for dx, dy in steps if 0 <= x + dx < side and 0 <= y + dy < side]
-        if prev in nb:
-            nb.remove(prev)
-        prev, cur = cur, int(rng.choice(nb))
-        route.append(cur)
-    return [(spacing * (i % side), spacing * (i // side)) for i in range(side * side)], route
 
 
 def timing(n_visits: int, particles: int, repeats: int) -> list[dict]:
@@ -101,7 +52,7 @@ def timing(n_visits: int, particles: int, repeats: int) -> list[dict]:
         ("6x6 grid", 6, "5cm/√m", OdometryConfig(n_samples=0)),
     ):
         places, route = grid_route(n_visits, side=side)
-        visits, true = simulate(route, places, odo, seed=3, signatures=True)
+        visits, true = simulate_route(route, places, odo, seed=3, signatures=True)
         appearance = PosteriorModel(visits, ModelConfig(odometry=odo)).appearance
         for name, kwargs in (
             ("odometry", {}),
@@ -162,7 +113,7 @@ def accuracy(seeds: int) -> list[dict]:
     route = [0, 1, 2, 3, 0, 1, 2, 3]
     rows = []
     for name, places, odo, vseed in cases:
-        visits, _ = simulate(route, places, odo, seed=vseed)
+        visits, _ = simulate_route(route, places, odo, seed=vseed)
         start = time.perf_counter()
         logp = exact_posterior(
             PosteriorModel(visits, ModelConfig(prior=PRIOR, odometry=odo, use_appearance=False))
@@ -218,7 +169,7 @@ def approximations() -> list[dict]:
         ("square 5 m, laser + appearance, seed 4", square, 4, True),
         ("places 2 m apart, seed 1", close, 1, False),
     ):
-        visits, true = simulate(route, places, odo, seed=seed, signatures=laser, sig_noise=1.0)
+        visits, true = simulate_route(route, places, odo, seed=seed, signatures=laser, sig_noise=1.0)
         row = {"case": name}
         for tag, cfg in (("", odo), ("_no_separation_prior", dataclasses.replace(odo, penalty_max=0.0))):
             reg = truth_registrar(true, route) if laser else None
@@ -246,7 +197,7 @@ def linearisation(samples: int) -> dict:
     places = [(0, 0), (5, 0), (5, 5), (0, 5)]
     route = [0, 1, 2, 3, 0, 1]
     odo = OdometryConfig(n_samples=0, a_xy=0.15**2, a_th=0.15**2, penalty_max=0.0)
-    visits, _ = simulate(route, places, odo, seed=2)
+    visits, _ = simulate_route(route, places, odo, seed=2)
 
     def post(cfg):
         return normalize_log(

@@ -106,13 +106,9 @@ def laser_detections(run: SimRun, config: LaserSurpriseConfig) -> tuple[list[flo
     wall time spent in the detector."""
     laser = run.config.laser
     detector = LaserSurpriseDetector(config)
-    events = sorted(
-        [(s, 0, i) for i, s in enumerate(run.odom_stamps.tolist())]
-        + [(s, 1, i) for i, s in enumerate(run.scan_stamps.tolist())]
-    )
     found = []
     t0 = time.perf_counter()
-    for stamp, kind, i in events:
+    for stamp, kind, i in run.events(images=False):
         if kind == 0:
             detector.on_odometry(stamp, run.odom_poses[i])
         elif detector.on_scan(
@@ -176,13 +172,9 @@ def appearance_detections(
     run: SimRun, config: AppearanceSurpriseConfig, vocabulary: Vocabulary | None
 ) -> tuple[list[float], float]:
     detector = AppearanceSurpriseDetector(config, vocabulary)
-    events = sorted(
-        [(s, 0, i) for i, s in enumerate(run.odom_stamps.tolist())]
-        + [(s, 1, i) for i, s in enumerate(run.image_stamps.tolist())]
-    )
     found = []
     t0 = time.perf_counter()
-    for stamp, kind, i in events:
+    for stamp, kind, i in run.events(scans=False):
         if kind == 0:
             detector.on_odometry(stamp, run.odom_poses[i])
         elif detector.on_image(stamp, run.images[i]):

@@ -59,10 +59,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import digamma, gammaln
 
 from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.geometry import FloatArray
 from ptm_ros.partitions import blocks
 from ptm_ros.visits import Visit
 
-FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 Block = tuple[int, ...]
 

@@ -68,7 +68,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, cholesky, solve_triangular
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import Registrar, RelativePose, between, compose, wrap_angle
+from ptm_ros.geometry import FloatArray, Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.laser import LaserConfig, patch_registrar
 from ptm_ros.odometry import (
     OdometryConfig,
@@ -79,8 +79,6 @@ from ptm_ros.odometry import (
 from ptm_ros.partitions import Labels, canonical
 from ptm_ros.posegraph import RelativeFactors, levenberg_marquardt, relative_jacobian, relative_residuals
 from ptm_ros.visits import Visit, poses_array
-
-FloatArray = NDArray[np.float64]
 
 #: A registrar returns the laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None
 #: (no valid registration). Same contract as :mod:`ptm_ros.posterior` and :mod:`ptm_ros.rbpf`.

@@ -39,8 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import DataError
-
-FloatArray = NDArray[np.float64]
+from ptm_ros.geometry import FloatArray
 
 __all__ = ["most_visited", "regeneration_times", "srq_deviation", "srq_points"]
 

@@ -35,9 +35,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 
 from ptm_ros.errors import DataError
+from ptm_ros.geometry import FloatArray
 from ptm_ros.occupancy import FREE, OCCUPIED
-
-FloatArray = NDArray[np.float64]
 
 LEAK_RADIUS = 0.3  # m: a free cell farther than this from every seen reference cell is a leak
 WALL_RADIUS = 0.2  # m: an occupied cell this close to a wall of the other map matches it

@@ -38,15 +38,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, DataError, PtmError
-from ptm_ros.geometry import Registrar, RelativePose, interpolate_poses, moved
+from ptm_ros.geometry import FloatArray, Registrar, RelativePose, interpolate_poses, moved
 from ptm_ros.laser import LaserConfig, scan_to_points
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.posterior import ModelConfig, chained_registrations, split_aliases
 from ptm_ros.refinement import Mapper, RefinementConfig, refine_trajectory
 from ptm_ros.smoothing import smooth_topology
 from ptm_ros.visits import Visit
-
-FloatArray = NDArray[np.float64]
 
 TELEPORT_SLACK_M = 1.0  # m added to max_speed · Δt before an odometry step counts as a teleport
 SAME_STAMP_S = 1e-6  # s: an odometry sample this close to a visit's stamp is that visit's sample

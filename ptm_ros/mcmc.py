@@ -125,11 +125,11 @@ from scipy.special import logsumexp
 
 from ptm_ros.appearance import AppearanceModel
 from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.geometry import FloatArray
 from ptm_ros.partitions import Labels, blocks, canonical, is_canonical, random_partition, stirling2
 from ptm_ros.posterior import PosteriorModel, normalize_log, same_place_probabilities, total_variation
 from ptm_ros.visits import Visit
 
-FloatArray = NDArray[np.float64]
 Block = tuple[int, ...]
 
 #: Proposal kinds :class:`McmcConfig` accepts ("auto": every data-driven proposal the model supports).

@@ -70,8 +70,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import expit
 
 from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.geometry import FloatArray
 
-FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 OCCUPIED = 100

@@ -18,10 +18,8 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.sparse.linalg import spsolve
 
-from ptm_ros.geometry import wrap_angle
+from ptm_ros.geometry import FloatArray, wrap_angle
 from ptm_ros.odometry import between_derivatives
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -156,14 +156,13 @@ from scipy.special import gammaln
 
 from ptm_ros.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import NoMatch, Registrar, RelativePose, between, compose, wrap_angle
+from ptm_ros.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.odometry import OdometryConfig, odometry_covariances, place_area
 from ptm_ros.partitions import Labels
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
 from ptm_ros.ptm import Landmark, Ptm, make_ptm
 from ptm_ros.visits import Visit, pose_field
 
-FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 #: A registrar returns the laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None

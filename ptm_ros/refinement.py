@@ -47,7 +47,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, ModelError, RegistrationError
-from ptm_ros.geometry import RelativePose, between, interpolate_poses, transform_points, wrap_angle
+from ptm_ros.geometry import (
+    FloatArray,
+    RelativePose,
+    between,
+    interpolate_poses,
+    transform_points,
+    wrap_angle,
+)
 from ptm_ros.laser import LaserConfig, Registration, register_patches, voxel_downsample
 from ptm_ros.odometry import OdometryConfig, optimize_poses
 from ptm_ros.partitions import canonical
@@ -62,8 +69,6 @@ from ptm_ros.smoothing import (
     whitening,
 )
 from ptm_ros.visits import Visit
-
-FloatArray = NDArray[np.float64]
 
 _NUMERIC_VARIANCE = 1e-6  # m², rad²: keeps a zero-travel odometry factor finite
 

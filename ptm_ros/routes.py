@@ -73,13 +73,12 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.geometry import interpolate_poses
+from ptm_ros.geometry import FloatArray, interpolate_poses
 from ptm_ros.map_quality import ClassGrid
 from ptm_ros.occupancy import FREE, OCCUPIED, UNKNOWN, grid_traversal
 from ptm_ros.partitions import num_places
 from ptm_ros.ptm import Ptm, Topology
 
-FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 SCHEMA = "ptm_ros.route_graph/2"

@@ -48,7 +48,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
+from ptm_ros.geometry import FloatArray, RelativePose, between, compose, wrap_angle
 from ptm_ros.odometry import (
     OdometryConfig,
     odometry_covariances,
@@ -58,8 +58,6 @@ from ptm_ros.odometry import (
 from ptm_ros.partitions import Labels, blocks, canonical
 from ptm_ros.posegraph import RelativeFactors, levenberg_marquardt, relative_jacobian, relative_residuals
 from ptm_ros.visits import Visit
-
-FloatArray = NDArray[np.float64]
 
 
 def smoothed_trajectory(

@@ -73,10 +73,8 @@ from scipy.special import digamma, gammaln
 from ptm_ros.appearance import fourier_signature
 from ptm_ros.detectors import Detector, OdometryTracker
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.geometry import wrap_angle
+from ptm_ros.geometry import FloatArray, wrap_angle
 from ptm_ros.vocabulary import Vocabulary
-
-FloatArray = NDArray[np.float64]
 
 __all__ = [
     "STATISTICS",

@@ -191,6 +191,19 @@ def kill_processes_mentioning(text: str) -> None:
             os.kill(pid, signal.SIGKILL)
 
 
+def assert_no_orphans(*marks: str) -> None:
+    """Fails the test when processes naming any of ``marks`` outlive ptm-bringup (after up to 5 s), and
+    kills them."""
+    deadline = time.monotonic() + 5.0  # a process may take a moment to disappear from /proc
+    left = [p for m in marks for p in processes_mentioning(m)]
+    while left and time.monotonic() < deadline:
+        time.sleep(0.1)
+        left = [p for m in marks for p in processes_mentioning(m)]
+    for m in marks:
+        kill_processes_mentioning(m)
+    assert not left, f"processes outlived ptm-bringup: {left}"
+
+
 class ProcessLogs:
     """The output of the processes a test started, by name. When the test fails, ``conftest.py`` attaches
     each one in full to the test's report (a section per process, after the assertion), so the cause of a

@@ -28,8 +28,7 @@ from bag_corruption import INSERTED, REPLACED, TOPIC_STREAMS, Insert, Plan, Repl
 from cli_helpers import call, one_error_line
 from hypothesis import HealthCheck, Phase, currently_in_test_context, event, given, settings
 from hypothesis import strategies as st
-from ros_helpers import BRINGUP, Inbox, ProcessLogs, dds_env, ros_context
-from test_bringup import assert_no_orphans
+from ros_helpers import BRINGUP, Inbox, ProcessLogs, assert_no_orphans, dds_env, ros_context
 
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world

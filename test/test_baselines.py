@@ -21,7 +21,8 @@ from ptm_ros.baselines import (
     robust_pose_graph,
 )
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, compose, inverse, transform_points, wrap_angle
+from ptm_ros.geometry import RelativePose, between, inverse, transform_points, wrap_angle
+from ptm_ros.io.synthetic import odometry_visits, visits_at
 from ptm_ros.laser import LaserConfig
 from ptm_ros.odometry import OdometryConfig, odometry_covariances
 from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log
@@ -40,41 +41,6 @@ def headings_along(points: Sequence[Sequence[float]], last: Sequence[float]) -> 
     nxt = np.vstack([pts[1:], np.asarray(last, dtype=float)])
     yaw = np.arctan2(nxt[:, 1] - pts[:, 1], nxt[:, 0] - pts[:, 0])
     return np.column_stack([pts, yaw])
-
-
-def drive(
-    true: np.ndarray,
-    cfg: OdometryConfig,
-    rng: np.random.Generator,
-    *,
-    yaw_bias: float = 0.0,
-    patches: Sequence[np.ndarray | None] | None = None,
-) -> list[Visit]:
-    """Visits along the true poses with odometry noise drawn from the model, plus ``yaw_bias`` rad/m."""
-    u = true[0].copy()
-    out = [Visit(0, 0.0, tuple(u), patch=None if patches is None else patches[0])]
-    for k in range(1, len(true)):
-        rel = between(true[k - 1], true[k])
-        travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
-        var_xy = cfg.a_xy * travel + cfg.b_xy
-        var_th = cfg.a_th * rotation + cfg.c_th * travel + cfg.b_th
-        noise = rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])) + np.array([0.0, 0.0, yaw_bias * travel])
-        u = compose(u, rel + noise)
-        patch = None if patches is None else patches[k]
-        out.append(Visit(k, float(k), tuple(u), travel=travel, rotation=rotation, patch=patch))
-    return out
-
-
-def visits_at(poses: Sequence[Sequence[float]]) -> list[Visit]:
-    """Visits at the given odometry poses, travel and rotation from the straight steps between them."""
-    u = np.asarray(poses, dtype=float)
-    out = [Visit(0, 0.0, tuple(u[0]))]
-    for k in range(1, len(u)):
-        o = between(u[k - 1], u[k])
-        out.append(
-            Visit(k, float(k), tuple(u[k]), travel=float(np.hypot(o[0], o[1])), rotation=abs(float(o[2])))
-        )
-    return out
 
 
 SQUARE = [(0.0, 0.0), (8.0, 0.0), (8.0, 8.0), (0.0, 8.0)]
@@ -159,7 +125,7 @@ def test_place_innovations_rejects_mismatched_labels():
 def test_greedy_recovers_square_driven_twice_with_small_noise():
     true = headings_along(SQUARE * 2 + SQUARE[:1], (8.0, 0.0))
     for seed in range(3):
-        visits = drive(true, ODOMETRY, np.random.default_rng(seed))
+        visits = odometry_visits(true, ODOMETRY, np.random.default_rng(seed))
         assert greedy_association(visits, ODOMETRY, GreedyConfig()) == (0, 1, 2, 3, 0, 1, 2, 3, 0)
 
 
@@ -172,7 +138,7 @@ def test_greedy_one_visit_at_a_time_decides_as_the_batch_and_never_revisits():
     """Fed one visit at a time (as the filter session runs it), the decisions are the batch function's,
     and the labels after visit k are the batch answer on the first k + 1 visits (decisions are final)."""
     true = headings_along([*SQUARE, (0.0, 4.0), *SQUARE], (8.0, 0.0))
-    visits = drive(true, ODOMETRY, np.random.default_rng(4))
+    visits = odometry_visits(true, ODOMETRY, np.random.default_rng(4))
     greedy = GreedyAssociation(ODOMETRY)
     for k in range(len(visits)):
         assert greedy.add(visits[: k + 1]) == greedy.labels[-1]
@@ -188,7 +154,7 @@ def test_greedy_commits_to_a_wrong_merge_the_ptm_keeps_uncertain():
     """After a lap of the square the robot stops at a *new* place 4 m from the start: greedy merges it
     with the start, while the exact posterior keeps a fifth of its mass on the true topology."""
     true = headings_along([*SQUARE, (0.0, 4.0)], (0.0, -5.0))
-    visits = drive(true, ODOMETRY, np.random.default_rng(0))
+    visits = odometry_visits(true, ODOMETRY, np.random.default_rng(0))
     labels = greedy_association(visits, ODOMETRY, GreedyConfig())
     assert labels == (0, 1, 2, 3, 0)
     inn = place_innovations(labels[:4], visits, ODOMETRY)
@@ -205,7 +171,7 @@ def test_greedy_misses_a_revisit_under_drift_beyond_the_model():
     start outside the gate: greedy opens a new place and never revisits that decision, although the next
     visit is matched to corner 1 again (a topology no single lap of a square can have)."""
     true = headings_along([*SQUARE, SQUARE[0], SQUARE[1]], (8.0, 8.0))
-    visits = drive(true, ODOMETRY, np.random.default_rng(0), yaw_bias=0.025)
+    visits = odometry_visits(true, ODOMETRY, np.random.default_rng(0), yaw_bias=0.025)
     labels = greedy_association(visits, ODOMETRY, GreedyConfig())
     assert labels == (0, 1, 2, 3, 4, 1)
     inn = place_innovations(labels[:4], visits[:5], ODOMETRY)
@@ -220,7 +186,7 @@ def graph_scene(seed: int = 0):
     """A hexagon driven once and a bit: true poses, odometry visits, true loops and one outlier."""
     ang = np.arange(8) * (2.0 * math.pi / 6.0)
     true = headings_along(np.column_stack([5.0 * np.cos(ang), 5.0 * np.sin(ang)]), (0.0, 0.0))
-    visits = drive(true, ODOMETRY, np.random.default_rng(seed))
+    visits = odometry_visits(true, ODOMETRY, np.random.default_rng(seed))
     rng = np.random.default_rng(seed + 100)
 
     def measured(i: int, j: int) -> RelativePose:
@@ -429,7 +395,7 @@ def rooms_scene():
         local = transform_points(inverse(pose), rooms[r])
         local = local[np.hypot(local[:, 0], local[:, 1]) <= 3.0]
         patches.append(local + rng.normal(0.0, 0.01, local.shape))
-    visits = drive(true, ODOMETRY, rng, yaw_bias=0.01, patches=patches)
+    visits = odometry_visits(true, ODOMETRY, rng, yaw_bias=0.01, patches=patches)
     return true, visits
 
 

@@ -7,7 +7,6 @@ import ast
 import json
 import shutil
 import subprocess
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,10 +17,9 @@ from ros_helpers import (
     BRINGUP,
     BringupProcess,
     ProcessLogs,
+    assert_no_orphans,
     dds_env,
-    kill_processes_mentioning,
     next_domain_id,
-    processes_mentioning,
 )
 
 from ptm_ros.config import PtmConfig, load_config
@@ -73,17 +71,6 @@ def stopped_codes(log: str) -> dict[str, int | None]:
     assert lines, "ptm-bringup never reported its processes' exit codes"
     codes = ast.literal_eval(lines[-1].split("stopped: exit codes ", 1)[1])
     return {name: code for name, code in codes.items() if name != "player"}
-
-
-def assert_no_orphans(*marks: str) -> None:
-    deadline = time.monotonic() + 5.0  # a process may take a moment to disappear from /proc
-    left = [p for m in marks for p in processes_mentioning(m)]
-    while left and time.monotonic() < deadline:
-        time.sleep(0.1)
-        left = [p for m in marks for p in processes_mentioning(m)]
-    for m in marks:
-        kill_processes_mentioning(m)
-    assert not left, f"processes outlived ptm-bringup: {left}"
 
 
 @pytest.mark.dds

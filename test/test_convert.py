@@ -7,37 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from carmen_log import LOG_LINES, write_log
 
 from ptm_ros.io.bag import read_run, stamp_to_ns
 from ptm_ros.io.carmen import odometry_track, read_log
 from ptm_ros.tools.convert import main
-
-LOG_LINES = [
-    "# test log",  # 1
-    "PARAM robot_front_laser_max 7.5 nohost 0",  # 2
-    "",  # 3
-    "ODOM 0.5 -0.25 0.125 0.3 -0.1 0 100.5 hostA 0.5",  # 4
-    "FLASER 4 1.0 2.0 3.0 4.5 1.1 2.2 0.3 1.0 2.0 0.25 100.75 hostA 0.75",  # 5
-    "NEFF 27.6 0 pippo 0",  # 6
-    "FLASER 5 1 2 3 4 5 0 0 3.2 0 0 3.2 101.0 hostB 1.0",  # 7
-    "ROBOTLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 7 1 2 3 4 5 6 7 2 10 20 "
-    "1.0 2.0 0.1 0.9 1.9 0.05 0.4 0.2 1.5 0.5 0.3 101.25 hostC 1.25",  # 8
-    "SYNC foo",  # 9
-    "FLASER 3 1 2 0 0 0 0 0 0 5.0 h 5.0",  # 10: one range short
-    "ODOM 1 2 abc 0 0 0 1 h 1",  # 11
-    "FLASER x 1 2",  # 12
-    "ODOM 1 2 nan 0 0 0 1 h 1",  # 13
-    "ROBOTLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 7 1 2 3",  # 14
-    "ODOM 2.0 3.0 -3.0 0 0 0 102.0 hostA 2.0",  # 15
-    "  # indented comment",  # 16
-    "FLASER 0 0 0 0 0 0 0 1 h 1",  # 17
-]
-
-
-def write_log(path: Path, lines: list[str] = LOG_LINES) -> Path:
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
 
 REAL_LOGS = {  # README scan counts
     "mit-csail/mit-csail.clf.gz": 1988,

@@ -20,8 +20,15 @@ import sys
 
 import numpy as np
 import pytest
-from ros_helpers import REPO, BringupProcess, Inbox, dds_env, processes_mentioning, ros_context
-from test_bringup import assert_no_orphans
+from ros_helpers import (
+    REPO,
+    BringupProcess,
+    Inbox,
+    assert_no_orphans,
+    dds_env,
+    processes_mentioning,
+    ros_context,
+)
 
 from ptm_ros.ptm import load_ptm
 

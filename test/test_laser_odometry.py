@@ -212,11 +212,8 @@ def test_apply_corrections_reproduces_the_extractor_poses():
     run = simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(5), visits=3)
     cfg = run.config.laser
     ext = VisitExtractor(config=ExtractorConfig(use_images=False, record_corrections=True))
-    msgs = [(t, 0, k) for k, t in enumerate(run.odom_stamps)] + [
-        (t, 1, k) for k, t in enumerate(run.scan_stamps)
-    ]
     visits = []
-    for t, topic, k in sorted(msgs):
+    for t, topic, k in run.events(images=False):
         if topic == 0:
             visits += ext.on_odometry(t, run.odom_poses[k])
         else:

@@ -11,6 +11,7 @@ from scipy import integrate, optimize, stats
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
+from ptm_ros.io.synthetic import visits_at
 from ptm_ros.odometry import (
     MetricResult,
     OdometryConfig,
@@ -29,19 +30,7 @@ from ptm_ros.partitions import blocks
 from ptm_ros.visits import Visit
 
 # ---------------------------------------------------------------------------------------------------------
-# helpers: visits from odometry poses, and an independent, loop-by-loop implementation of log f(X)
-
-
-def make_visits(poses: Sequence[Sequence[float]]) -> list[Visit]:
-    """Visits at odometry poses; travel and rotation from the straight segments between them."""
-    u = np.asarray(poses, dtype=float)
-    out = [Visit(0, 0.0, tuple(u[0]))]
-    for k in range(1, len(u)):
-        o = between(u[k - 1], u[k])
-        out.append(
-            Visit(k, float(k), tuple(u[k]), travel=float(np.hypot(o[0], o[1])), rotation=abs(float(o[2])))
-        )
-    return out
+# helpers: an independent, loop-by-loop implementation of log f(X)
 
 
 def brute_log_f(
@@ -96,7 +85,7 @@ def square_loop(seed: int = 0) -> list[Visit]:
     u = [true[0]]
     for k in range(4):
         u.append(compose(u[-1], between(true[k], true[k + 1]) + rng.normal(0, [0.1, 0.1, 0.03])))
-    return make_visits(u)
+    return visits_at(u)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -118,7 +107,7 @@ def test_config_validation() -> None:
 
 
 def test_relative_odometry_and_covariances() -> None:
-    visits = make_visits([(1, 2, 0.3), (3, 2.5, 1.0), (2, 4, -2.9)])
+    visits = visits_at([(1, 2, 0.3), (3, 2.5, 1.0), (2, 4, -2.9)])
     o = relative_odometry(visits)
     u = np.array([v.pose for v in visits])
     np.testing.assert_allclose(compose(u[:-1], o), u[1:], atol=1e-12)
@@ -143,7 +132,7 @@ def test_relative_odometry_and_covariances() -> None:
 def _mixed_problem() -> tuple[list[Visit], tuple[int, ...], list[RelativePose]]:
     rng = np.random.default_rng(7)
     u = np.cumsum(rng.normal(0, [2.0, 2.0, 0.8], size=(7, 3)), axis=0)
-    visits = make_visits(u)
+    visits = visits_at(u)
     labels = (0, 1, 2, 1, 0, 3, 1)
     loops = [
         RelativePose(
@@ -215,7 +204,7 @@ def test_log_integrand_matches_independent_formula() -> None:
 
 def test_place_factor_matches_integral_over_the_place_position() -> None:
     """g_s = (1/A) ∫ Π N(x_i; p, σ_T² I) dp, checked by 2-D quadrature for a 3-visit place."""
-    visits = make_visits([(0, 0, 0), (0.4, 0.1, 0), (0.2, -0.5, 0)])
+    visits = visits_at([(0, 0, 0), (0.4, 0.1, 0), (0.2, -0.5, 0)])
     cfg = OdometryConfig(sigma_topology=0.3, area_m2=50.0, penalty_max=0.0)
     X = np.array([v.pose for v in visits])
     s = cfg.sigma_topology
@@ -241,7 +230,7 @@ def test_place_factor_matches_integral_over_the_place_position() -> None:
 def test_no_merges_integrates_to_the_area_factors() -> None:
     """Without merges and laser each odometry Gaussian integrates to 1 over the next pose: ∫ f = A^{-N}."""
     u = [(0, 0, 0), (5, 0, 1.2), (6, 5, 2.9), (1, 6, -2.0), (-4, 2, -1.0), (-9, 3, 0.5)]
-    visits = make_visits(u)
+    visits = visits_at(u)
     n = len(visits)
     for cfg in (OdometryConfig(n_samples=4000), OdometryConfig(n_samples=4000, penalty_max=0.0)):
         res = metric_log_likelihood(tuple(range(n)), visits, cfg, rng=np.random.default_rng(0))
@@ -255,7 +244,7 @@ def test_no_merges_integrates_to_the_area_factors() -> None:
 def test_two_visits_merged_matches_closed_form_and_grid() -> None:
     """N = 2 merged: with x_0 fixed the model is linear-Gaussian in x_1, so Laplace = IS = exact."""
     u = [(1.0, 2.0, 0.3), (1.4, 2.3, 0.5)]
-    visits = make_visits(u)
+    visits = visits_at(u)
     cfg = OdometryConfig(n_samples=500)
     res = metric_log_likelihood((0, 0), visits, cfg, rng=np.random.default_rng(1))
     # closed form: (1/A) N(o_xy; 0, (s_xy² + 2σ_T²) I), the heading integrates to 1
@@ -297,7 +286,7 @@ def test_three_visits_loop_matches_brute_force_importance_sampling() -> None:
     so other seeds would also pass with probability > 0.9999.
     """
     u = np.array([(0, 0, 0), (4.0, 0.3, 2.2), (0.5, 0.4, -2.0)])
-    visits = make_visits(u)
+    visits = visits_at(u)
     labels = (0, 1, 0)
     cfg = OdometryConfig(a_th=0.05, c_th=0.01, a_xy=0.02, penalty_radius=5.0, n_samples=20000)
     res = metric_log_likelihood(labels, visits, cfg, rng=np.random.default_rng(5))
@@ -395,7 +384,7 @@ def test_relative_proposal_agrees_with_absolute_and_has_higher_ess() -> None:
 
 def test_cubic_prior_lowers_the_likelihood_and_is_weights_account_for_it() -> None:
     """Two distinct places 0.5 m apart: ∫ f = A^{-2} ∫ N(v; o, s²I) e^{-c(|v|)} dv (2-D quadrature)."""
-    visits = make_visits([(0, 0, 0), (0.5, 0, 0)])
+    visits = visits_at([(0, 0, 0), (0.5, 0, 0)])
     cfg = OdometryConfig(a_xy=0.08, n_samples=20000)  # s_xy ≈ 0.2 m: the penalty varies over the samples
     off = OdometryConfig(a_xy=0.08, n_samples=20000, penalty_max=0.0)
     on_res = metric_log_likelihood((0, 1), visits, cfg, rng=np.random.default_rng(2))
@@ -495,7 +484,7 @@ def test_laplace_estimate_beyond_max_sampled_visits() -> None:
 
 def test_invariant_to_a_global_rigid_motion() -> None:
     visits = square_loop()
-    moved = make_visits(compose(np.array([3.0, -7.0, 2.0]), np.array([v.pose for v in visits])))
+    moved = visits_at(compose(np.array([3.0, -7.0, 2.0]), np.array([v.pose for v in visits])))
     cfg = OdometryConfig(n_samples=0)
     for labels in ((0, 1, 2, 3, 0), (0, 1, 2, 3, 4), (0, 1, 0, 2, 3)):
         a = metric_log_likelihood(labels, visits, cfg)
@@ -599,7 +588,7 @@ def test_the_default_area_is_the_swept_band_floored() -> None:
 
 
 def test_single_visit_and_non_canonical_labels() -> None:
-    one = make_visits([(1, 2, 3)])
+    one = visits_at([(1, 2, 3)])
     res = metric_log_likelihood((0,), one, OdometryConfig())
     assert res.log_likelihood == pytest.approx(-2.0 * math.log(OdometryConfig().penalty_radius))  # A = floor²
     visits = square_loop()

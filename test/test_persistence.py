@@ -15,11 +15,11 @@ import zipfile
 
 import numpy as np
 import pytest
-from test_rbpf import PRIOR, grid_route, simulate, truth_registrar
 
 from ptm_ros import persistence
 from ptm_ros.errors import DataError
 from ptm_ros.geometry import NoMatch, RelativePose
+from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.persistence import (
     STATE_FILE_SCHEMA,
@@ -31,7 +31,7 @@ from ptm_ros.persistence import (
     visit_to_state,
 )
 from ptm_ros.posterior import ModelConfig, PosteriorModel
-from ptm_ros.priors import make_prior
+from ptm_ros.priors import PriorConfig, make_prior
 from ptm_ros.rbpf import RbpfConfig, TopologyFilter
 
 
@@ -95,7 +95,7 @@ def test_round_trip_is_bit_identical_and_keeps_types(tmp_path):
 
 
 def test_visit_and_registration_pieces_round_trip():
-    v = simulate([0, 1, 0], [(0.0, 0.0), (4.0, 0.0)], OdometryConfig(), signatures=True)[0][1]
+    v = simulate_route([0, 1, 0], [(0.0, 0.0), (4.0, 0.0)], OdometryConfig(), signatures=True)[0][1]
     back = visit_from_state(visit_to_state(v))
     assert back == v and np.array_equal(back.signature, v.signature)
     pairs = {
@@ -115,14 +115,14 @@ def test_visit_and_registration_pieces_round_trip():
 def test_a_filter_restored_from_the_file_continues_exactly(tmp_path):
     places, route = grid_route(18, seed=0)
     odo = OdometryConfig(n_samples=0, a_xy=0.1**2)
-    visits, true = simulate(route, places, odo, seed=0, signatures=True)
+    visits, true = simulate_route(route, places, odo, seed=0, signatures=True)
     appearance = PosteriorModel(visits, ModelConfig(odometry=odo)).appearance
     laser = truth_registrar(true, route, fitness=True)
 
     def registrar(i, j):  # matches, failed matches and pairs without information
         return None if (i + j) % 4 == 0 and route[i] != route[j] else laser(i, j)
 
-    args = (RbpfConfig(particles=12), make_prior(PRIOR), odo)
+    args = (RbpfConfig(particles=12), make_prior(PriorConfig()), odo)
     original = TopologyFilter(*args, appearance=appearance, registrar=registrar, seed=11)
     for v in visits[:12]:
         original.update(v)

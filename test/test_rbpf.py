@@ -18,7 +18,8 @@ from ptm_ros.appearance import (
     fit_appearance_model,
 )
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import NoMatch, RelativePose, between, compose
+from ptm_ros.geometry import RelativePose
+from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
 from ptm_ros.odometry import OdometryConfig, metric_log_likelihood, place_area
 from ptm_ros.partitions import bell, canonical
 from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
@@ -38,47 +39,6 @@ from ptm_ros.visits import Visit
 
 SQUARE = [(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)]
 PRIOR = PriorConfig()  # Dirichlet process, alpha = 1
-
-
-def simulate(route, places, odo, seed=0, signatures=False, sig_noise=0.1):
-    """Visits of ``route`` (place indices) with odometry drawn from the model's own noise; true poses.
-
-    The robot faces the next place at each visit; relative odometry = true relative pose + N(0, Σ_k).
-    """
-    rng = np.random.default_rng(seed)
-    pts = np.asarray(places, dtype=float)
-    true = []
-    for i, p in enumerate(route):
-        nxt = pts[route[i + 1]] if i + 1 < len(route) else pts[route[i - 1]]
-        true.append(np.array([*pts[p], math.atan2(*(nxt - pts[p])[::-1])]))
-    base = rng.uniform(1.0, 3.0, size=(len(places), 4))  # a "true appearance" per place
-    visits, u = [], true[0].copy()
-    for i, p in enumerate(route):
-        travel = rotation = 0.0
-        if i > 0:
-            rel = between(true[i - 1], true[i])
-            travel, rotation = float(np.hypot(rel[0], rel[1])), abs(float(rel[2]))
-            var_xy = odo.a_xy * travel + odo.b_xy
-            var_th = odo.a_th * rotation + odo.c_th * travel + odo.b_th
-            u = compose(u, rel + rng.normal(0.0, np.sqrt([var_xy, var_xy, var_th])))
-        sig = base[p] + rng.normal(0.0, sig_noise, 4) if signatures else None
-        visits.append(Visit(i, float(i), tuple(u), travel=travel, rotation=rotation, signature=sig))
-    return visits, np.array(true)
-
-
-def truth_registrar(true, route, sd=(0.05, 0.05, 0.01), seed=0, fitness=False):
-    """Laser measurements between visits of the same true place (noisy truth), None otherwise; with
-    ``fitness``, matches carry a fitness evidence and other pairs are NoMatch outcomes with a negative one
-    (varying by pair)."""
-
-    def registrar(i, j):
-        if route[i] != route[j]:
-            return NoMatch(i, j, -1.0 - 0.3 * ((i + j) % 3)) if fitness else None
-        rng = np.random.default_rng([seed, i, j])
-        mean = between(true[i], true[j]) + rng.normal(0.0, sd)
-        return RelativePose(i, j, mean, np.diag(np.square(sd)), 2.5 if fitness else 0.0)
-
-    return registrar
 
 
 #: Importance samples of the exact reference (eq. 18): the batch model integrates the separation prior over
@@ -290,7 +250,7 @@ ROUTE6 = [0, 1, 2, 3, 0, 1]
 
 @pytest.fixture(scope="module")
 def odometry_case():
-    visits, true = simulate(ROUTE6, SQUARE, ODO, seed=2)
+    visits, true = simulate_route(ROUTE6, SQUARE, ODO, seed=2)
     logp, _ = exact(visits, ODO)
     return visits, true, logp
 
@@ -355,7 +315,7 @@ def test_full_filter_equals_exact_posterior_laser_and_appearance():
     signatures keep the posterior open (MAP 0.96). Measured: TV 0.0017, log evidence within 0.023; with
     the separation prior at the means (before issue #23): TV 0.095, evidence off by 1.2 (more seeds:
     test_filter_matches_enumeration_where_the_separation_prior_matters)."""
-    visits, true = simulate(ROUTE6, SQUARE, ODO, seed=1, signatures=True, sig_noise=1.0)
+    visits, true = simulate_route(ROUTE6, SQUARE, ODO, seed=1, signatures=True, sig_noise=1.0)
     reg = truth_registrar(true, ROUTE6)
     logp, model = exact(visits, ODO, registrar=reg, appearance=True)
     assert model.appearance is not None
@@ -386,7 +346,7 @@ def test_filter_matches_enumeration_where_the_separation_prior_matters(seed):
     bound. The remaining error is the Gaussian projection of the prior's factor and the EKF's
     linearisation. Deterministic (seeded): the 5x margin is against model changes, not chance.
     """
-    visits, true = simulate(ROUTE6, SQUARE, ODO, seed=seed, signatures=True, sig_noise=1.0)
+    visits, true = simulate_route(ROUTE6, SQUARE, ODO, seed=seed, signatures=True, sig_noise=1.0)
     reg = truth_registrar(true, ROUTE6)
     logp, model = exact(visits, ODO, registrar=reg, appearance=True, samples=1000)
     ex = normalize_log(logp)
@@ -431,7 +391,7 @@ def test_fewer_particles_stay_close_to_the_full_enumeration():
     Bound per run: floor + 0.01. Because the weights are unbiased, averaging the 5 PTMs cuts the error
     (measured: by 42–47 % in 4 groups of 5 seeds); a deterministic scheme ("top") would not: require 25 %.
     """
-    visits, _ = simulate(ROUTE8, [(0, 0), (4, 0), (4, 4), (0, 4)], ODO8, seed=4)
+    visits, _ = simulate_route(ROUTE8, [(0, 0), (4, 0), (4, 4), (0, 4)], ODO8, seed=4)
     ref = full_filter(visits, ODO8).ptm_weights()
     masses = np.sort(np.array(list(ref.values())))[::-1]
     floor = 1.0 - masses[:50].sum()
@@ -490,26 +450,11 @@ def test_aliased_closures_keep_both_hypotheses():
 # ------------------------------------------------------------------------------ numerics and behaviour
 
 
-def grid_route(n, side=4, seed=0):
-    """A random walk over a side×side grid of places 8 m apart (no immediate U-turns)."""
-    rng = np.random.default_rng(seed)
-    steps = ((1, 0), (-1, 0), (0, 1), (0, -1))
-    cur, prev, route = 0, -1, [0]
-    for _ in range(n - 1):
-        x, y = cur % side, cur // side
-        nb = [(x + dx) + (y + dy) * side for dx, dy in steps if 0 <= x + dx < side and 0 <= y + dy < side]
-        if prev in nb:
-            nb.remove(prev)
-        prev, cur = cur, int(rng.choice(nb))
-        route.append(cur)
-    return [(8.0 * (i % side), 8.0 * (i // side)) for i in range(side * side)], route
-
-
 @pytest.fixture(scope="module")
 def long_run():
     places, route = grid_route(60)
     odo = OdometryConfig(n_samples=0)
-    visits, true = simulate(route, places, odo, seed=3)
+    visits, true = simulate_route(route, places, odo, seed=3)
     reg = truth_registrar(true, route)
     flt = TopologyFilter(RbpfConfig(particles=30), make_prior(PRIOR), odo, registrar=reg, seed=7)
     covs, labels_seen = [], []
@@ -612,7 +557,7 @@ def test_deterministic_under_a_seed(long_run):
 def test_full_filter_equals_exact_posterior_with_fitness_evidence():
     """Fitness evidence of matches and of failed matches (NoMatch) enters the filter's weights as in the
     batch posterior (PosteriorModel.laser_evidence)."""
-    visits, true = simulate(ROUTE6, SQUARE, ODO, seed=1)
+    visits, true = simulate_route(ROUTE6, SQUARE, ODO, seed=1)
     reg = truth_registrar(true, ROUTE6, fitness=True)
     logp, model = exact(visits, ODO, registrar=reg)
     plain, _ = exact(visits, ODO, registrar=truth_registrar(true, ROUTE6))
@@ -627,7 +572,7 @@ def test_full_filter_equals_exact_posterior_with_fitness_evidence():
 def test_state_dict_round_trip_continues_identically():
     places, route = grid_route(20, seed=1)
     odo = OdometryConfig(n_samples=0, a_xy=0.1**2)
-    visits, true = simulate(route, places, odo, seed=1, signatures=True)
+    visits, true = simulate_route(route, places, odo, seed=1, signatures=True)
     model = PosteriorModel(visits, ModelConfig(odometry=odo)).appearance
     reg = truth_registrar(true, route, fitness=True)
     args = (RbpfConfig(particles=8), make_prior(PRIOR), odo)
@@ -665,7 +610,7 @@ def bad_pose(visit):
 
 
 def test_bad_input_raises_and_leaves_the_filter_usable():
-    visits, true = simulate(ROUTE8, SQUARE, ODO, seed=4, signatures=True)
+    visits, true = simulate_route(ROUTE8, SQUARE, ODO, seed=4, signatures=True)
     model = PosteriorModel(visits, ModelConfig(odometry=ODO)).appearance
     good_reg = truth_registrar(true, ROUTE8)
     broken = {"on": True}

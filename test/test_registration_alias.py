@@ -9,10 +9,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_rbpf import simulate as simulate_route
 
 from ptm_ros.errors import ConfigError
 from ptm_ros.geometry import RelativePose, between, compose
+from ptm_ros.io.synthetic import simulate_route
 from ptm_ros.odometry import OdometryConfig, registration_aliases
 from ptm_ros.partitions import bell, canonical
 from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation

@@ -17,8 +17,7 @@ import sys
 
 import numpy as np
 import pytest
-from ros_helpers import REPO, Inbox, dds_env, ros_context
-from test_bringup import BRINGUP, assert_no_orphans
+from ros_helpers import BRINGUP, REPO, Inbox, assert_no_orphans, dds_env, ros_context
 
 from ptm_ros.nodes.bag_player import bag_topics
 from ptm_ros.ptm import load_ptm

@@ -12,8 +12,8 @@ import pytest
 
 from ptm_ros.errors import BagError, ConfigError
 from ptm_ros.geometry import between, compose
+from ptm_ros.io.groundtruth import SIM_SCHEMA
 from ptm_ros.io.simulator import (
-    GROUND_TRUTH_SCHEMA,
     CameraConfig,
     LaserConfig,
     OdometryNoiseConfig,
@@ -326,7 +326,7 @@ def test_ground_truth_document_and_bag_round_trip(tmp_path: Path) -> None:
 
     run = simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(5), visits=3)
     doc = run.ground_truth()
-    assert doc["schema"] == GROUND_TRUTH_SCHEMA and doc["world"] == "t-junction" and doc["seed"] == 5
+    assert doc["schema"] == SIM_SCHEMA and doc["world"] == "t-junction" and doc["seed"] == 5
     assert [p["place"] for p in doc["passages"]] == ["w", "j", "s"]
     assert doc["odometry_frame_offset"] == [2.5, 0.0, -math.pi]
     out = write_run(run, tmp_path / "bag", storage="sqlite3")

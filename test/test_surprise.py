@@ -616,12 +616,8 @@ def test_model_types_reject_bad_parameters() -> None:
 def detections(run: object, config: LaserSurpriseConfig) -> list[float]:
     laser = run.config.laser  # type: ignore[attr-defined]
     detector = LaserSurpriseDetector(config)
-    events = sorted(
-        [(s, 0, i) for i, s in enumerate(run.odom_stamps)]  # type: ignore[attr-defined]
-        + [(s, 1, i) for i, s in enumerate(run.scan_stamps)]  # type: ignore[attr-defined]
-    )
     found = []
-    for stamp, kind, i in events:
+    for stamp, kind, i in run.events(images=False):  # type: ignore[attr-defined]
         if kind == 0:
             detector.on_odometry(stamp, run.odom_poses[i])  # type: ignore[attr-defined]
         elif detector.on_scan(
@@ -688,12 +684,8 @@ def test_on_scan_equals_on_statistic_with_the_sides_openness() -> None:
     geometry = (lc.angle_min, lc.angle_increment, lc.range_min, lc.range_max)
     cfg = LaserSurpriseConfig()
     direct, manual = LaserSurpriseDetector(cfg), LaserSurpriseDetector(cfg)
-    events = sorted(
-        [(t, 0, k) for k, t in enumerate(run.odom_stamps)]
-        + [(t, 1, k) for k, t in enumerate(run.scan_stamps)]
-    )
     fired = [[], []]
-    for t, kind, k in events:
+    for t, kind, k in run.events(images=False):
         if kind == 0:
             direct.on_odometry(t, run.odom_poses[k])
             manual.on_odometry(t, run.odom_poses[k])

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import BagError, ConfigError
+from ptm_ros.geometry import FloatArray
 
 if TYPE_CHECKING:
     from rosbags.interfaces import Connection
@@ -46,7 +47,6 @@ if TYPE_CHECKING:
 
     from ptm_ros.appearance import AppearanceConfig
 
-FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"

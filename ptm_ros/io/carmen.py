@@ -32,11 +32,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ptm_ros.errors import DataError
+from ptm_ros.geometry import FloatArray
 
-FloatArray = NDArray[np.float64]
 Pose = tuple[float, float, float]
 
 FLASER = "FLASER"

@@ -43,9 +43,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.detectors import PlacedLandmarksConfig, landmark_passages, place_landmarks, resample_path
 from ptm_ros.errors import DataError
-from ptm_ros.geometry import interpolate_poses
+from ptm_ros.geometry import FloatArray, interpolate_poses
 
-FloatArray = NDArray[np.float64]
 SIM_SCHEMA = "ptm_ros.ground_truth/1"
 SIM_FILENAME = "ground_truth.json"
 _POSE_COLUMNS = "x_corr y_corr theta_corr x_raw y_raw theta_raw"

@@ -46,14 +46,10 @@ from numpy.typing import NDArray
 
 from ptm_ros.detectors import landmark_passages
 from ptm_ros.errors import BagError, ConfigError
-from ptm_ros.geometry import between, wrap_angle
-from ptm_ros.io.groundtruth import GroundTruthTrajectory, Passage, Place, sim_gt_document
+from ptm_ros.geometry import FloatArray, between, wrap_angle
+from ptm_ros.io.groundtruth import SIM_FILENAME, GroundTruthTrajectory, Passage, Place, sim_gt_document
 from ptm_ros.io.worlds import World
 
-FloatArray = NDArray[np.float64]
-
-GROUND_TRUTH_SCHEMA = "ptm_ros.ground_truth/1"
-GROUND_TRUTH_FILE = "ground_truth.json"
 #: Turns sharper than this (rad) are made on the spot instead of along an arc.
 MAX_ARC_TURN = 0.75 * math.pi
 #: Largest number of (ray, wall) pairs evaluated at once by the ray caster.
@@ -620,6 +616,16 @@ class SimRun:
         """True distance travelled (m)."""
         return float(np.sum(np.hypot(*np.diff(self.true_poses[:, :2], axis=0).T)))
 
+    def events(self, *, scans: bool = True, images: bool = True) -> list[tuple[float, int, int]]:
+        """``(stamp, kind, index)`` of every odometry sample (kind 0) and, as asked, scan (1) and panorama
+        (2), in time order."""
+        streams = [(0, self.odom_stamps)]
+        if scans:
+            streams.append((1, self.scan_stamps))
+        if images:
+            streams.append((2, self.image_stamps))
+        return sorted((s, kind, i) for kind, stamps in streams for i, s in enumerate(stamps.tolist()))
+
     def odometry_error(self) -> FloatArray:
         """Odometry minus truth ``(K, 3)`` (x, y, wrapped yaw) in the odometry frame."""
         truth = between(np.asarray(self.odometry_frame_offset), self.true_poses)
@@ -738,13 +744,8 @@ def write_run(run: SimRun, out_bag: str | Path, storage: Literal["mcap", "sqlite
         msg = f"{out} already exists; choose a new bag path"
         raise BagError(msg)
     laser = run.config.laser
-    events = sorted(
-        [(s, 0, i) for i, s in enumerate(run.odom_stamps.tolist())]
-        + [(s, 1, i) for i, s in enumerate(run.scan_stamps.tolist())]
-        + [(s, 2, i) for i, s in enumerate(run.image_stamps.tolist())]
-    )
     with BagWriter(out, storage=storage) as bag:
-        for stamp, kind, i in events:
+        for stamp, kind, i in run.events():
             if kind == 0:
                 bag.write_odometry(stamp, run.odom_poses[i], twist=tuple(run.odom_twist[i]))
             elif kind == 1:
@@ -758,6 +759,6 @@ def write_run(run: SimRun, out_bag: str | Path, storage: Literal["mcap", "sqlite
                 )
             else:
                 bag.write_image(stamp, run.images[i])
-    with (out / GROUND_TRUTH_FILE).open("w", encoding="utf-8") as fh:
+    with (out / SIM_FILENAME).open("w", encoding="utf-8") as fh:
         json.dump(run.ground_truth(), fh)
     return out

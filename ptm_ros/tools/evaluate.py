@@ -303,16 +303,17 @@ def ground_truth_of(ptm_path: Path) -> Path:
     """A run's ground truth: ``ground_truth.json`` beside ``ptm_path``, else the one in the bag named by
     the ptm.json's ``bag``. Raises :class:`DataError` when neither exists."""
     from ptm_ros.errors import DataError
+    from ptm_ros.io.groundtruth import SIM_FILENAME
 
-    beside = ptm_path.parent / "ground_truth.json"
+    beside = ptm_path.parent / SIM_FILENAME
     if beside.is_file():
         return beside
     try:
         bag = json.loads(ptm_path.read_text(encoding="utf-8")).get("bag")
     except (OSError, ValueError, AttributeError):
         bag = None
-    if isinstance(bag, str) and (Path(bag) / "ground_truth.json").is_file():
-        return Path(bag) / "ground_truth.json"
+    if isinstance(bag, str) and (Path(bag) / SIM_FILENAME).is_file():
+        return Path(bag) / SIM_FILENAME
     msg = f"{ptm_path}: no ground truth beside it nor in its bag ({bag}); give --ground-truth"
     raise DataError(msg)
 
