@@ -46,13 +46,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import between, compose, interpolate_poses, inverse, moved, transform_points, wrap_angle
+from ptm_ros.geometry import (
+    FloatArray,
+    between,
+    compose,
+    interpolate_poses,
+    inverse,
+    moved,
+    transform_points,
+    wrap_angle,
+)
 from ptm_ros.laser import LaserConfig, ScanMap, voxel_downsample
-
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

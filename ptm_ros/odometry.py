@@ -100,11 +100,9 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.special import logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, wrap_angle
+from ptm_ros.geometry import FloatArray, RelativePose, between, wrap_angle
 from ptm_ros.partitions import Labels, canonical
 from ptm_ros.visits import Visit, poses_array
-
-FloatArray = NDArray[np.float64]
 
 #: Largest number of visits accepted (the normal matrix is factored densely, ``d = 3(N-1)``).
 MAX_VISITS = 1000

@@ -62,6 +62,7 @@ from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import cached, detector_kind, make_extractor, make_registrar, with_detector_kind
 from ptm_ros.io.bag import OdometryData, RunData, read_run
 from ptm_ros.io.groundtruth import (
+    SIM_FILENAME,
     GroundTruthTrajectory,
     interpolate_pose,
     load_ground_truth,
@@ -104,7 +105,7 @@ OUTPUT_FILES = {
     "map_yaml": f"{MAP_STEM}.yaml",
     "map_png": f"{MAP_STEM}.png",
     "state": "filter_state.npz",
-    "ground_truth": "ground_truth.json",
+    "ground_truth": SIM_FILENAME,
     "mcmc_trace": "mcmc_trace.json",
 }
 #: Key of ``Ptm.extra`` holding the absolute trajectory errors (module docstring).
@@ -403,7 +404,7 @@ def provenance(bag: Path, used: PtmConfig) -> dict[str, str]:
 
 def find_ground_truth(bag: Path) -> Path | None:
     """The simulator's ground truth stored beside or inside the bag directory, if any."""
-    for cand in (bag / "ground_truth.json", bag.parent / f"{bag.name}.ground_truth.json"):
+    for cand in (bag / SIM_FILENAME, bag.parent / f"{bag.name}.{SIM_FILENAME}"):
         if cand.is_file():
             return cand
     return None
