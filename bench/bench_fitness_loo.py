@@ -1,20 +1,26 @@
-"""Leave-one-run-out check of the laser fitness densities (issue #23: no knob scored on the data it was
-fitted on).
+"""Leave-one-run-out check of the constants fitted on the real runs: laser fitness densities and ε.
+
+Issue #23: no knob scored on the data it was fitted on.
 
 ``LaserConfig.fitness_*`` (:func:`ptm_ros.laser.fitness_log_bayes`) are Beta densities of a registration's
 fitness (symmetric inlier fraction) for two visits of one place and of different places, fitted by maximum
-likelihood on the Intel, ACES and MIT-CSAIL runs. This script
+likelihood on the Intel, ACES and MIT-CSAIL runs. ``OdometryConfig.registration_outlier`` (ε) is the
+fraction of the valid registrations of one-place pairs that are off the true relative pose by more than
+``ALIAS_XY`` m or ``ALIAS_YAW`` rad (aliases), pooled over those runs and the simulated worlds
+(``run_all.SIM_WORLDS``, a fixed share not fitted on the real runs). This script
 
 1. collects, per real run (laser-surprise visits at the default parameters), the fitness of every
    registered pair less than 1.5 m apart in the ground truth (one place) and of up to ``--diff-pairs``
-   random pairs more than 4 m apart (different places), as the defaults were fitted;
-2. fits both Betas on every two runs and on all three;
-3. runs ``ptm-run`` on each held-out run with the densities fitted on the other two, and with the
-   defaults, over ``--seeds``; scores the MAP against the ground truth.
+   random pairs more than 4 m apart (different places), as the defaults were fitted, and counts the valid
+   one-place registrations and their aliases; the same counts on the simulated worlds;
+2. fits both Betas and ε on every two runs and on all three;
+3. runs ``ptm-run`` on each held-out run at the defaults, with the densities fitted on the other two, and
+   with those densities and ε, over ``--seeds``; scores the MAP against the ground truth.
 
-Writes ``bench/fitness_loo.json`` and ``bench/fitness_loo.md``. About 15 minutes on one core.
+Writes ``bench/fitness_loo.json`` and ``bench/fitness_loo.md`` (``--out``). About 20 minutes on one core.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_fitness_loo.py [--seeds 0 1 2] [--work out/fitness_loo]
+    PYTHONPATH=. .venv/bin/python bench/bench_fitness_loo.py [--seeds 0 1 2] [--diff-pairs 250] \\
+        [--work out/fitness_loo] [--out bench]
 """
 
 from __future__ import annotations
@@ -28,41 +34,57 @@ import contextlib
 import io
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from run_all import DATASETS, REAL_RUNS
+from numpy.typing import ArrayLike
+from run_all import LOO_HEADERS, SIMULATED, outlier_table, prepare_runs
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
 SAME_M, DIFFERENT_M = 1.5, 4.0
+ALIAS_XY, ALIAS_YAW = 0.5, 0.3  # a valid registration this far off the true relative pose is an alias
+LOO, LOO_EPS = "leave-one-out", "leave-one-out (densities + ε)"
 QUIET = ("--no-map", "--no-report", "--quiet")
 
 
-def pair_fitness(bag: Path, truth_file: Path, diff_pairs: int, seed: int) -> dict[str, list[float]]:
+def is_alias(measured: ArrayLike, true: ArrayLike) -> bool:
+    """Whether a registration ``(x, y, yaw)`` is off the true relative pose by more than ``ALIAS_XY`` m or
+    ``ALIAS_YAW`` rad."""
+    from ptm_ros.geometry import wrap_angle
+
+    e = np.asarray(measured, dtype=float) - np.asarray(true, dtype=float)
+    return bool(np.hypot(e[0], e[1]) > ALIAS_XY or abs(float(wrap_angle(e[2]))) > ALIAS_YAW)
+
+
+def collect_pairs(
+    bag: Path, truth_file: Path, diff_pairs: int, seed: int
+) -> tuple[dict[str, list[float]], dict[str, int]]:
     """Fitness of the registrable one-place and different-place pairs of a run's visits, by ground-truth
-    distance; ``flat_*`` repeats those whose optimum is flat (corridor matches)."""
+    distance (``flat_*`` repeats those whose optimum is flat: corridor matches), and the count of the valid
+    one-place registrations and of their aliases (:func:`is_alias`)."""
     from ptm_ros.config import load_config
-    from ptm_ros.geometry import interpolate_poses
+    from ptm_ros.geometry import between, interpolate_poses
     from ptm_ros.io.bag import read_run
-    from ptm_ros.io.groundtruth import load_carmen_gt
+    from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.laser import FLAT_OPTIMUM, RegistrationError, register_patches
     from ptm_ros.tools.pipeline import detect_visits
 
     config = load_config()
     run = read_run(bag, odom_topic="/odom", scan_topic="/scan", image_topic="/panorama", require=("/odom",))
     visits = detect_visits(run, config)
-    truth = load_carmen_gt(truth_file)
-    xy = interpolate_poses(truth.stamps, truth.poses_corrected, np.array([v.stamp for v in visits]))[:, :2]
+    truth = load_ground_truth(truth_file)
+    poses = interpolate_poses(truth.stamps, truth.poses_corrected, np.array([v.stamp for v in visits]))
     n = len(visits)
     i, j = np.triu_indices(n, 1)
-    d = np.hypot(*(xy[i] - xy[j]).T)
+    d = np.hypot(*(poses[i, :2] - poses[j, :2]).T)
     same = np.flatnonzero(d < SAME_M)
     far = np.flatnonzero(d > DIFFERENT_M)
     far = np.random.default_rng(seed).choice(far, min(diff_pairs, len(far)), replace=False)
     out: dict[str, list[float]] = {"same": [], "different": [], "flat_same": [], "flat_different": []}
+    counts = {"valid": 0, "aliases": 0}
     for kind, idx in (("same", same), ("different", far)):
         for k in idx:
             a, b = visits[i[k]].patch, visits[j[k]].patch
@@ -75,7 +97,10 @@ def pair_fitness(bag: Path, truth_file: Path, diff_pairs: int, seed: int) -> dic
             out[kind].append(float(reg.inlier_fraction))
             if reg.reason.startswith(FLAT_OPTIMUM):
                 out[f"flat_{kind}"].append(float(reg.inlier_fraction))
-    return out
+            if kind == "same" and reg.valid:
+                counts["valid"] += 1
+                counts["aliases"] += is_alias(reg.mean, between(poses[i[k]], poses[j[k]]))
+    return out, counts
 
 
 def fit_beta(values: Sequence[float]) -> tuple[float, float]:
@@ -96,22 +121,34 @@ def fitted(fitness: dict[str, dict[str, list[float]]], names: Sequence[str]) -> 
     return {"fitness_same_a": sa, "fitness_same_b": sb, "fitness_different_a": da, "fitness_different_b": db}
 
 
-def score(bag: Path, truth: Path, laser: dict[str, float] | None, seed: int, work: Path) -> dict[str, Any]:
-    """``ptm-run`` at the defaults (and ``laser`` fitness parameters), scored: MAP F1, precision, recall."""
+def pooled_outlier(counts: Mapping[str, Mapping[str, int]], names: Sequence[str]) -> dict[str, float]:
+    """ε fitted on the runs ``names`` (and the simulated worlds' counts when ``counts`` has them): their
+    aliases over their valid one-place registrations, with both sums."""
+    keys = [*names, SIMULATED] if SIMULATED in counts else list(names)
+    aliases = sum(counts[k]["aliases"] for k in keys)
+    valid = sum(counts[k]["valid"] for k in keys)
+    if not valid:
+        msg = f"no valid one-place registration in {', '.join(keys)}"
+        raise ValueError(msg)
+    return {"registration_outlier": aliases / valid, "aliases": aliases, "valid": valid}
+
+
+def score(
+    bag: Path, truth: Path, params: Mapping[str, Any], *, tag: str, seed: int, work: Path
+) -> dict[str, Any]:
+    """``ptm-run`` at the defaults but ``params`` (a parameter file's sections), scored: MAP F1, precision,
+    recall; ``tag`` names its files under ``work``."""
     import yaml
 
     from ptm_ros.tools import run as ptm_run
 
-    params = work / f"params-{bag.name}-{seed}-{'loo' if laser else 'default'}.yaml"
-    doc: dict[str, Any] = {"inference": {"seed": seed}}
-    if laser:
-        doc["laser"] = laser
-    params.write_text(yaml.safe_dump(doc))
-    out = params.with_suffix("")
+    path = work / f"params-{bag.name}-{seed}-{tag}.yaml"
+    path.write_text(yaml.safe_dump({"inference": {"seed": seed}, **params}))
+    out = path.with_suffix("")
     log = io.StringIO()
     with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         code = ptm_run.main(
-            [str(bag), "--out", str(out), "--params", str(params), "--ground-truth", str(truth), *QUIET]
+            [str(bag), "--out", str(out), "--params", str(path), "--ground-truth", str(truth), *QUIET]
         )
     if code != 0:
         return {"error": log.getvalue()[-1000:]}
@@ -127,34 +164,43 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--diff-pairs", type=int, default=250, help="different-place pairs per run")
     parser.add_argument("--work", type=Path, default=REPO / "out" / "fitness_loo")
+    parser.add_argument("--out", type=Path, default=BENCH, help="where fitness_loo.{json,md} are written")
     args = parser.parse_args(argv)
-    from ptm_ros.tools.convert import convert
 
     t0 = time.perf_counter()
     args.work.mkdir(parents=True, exist_ok=True)
-    bags, fitness = {}, {}
-    for name, log, gt in REAL_RUNS:
-        bags[name] = args.work / f"{name}.bag"
-        if not bags[name].exists():
-            convert(DATASETS / log, bags[name])
-        fitness[name] = pair_fitness(bags[name], DATASETS / gt, args.diff_pairs, seed=0)
-        print(
-            f"[fitness] {name}: " + ", ".join(f"{k} {len(v)}" for k, v in fitness[name].items()), flush=True
-        )
-    names = [r[0] for r in REAL_RUNS]
+    runs = prepare_runs(args.work, None)
+    bags = {name: (bag, gt) for name, kind, bag, gt in runs if kind == "real"}
+    fitness, counts = {}, {SIMULATED: {"valid": 0, "aliases": 0}}
+    for name, kind, bag, gt in runs:
+        pairs, found = collect_pairs(bag, gt, args.diff_pairs if kind == "real" else 0, seed=0)
+        if kind == "real":
+            fitness[name], counts[name] = pairs, found
+        else:
+            counts[SIMULATED] = {k: counts[SIMULATED][k] + v for k, v in found.items()}
+        report = ", ".join(f"{k} {len(v)}" for k, v in pairs.items())
+        print(f"[fitness] {name}: {report}; one-place registrations {found}", flush=True)
+    names = list(bags)
     fits = {"all three": fitted(fitness, names)}
+    outlier_fits = {"all three": pooled_outlier(counts, names)}
     rows = []
     for held in names:
         train = [r for r in names if r != held]
         fits[f"without {held}"] = loo = fitted(fitness, train)
-        gt = DATASETS / {r[0]: r[2] for r in REAL_RUNS}[held]
+        outlier_fits[f"without {held}"] = eps = pooled_outlier(counts, train)
+        odometry = {"registration_outlier": eps["registration_outlier"]}
+        variants = (
+            ("defaults", "default", {}),
+            (LOO, "loo", {"laser": loo}),
+            (LOO_EPS, "loo-eps", {"laser": loo, "model": {"odometry": odometry}}),
+        )
         for seed in args.seeds:
-            for label, laser in (("defaults", None), ("leave-one-out", loo)):
+            for label, tag, params in variants:
                 rec = {
                     "run": held,
                     "seed": seed,
                     "densities": label,
-                    **score(bags[held], gt, laser, seed, args.work),
+                    **score(*bags[held], params, tag=tag, seed=seed, work=args.work),
                 }
                 print(f"[fitness] {rec}", flush=True)
                 rows.append(rec)
@@ -168,10 +214,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             for r, f in fitness.items()
         },
         "fits": fits,
+        "alias": {"max_xy_m": ALIAS_XY, "max_yaw_rad": ALIAS_YAW},
+        "simulated_worlds": [name for name, kind, _, _ in runs if kind == "simulated"],
+        "outlier_counts": counts,
+        "outlier_fits": outlier_fits,
         "runs": rows,
     }
-    (BENCH / "fitness_loo.json").write_text(json.dumps(doc, indent=1))
-    write_markdown(doc, BENCH / "fitness_loo.md")
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "fitness_loo.json").write_text(json.dumps(doc, indent=1))
+    write_markdown(doc, args.out / "fitness_loo.md")
     return 0
 
 
@@ -181,9 +232,12 @@ def write_markdown(doc: dict[str, Any], path: Path) -> None:
 
     d = LaserConfig()
     lines = [
-        "# Laser fitness densities, leave one run out (issue #23)",
+        "# Constants fitted on the real runs, leave one run out (issue #23)",
         "",
-        f"Generated {doc['generated']} by `bench/bench_fitness_loo.py` ({doc['wall_s'] / 60:.0f} min). "
+        f"Generated {doc['generated']} by `bench/bench_fitness_loo.py` ({doc['wall_s'] / 60:.0f} min).",
+        "",
+        "## Laser fitness densities",
+        "",
         "Beta densities of the registration fitness for one place (< 1.5 m apart in the ground truth) and "
         "different places (> 4 m), maximum likelihood. Pairs per run: "
         + "; ".join(
@@ -209,23 +263,49 @@ def write_markdown(doc: dict[str, Any], path: Path) -> None:
             for r, m in doc["flat_fitness_mean"].items()
         )
         + ".",
+        *outlier_lines(doc),
         "",
-        "Held-out scores (`ptm-run` defaults but the fitness densities; MAP F1 and precision per seed):",
+        "## Held-out scores",
         "",
-        "| run | densities | "
+        "`ptm-run` at the defaults but the fitness densities (and ε) fitted without the run; MAP F1 and "
+        "precision per seed:",
+        "",
+        "| run | parameters | "
         + " | ".join(f"seed {s}" for s in sorted({r["seed"] for r in doc["runs"]}))
         + " | mean F1 |",
         "|---|---|" + "---|" * (len({r["seed"] for r in doc["runs"]}) + 1),
     ]
     for run in dict.fromkeys(r["run"] for r in doc["runs"]):
-        for label in ("defaults", "leave-one-out"):
+        for label in dict.fromkeys(r["densities"] for r in doc["runs"]):
             rs = [r for r in doc["runs"] if r["run"] == run and r["densities"] == label]
             cells = [
                 f"{r['map_f1']:.3f} (P {r['map_precision']:.3f})" if "map_f1" in r else "error" for r in rs
             ]
             f1 = [r["map_f1"] for r in rs if "map_f1" in r]
-            lines.append(f"| {run} | {label} | " + " | ".join(cells) + f" | {np.mean(f1):.3f} |")
+            lines.append(
+                f"| {run} | {LOO_HEADERS.get(label, label)} | "
+                + " | ".join(cells)
+                + f" | {np.mean(f1):.3f} |"
+            )
     path.write_text("\n".join(lines) + "\n")
+
+
+def outlier_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The ε section: the alias counts per run and ε per fitting set."""
+    alias, counts = doc["alias"], doc["outlier_counts"]
+    sim = counts[SIMULATED]
+    return [
+        "",
+        "## Registration outlier probability ε",
+        "",
+        "Valid registrations of one-place pairs (the laser-surprise visits above) and their aliases, off "
+        f"the true relative pose by > {alias['max_xy_m']} m or > {alias['max_yaw_rad']} rad: "
+        + "; ".join(f"{r}: {c['aliases']}/{c['valid']}" for r, c in counts.items() if r != SIMULATED)
+        + f"; simulated worlds ({', '.join(doc['simulated_worlds'])}, a fixed share of every fit): "
+        f"{sim['aliases']}/{sim['valid']}.",
+        "",
+        *outlier_table(doc),
+    ]
 
 
 def _fmt(x: float | None) -> str:

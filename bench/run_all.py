@@ -7,9 +7,10 @@
    (``bench_online_map.py``) and the calibration of the MAP probability over simulated aliased worlds and
    their controls (``bench_calibration.py``: ``calibration.{json,md,png}``, about an hour on one core,
    resumable) and corrupted bags through ``ptm-run``/``ptm-eval`` with a larger budget than the test's
-   (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities fitted leave one run out
-   (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised in ``results.md``) and the model's
-   odometry noise against the real errors (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
+   (``bench_fuzz.py``: ``fuzz.json``), the laser fitness densities and the registration outlier
+   probability fitted leave one run out (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised
+   in ``results.md``) and the model's odometry noise against the real errors
+   (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
    ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``) and the occupancy
    maps of every simulated world and real run against their references (``bench_maps.py``:
    ``maps_quality.json``, summarised in ``results.md``), when present.
@@ -465,9 +466,30 @@ def maps_quality_section(path: Path) -> list[str]:
     return lines
 
 
+#: The key of the simulated worlds' counts in ``bench_fitness_loo.py``'s JSON (not fitted on the real runs).
+SIMULATED = "simulated"
+#: The column of each row label of ``bench_fitness_loo.py``'s held-out runs in ``results.md``.
+LOO_HEADERS = {"defaults": "in-sample (defaults)", "leave-one-out": "leave-one-out (densities)"}
+
+
+def outlier_table(doc: Mapping) -> list[str]:
+    """ε per fitting set of ``bench_fitness_loo.py``'s JSON, beside the default, with its counts."""
+    from ptm_ros.odometry import OdometryConfig
+
+    return [
+        "| fitted on | ε | aliases / valid |",
+        "|---|---|---|",
+        f"| defaults (`OdometryConfig`) | {OdometryConfig().registration_outlier} | – |",
+        *(
+            f"| {name} | {f['registration_outlier']:.3f} | {f['aliases']}/{f['valid']} |"
+            for name, f in doc["outlier_fits"].items()
+        ),
+    ]
+
+
 def loo_section(path: Path) -> list[str]:
     """The leave-one-run-out figures of the constants fitted on the real runs (``bench_fitness_loo.py``'s
-    JSON), beside the in-sample ones: mean MAP F1 over its seeds per held-out run."""
+    JSON), beside the in-sample ones: ε per fitting set, and mean MAP F1 over its seeds per held-out run."""
     if not path.is_file():
         return []
     doc = json.loads(path.read_text())
@@ -475,17 +497,33 @@ def loo_section(path: Path) -> list[str]:
         "",
         "## Constants fitted on the real runs, leave one run out",
         "",
-        "The laser fitness densities (`laser.fitness_*`) were fitted on Intel, ACES and MIT-CSAIL. Each run "
-        "scored with the densities fitted on the other two (`bench/fitness_loo.md`, "
-        f"generated {doc['generated']}), mean MAP F1 (precision) over seeds "
-        f"{sorted({r['seed'] for r in doc['runs']})}:",
+        "The laser fitness densities (`laser.fitness_*`) and the registration outlier probability ε "
+        "(`model.odometry.registration_outlier`) were fitted on Intel, ACES and MIT-CSAIL. Each run is "
+        "scored with those fitted on the other two (`bench/fitness_loo.md`, "
+        f"generated {doc['generated']}).",
+    ]
+    if "outlier_fits" in doc:
+        sim = doc["outlier_counts"][SIMULATED]
+        lines += [
+            "",
+            "ε is the fraction of the valid registrations of one-place pairs off the true relative pose by > "
+            f"{doc['alias']['max_xy_m']} m or > {doc['alias']['max_yaw_rad']} rad, the simulated worlds' "
+            f"{sim['aliases']}/{sim['valid']} included in every fit:",
+            "",
+            *outlier_table(doc),
+        ]
+    labels = list(dict.fromkeys(r["densities"] for r in doc["runs"]))
+    lines += [
         "",
-        "| run | in-sample (defaults) | leave-one-out |",
-        "|---|---|---|",
+        f"Mean MAP F1 (precision) over seeds {sorted({r['seed'] for r in doc['runs']})}, in-sample (the "
+        "defaults) and leave-one-out:",
+        "",
+        "| run | " + " | ".join(LOO_HEADERS.get(x, x) for x in labels) + " |",
+        "|---|" + "---|" * len(labels),
     ]
     for run in dict.fromkeys(r["run"] for r in doc["runs"]):
         cells = []
-        for label in ("defaults", "leave-one-out"):
+        for label in labels:
             rs = [r for r in doc["runs"] if r["run"] == run and r["densities"] == label and "map_f1" in r]
             f1 = np.mean([r["map_f1"] for r in rs]) if rs else float("nan")
             pr = np.mean([r["map_precision"] for r in rs]) if rs else float("nan")

@@ -144,7 +144,8 @@ class OdometryConfig:
             (a crossing or corridor passed in opposite directions by a 180° laser matches best turned
             by π). 0 trusts every valid registration (the Gaussian of eq. 49 alone). Default: 15 of 149
             valid registrations of visits < 1.5 m apart were off the true relative pose by > 0.5 m or
-            > 0.3 rad (Intel 2/101, ACES 3/18, MIT 3/10, simulated worlds 7/20; laser-surprise visits).
+            > 0.3 rad (Intel 2/101, ACES 3/18, MIT 3/10, simulated worlds 7/20; laser-surprise visits);
+            recounted, and fitted leave one run out, in ``bench/fitness_loo.md``.
         n_samples: importance samples (eq. 18); 0 returns the Laplace estimate (fast path).
         max_sampled_visits: importance sampling only for up to this many visits; beyond, the Laplace
             estimate. In ``d = 3(N-1)`` dimensions the weights degenerate: 200 samples at the RBPF MAP of
