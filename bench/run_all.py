@@ -11,7 +11,8 @@
    probability fitted leave one run out (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised
    in ``results.md``) and the model's odometry noise against the real errors
    (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
-   ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``) and the occupancy
+   ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``), the laser time offset
+   learned from simulated and real runs (``bench_time_offset.py``: ``time_offset.{json,md}``) and the occupancy
    maps of every simulated world and real run against their references (``bench_maps.py``:
    ``maps_quality.json``, summarised in ``results.md``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
@@ -77,6 +78,7 @@ COMPONENTS = (
     "bench_odometry_noise.py",
     "bench_maps.py",
     "bench_demo.py",
+    "bench_time_offset.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (
