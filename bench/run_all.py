@@ -11,9 +11,9 @@
    probability fitted leave one run out (``bench_fitness_loo.py``: ``fitness_loo.{json,md}``, summarised
    in ``results.md``) and the model's odometry noise against the real errors
    (``bench_odometry_noise.py``: ``odometry_noise.{json,md}``),
-   ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``), the laser time offset
-   learned from simulated and real runs (``bench_time_offset.py``: ``time_offset.{json,md}``) and the occupancy
-   maps of every simulated world and real run against their references (``bench_maps.py``:
+   ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``), the laser time
+   offset learned from simulated and real runs (``bench_time_offset.py``: ``time_offset.{json,md}``) and the
+   occupancy maps of every simulated world and real run against their references (``bench_maps.py``:
    ``maps_quality.json``, summarised in ``results.md``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:

@@ -47,7 +47,13 @@ from ptm_ros.detectors import Detector, EquidistantDetector
 from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
 from ptm_ros.laser import LaserConfig, ScanPoints, passage_patch, scan_to_points
-from ptm_ros.laser_odometry import LaserOdometry, LaserOdometryConfig, RunInput, learn_time_offset
+from ptm_ros.laser_odometry import (
+    LaserOdometry,
+    LaserOdometryConfig,
+    OffsetEstimate,
+    RunInput,
+    learn_time_offset,
+)
 from ptm_ros.visits import MAX_COORDINATE, Visit, pose_field
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
@@ -92,9 +98,6 @@ class ExtractorDiagnostics:
     visits_without_patch: int = 0
     stalled_topics: int = 0
     laser_odometry: dict[str, int] = field(default_factory=dict)  # LaserOdometryCounters when enabled
-    time_offset: dict[str, float | int | None] = field(
-        default_factory=dict
-    )  # the learned offset, once learned
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -153,6 +156,8 @@ class VisitExtractor:
         self._lo_config = lo_cfg
         learn = lo_cfg.learn_time_offset and not lo_cfg.time_offset and self.config.use_scans
         self._held: _Held | None = _Held() if learn else None
+        #: what the learning found (None until learned, and without learning)
+        self.time_offset_estimate: OffsetEstimate | None = None
         self.laser_odometry = (
             LaserOdometry(lo_cfg, self.laser) if self.config.use_scans and lo_cfg.enabled else None
         )
@@ -336,14 +341,8 @@ class VisitExtractor:
             return []
         if len(held.odom_t) >= 2 and held.scan_t:
             run = RunInput.of(held.odom_t, held.odom_p, held.scan_t, held.scan_points)
-            est = learn_time_offset(run, self._lo_config, self.laser)
-            self.time_offset = est.offset
-            self.diagnostics.time_offset = {
-                "learned": est.offset,
-                "first_estimate": est.first,
-                "refined_estimate": est.refined,
-                "scans": est.scans,
-            }
+            self.time_offset_estimate = learn_time_offset(run, self._lo_config, self.laser)
+            self.time_offset = self.time_offset_estimate.offset
         out: list[Visit] = []
         for stamp, topic, payload in held.messages:
             out += self._process(stamp, topic, payload)

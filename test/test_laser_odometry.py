@@ -543,10 +543,8 @@ def test_the_extractor_learns_the_offset_then_processes_every_message_with_it(tm
     assert scans_before_first_visit >= 199  # nothing comes out while the offset is learned
     offset = learned.time_offset
     assert offset == pytest.approx(-0.15, abs=0.04)
-    assert (
-        learned.diagnostics.time_offset["learned"] == offset
-        and learned.diagnostics.time_offset["scans"] == 200
-    )
+    assert learned.time_offset_estimate is not None
+    assert learned.time_offset_estimate.offset == offset and learned.time_offset_estimate.scans == 200
     fixed = load_config(
         None, {**detector, "laser_odometry": {"time_offset": offset, "learn_time_offset": False}}
     )
@@ -557,5 +555,6 @@ def test_the_extractor_learns_the_offset_then_processes_every_message_with_it(tm
     everything = load_config(None, {**detector, "laser_odometry": {"learn_scans": 100_000}})
     at_end = run_extractor(run, everything)
     assert len(detect_visits(run, everything, extractor=at_end)) == len(told)
-    assert at_end.diagnostics.time_offset["scans"] == len(run.scans.stamps)
+    assert at_end.time_offset_estimate is not None
+    assert at_end.time_offset_estimate.scans == len(run.scans.stamps)
     assert at_end.time_offset == pytest.approx(-0.15, abs=0.04)

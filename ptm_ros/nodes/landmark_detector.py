@@ -732,6 +732,7 @@ class LandmarkDetectorNode(Node):
             "finished": self.finished,
             "silent": ",".join(sorted(self._silent)),
             "extractor": sum_counters(self._past, diagnostics_dict(self.extractor.diagnostics)),
+            "time_offset": self.extractor.time_offset,  # the session's (learned once its first scans are in)
             **self.skipped,
             **self.counters,
         }
