@@ -25,7 +25,6 @@ import platform
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +58,7 @@ def learned(bag: Path) -> dict[str, Any]:
     )
     learn_s = time.perf_counter() - t0
     calibrated = calibrate_run(run, config, max_scans=n).time_offset
-    return {**asdict(est), "learn_s": learn_s, "ptm_calibrate": calibrated}
+    return {**est.as_dict(), "learn_s": learn_s, "ptm_calibrate": calibrated}
 
 
 def simulated(worlds: Sequence[str], delays: Sequence[float], seeds: Sequence[int], work: Path) -> list[dict]:
@@ -116,13 +115,13 @@ def write_md(doc: dict, path: Path) -> None:
             "",
             "## Real runs",
             "",
-            "| run | offset | first | refined | ptm-calibrate | learning (s) |",
+            "| run | offset | first | candidates tried | ptm-calibrate | learning (s) |",
             "|---|---|---|---|---|---|",
         ]
         for r in real:
-            refined = "–" if r["refined"] is None else f"{r['refined']:+.3f}"
+            tried = ", ".join(f"{c['offset']:+.2f}" for c in r["scores"])
             lines.append(
-                f"| {r['run']} | {r['offset']:+.3f} | {r['first']:+.3f} | {refined} | "
+                f"| {r['run']} | {r['offset']:+.3f} | {r['first']:+.3f} | {tried} | "
                 f"{r['ptm_calibrate']:+.2f} | {r['learn_s']:.1f} |"
             )
     path.write_text("\n".join(lines) + "\n")

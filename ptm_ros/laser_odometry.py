@@ -98,9 +98,8 @@ class LaserOdometryConfig:
             processed with it from the first one on (:class:`ptm_ros.landmarks.VisitExtractor`). A
             non-zero ``time_offset`` is used as given; ``ptm-calibrate`` writes its choice with this off.
         learn_scans: scans the learned offset is estimated on (the visits come out once they are in).
-        learn_min_offset: a learned offset smaller than this in magnitude is taken as 0 (s): the
-            resolution of ``ptm-calibrate``'s candidates, below which a wrong time frame shows neither in
-            the heading corrections nor in the map.
+        learn_step: resolution of the learned offset (s): the candidates :func:`learn_time_offset` tries
+            lie on this grid, that of ``ptm-calibrate``'s candidates.
         degenerate_ratio: with ``refine``, a translation direction the scan constrains less than this
             fraction of its best-constrained one (eigenvalues of the point-to-plane information) keeps the
             wheel odometry's motion, scaled by the learned :attr:`LaserOdometry.wheel_scale`
@@ -130,7 +129,7 @@ class LaserOdometryConfig:
     time_offset: float = 0.0
     learn_time_offset: bool = True
     learn_scans: int = 300
-    learn_min_offset: float = 0.05
+    learn_step: float = 0.05
     degenerate_ratio: float = 0.05
     scale_prior_m: float = 5.0
 
@@ -171,9 +170,9 @@ class LaserOdometryConfig:
         if isinstance(to, bool) or not (isinstance(to, int | float) and -1.0 <= to <= 0.0):
             msg = f"LaserOdometryConfig.time_offset must be a number of seconds in [-1, 0], got {to!r}"
             raise ConfigError(msg)
-        lm = self.learn_min_offset
-        if isinstance(lm, bool) or not (isinstance(lm, int | float) and 0.0 <= lm <= 1.0):
-            msg = f"LaserOdometryConfig.learn_min_offset must be a number of seconds in [0, 1], got {lm!r}"
+        ls = self.learn_step
+        if isinstance(ls, bool) or not (isinstance(ls, int | float) and 0.0 < ls <= 0.5):
+            msg = f"LaserOdometryConfig.learn_step must be a number of seconds in (0, 0.5], got {ls!r}"
             raise ConfigError(msg)
         if not (math.isfinite(self.scale_prior_m) and self.scale_prior_m > 0.0):
             msg = f"LaserOdometryConfig.scale_prior_m must be a finite length > 0, got {self.scale_prior_m!r}"
@@ -394,6 +393,12 @@ class OffsetScore:
     matched: int
     rejected: int
 
+    def as_dict(self) -> dict[str, float | int | None]:
+        """JSON-safe fields: a non-finite score (no scan matched at that offset) is None."""
+        return {
+            k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in vars(self).items()
+        }
+
 
 @dataclass(frozen=True)
 class RunInput:
@@ -487,20 +492,19 @@ def time_offset_scores(  # noqa: PLR0917 - a run's odometry and scans, the candi
     """
     cfg = LaserOdometryConfig() if config is None else config
     run = RunInput.of(odom_stamps, odom_poses, scan_stamps, scan_points)
-    out = []
-    for offset in offsets:
-        yc = yaw_corrections(run, offset, cfg, laser)
-        y = np.abs(yc.yaw)
-        out.append(
-            OffsetScore(
-                offset=float(offset),
-                median_yaw_correction=float(np.median(y)) if len(y) else math.nan,
-                rms_yaw_correction=float(np.sqrt(np.mean(y**2))) if len(y) else math.nan,
-                matched=yc.counters.matched,
-                rejected=yc.counters.rejected,
-            )
-        )
-    return out
+    return [offset_score(yaw_corrections(run, offset, cfg, laser)) for offset in offsets]
+
+
+def offset_score(yc: YawCorrections) -> OffsetScore:
+    """The :class:`OffsetScore` of one laser-odometry pass (:func:`yaw_corrections`)."""
+    y = np.abs(yc.yaw)
+    return OffsetScore(
+        offset=yc.offset,
+        median_yaw_correction=float(np.median(y)) if len(y) else math.nan,
+        rms_yaw_correction=float(np.sqrt(np.mean(y**2))) if len(y) else math.nan,
+        matched=yc.counters.matched,
+        rejected=yc.counters.rejected,
+    )
 
 
 #: Half-width (s) of the central difference giving the wheel odometry's turn rate (:func:`offset_slope`).
@@ -544,17 +548,25 @@ class OffsetEstimate:
     """The time offset learned from a run (:func:`learn_time_offset`).
 
     Attributes:
-        offset: the ``time_offset`` to use (s): 0 unless the first estimate reached ``learn_min_offset``.
-        first: the estimate of the pass at offset 0 (s).
-        refined: the estimate after the second pass, at ``first`` (s; None without one).
-        scans: scans the estimate used; matched: the first pass's matched scans.
+        offset: the ``time_offset`` to use (s).
+        first: the regression's estimate from the pass at offset 0 (s).
+        scores: every pass's :class:`OffsetScore`, offset 0 first.
+        scans: scans the estimate used.
     """
 
     offset: float
     first: float
-    refined: float | None
+    scores: tuple[OffsetScore, ...]
     scans: int
-    matched: int
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-safe (:meth:`OffsetScore.as_dict`), as ptm.json's ``diagnostics.time_offset``."""
+        return {
+            "offset": self.offset,
+            "first": self.first,
+            "scores": [s.as_dict() for s in self.scores],
+            "scans": self.scans,
+        }
 
 
 def learn_time_offset(
@@ -562,22 +574,28 @@ def learn_time_offset(
 ) -> OffsetEstimate:
     """The laser's time offset, learned from the run without ground truth (``learn_time_offset``).
 
-    A pass at offset 0 gives :func:`offset_slope`'s ``δ``; the matches take up part of each heading error
-    within the step (the correction limits, the map's inertia), so ``δ`` comes out short of the true
-    offset, and a second pass at ``δ`` measures the rest (one fixed-point step). An estimate of magnitude
-    below ``learn_min_offset`` is 0 (the stamps as they are); the result is clamped to [-1, 0].
+    The pass at offset 0 gives :func:`offset_slope`'s estimate ``δ``. It locates the offset but is not
+    trusted alone: the matches take up part of each heading error within the step, so ``δ`` falls short
+    of the true offset, and odometry turn noise that the matches correct with a lag looks like an offset
+    (a simulated ring with twice the default turn noise: -0.09 s at none). So ``δ`` rounded to the
+    ``learn_step`` grid only picks the candidates: it and its two neighbours (in [-1, 0]) are scored
+    like ``ptm-calibrate``'s (:func:`time_offset_scores`: the RMS heading correction) and
+    :func:`best_time_offset` chooses among them and 0. When ``δ`` rounds to 0 the stamps are kept
+    after the one pass.
     """
     cfg = LaserOdometryConfig() if config is None else config
-    first_pass = yaw_corrections(run, 0.0, cfg, laser)
-    first, _ = offset_slope(run, first_pass)
-    n = len(run.scan_stamps)
-    if abs(first) < cfg.learn_min_offset:
-        return OffsetEstimate(0.0, first, None, n, first_pass.counters.matched)
-    start = min(0.0, max(-1.0, first))
-    delta, _ = offset_slope(run, yaw_corrections(run, start, cfg, laser))
-    refined = min(0.0, max(-1.0, start + delta))
-    offset = refined if abs(refined) >= cfg.learn_min_offset else 0.0
-    return OffsetEstimate(offset, first, refined, n, first_pass.counters.matched)
+    zero = yaw_corrections(run, 0.0, cfg, laser)
+    first, _ = offset_slope(run, zero)
+    step = cfg.learn_step
+    centre = round(first / step)
+    scores = [offset_score(zero)]
+    if centre < 0 and len(zero.yaw):
+        grid = sorted({min(0, k) for k in (centre - 1, centre, centre + 1)} - {0}, reverse=True)
+        scores += [
+            offset_score(yaw_corrections(run, max(-1.0, round(k * step, 9)), cfg, laser)) for k in grid
+        ]
+    offset = best_time_offset(scores) if len(scores) > 1 else 0.0
+    return OffsetEstimate(offset, first, tuple(scores), len(run.scan_stamps))
 
 
 def best_time_offset(scores: Sequence[OffsetScore], min_gain: float = 0.05) -> float:

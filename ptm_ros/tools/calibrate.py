@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -85,7 +84,7 @@ class Calibration:
         """JSON-able (a non-finite score, at an offset where no scan matched, is None)."""
         return {
             "scans": self.scans,
-            "offsets": [{k: _finite(v) for k, v in asdict(s).items()} for s in self.scores],
+            "offsets": [s.as_dict() for s in self.scores],
             "time_offset": self.time_offset,
         }
 
@@ -155,11 +154,6 @@ def calibrate(args: argparse.Namespace) -> dict:
     if args.out is not None:
         report["params"] = str(save_config(cal.applied(config), args.out))
     return report
-
-
-def _finite(value: object) -> object:
-    """JSON-safe: a non-finite float (an offset with no matched scan) becomes None."""
-    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -49,7 +49,7 @@ import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -253,7 +253,7 @@ def run_diagnostics(run: RunData, extractor: VisitExtractor) -> dict[str, Any]:
     diag["skipped"] = skipped
     diag["read_skipped"] = dict(run.skipped)
     if extractor.time_offset_estimate is not None:
-        diag["time_offset"] = asdict(extractor.time_offset_estimate)
+        diag["time_offset"] = extractor.time_offset_estimate.as_dict()
     return diag
 
 
