@@ -305,7 +305,7 @@ class VisitExtractor:
             self._processed = stamp
             if self._held is None:
                 out += self._process(stamp, topic, payload)
-            elif self._hold(self._held, stamp, topic, payload):
+            elif self._hold(self._held, stamp, topic, payload) or self._scans_stalled(self._held):
                 out += self._learn_time_offset()
         return out
 
@@ -332,6 +332,14 @@ class VisitExtractor:
                 held.scan_t.append(stamp)
                 held.scan_points.append(res.points)
         return len(held.scan_t) >= self._lo_config.learn_scans
+
+    def _scans_stalled(self, held: _Held) -> bool:
+        """The scans fell silent for ``stall_s`` of odometry (or never came): the learning stops with what
+        it holds rather than hold the visits back until the end of the data."""
+        if not held.odom_t:
+            return False
+        last = self._watermark[SCAN] if held.scan_t else held.odom_t[0]
+        return held.odom_t[-1] - last > self.config.stall_s
 
     def _learn_time_offset(self) -> list[Visit]:
         """Learn the time offset from the held messages (:func:`~ptm_ros.laser_odometry.learn_time_offset`;

@@ -97,7 +97,8 @@ class LaserOdometryConfig:
             estimated on them (:func:`learn_time_offset`, no ground truth), and every message is then
             processed with it from the first one on (:class:`ptm_ros.landmarks.VisitExtractor`). A
             non-zero ``time_offset`` is used as given; ``ptm-calibrate`` writes its choice with this off.
-        learn_scans: scans the learned offset is estimated on (the visits come out once they are in).
+        learn_scans: scans the learned offset is estimated on (the visits come out once they are in; when
+            the scans fall silent for the extractor's ``stall_s`` of odometry, or never come, on fewer).
         learn_step: resolution of the learned offset (s): the candidates :func:`learn_time_offset` tries
             lie on this grid, that of ``ptm-calibrate``'s candidates.
         degenerate_ratio: with ``refine``, a translation direction the scan constrains less than this

@@ -559,3 +559,16 @@ def test_the_extractor_learns_the_offset_then_processes_every_message_with_it(tm
     assert at_end.time_offset_estimate is not None
     assert at_end.time_offset_estimate.scans == len(run.scans.stamps)
     assert at_end.time_offset == pytest.approx(-0.15, abs=0.04)
+
+
+def test_a_silent_laser_does_not_hold_the_visits_back():
+    """With learn_time_offset on and no scan ever received, the learning ends after stall_s of odometry
+    (with nothing learned): the visits come out while the odometry streams, not at the end of the data."""
+    from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
+
+    extractor = VisitExtractor(config=ExtractorConfig(use_images=False))
+    online = []
+    for k in range(600):  # 60 s at 10 Hz, 0.5 m/s along x
+        online += extractor.on_odometry(0.1 * k, (0.05 * k, 0.0, 0.0))
+    assert online and extractor.time_offset_estimate is None and extractor.time_offset == 0.0
+    assert len(online + extractor.flush()) >= 10
