@@ -3,7 +3,8 @@
 :func:`ptm_ros.laser_odometry.learn_time_offset` on the first ``learn_scans`` scans of
 
 1. simulated runs whose laser driver stamps every scan ``--delays`` s late (the true offset is minus the
-   delay), over ``--worlds`` and ``--seeds``;
+   delay), over ``--worlds``, ``--seeds`` and the odometry noise levels ``--noise`` of
+   ``bench_calibration.py`` (default: the simulator's own);
 2. the real runs in ``../shared/datasets`` (when present; converted once under ``--work``), beside
    ``ptm-calibrate``'s choice over the same scans (:func:`ptm_ros.tools.calibrate.calibrate_run`).
 
@@ -20,6 +21,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import itertools
 import json
 import platform
 import shutil
@@ -61,23 +63,29 @@ def learned(bag: Path) -> dict[str, Any]:
     return {**est.as_dict(), "learn_s": learn_s, "ptm_calibrate": calibrated}
 
 
-def simulated(worlds: Sequence[str], delays: Sequence[float], seeds: Sequence[int], work: Path) -> list[dict]:
+def simulated(
+    worlds: Sequence[str], delays: Sequence[float], seeds: Sequence[int], noise: Sequence[str], work: Path
+) -> list[dict]:
+    from bench_calibration import NOISE_LEVELS
+
     from ptm_ros.io.simulator import CameraConfig, LaserConfig, SimConfig, simulate, write_run
     from ptm_ros.io.worlds import get_world
 
     rows = []
-    for world in worlds:
-        for delay in delays:
-            for seed in seeds:
-                cfg = SimConfig(laser=LaserConfig(stamp_delay=delay), camera=CameraConfig(enabled=False))
-                bag = work / f"{world}-{delay}-{seed}"
-                shutil.rmtree(bag, ignore_errors=True)
-                write_run(simulate(get_world(world), cfg, np.random.default_rng(seed)), bag)
-                row = {"run": world, "delay": delay, "seed": seed, **learned(bag)}
-                row["error"] = row["offset"] + delay
-                shutil.rmtree(bag, ignore_errors=True)
-                print(f"[time_offset] {world} delay {delay} seed {seed}: {row['offset']:+.3f}", flush=True)
-                rows.append(row)
+    for level, world, delay, seed in itertools.product(noise, worlds, delays, seeds):
+        cfg = SimConfig(
+            odometry=NOISE_LEVELS[level],
+            laser=LaserConfig(stamp_delay=delay),
+            camera=CameraConfig(enabled=False),
+        )
+        bag = work / f"{world}-{level}-{delay}-{seed}"
+        shutil.rmtree(bag, ignore_errors=True)
+        write_run(simulate(get_world(world), cfg, np.random.default_rng(seed)), bag)
+        row = {"run": world, "noise": level, "delay": delay, "seed": seed, **learned(bag)}
+        row["error"] = row["offset"] + delay
+        shutil.rmtree(bag, ignore_errors=True)
+        print(f"[time_offset] {world} {level} delay {delay} seed {seed}: {row['offset']:+.3f}", flush=True)
+        rows.append(row)
     return rows
 
 
@@ -93,22 +101,26 @@ def write_md(doc: dict, path: Path) -> None:
         "",
         "## Simulated lasers stamped late",
         "",
-        "| delay (s) | runs | learned offset: min / median / max | max abs error | non-zero at delay 0 |",
-        "|---|---|---|---|---|",
+        "Odometry noise levels: `bench_calibration.py`'s (`sim`: the simulator's own).",
+        "",
+        "| noise | delay (s) | runs | learned offset: min / median / max | max abs error | wrong |",
+        "|---|---|---|---|---|---|",
     ]
-    for delay in sorted({r["delay"] for r in sim}):
-        rs = [r for r in sim if r["delay"] == delay]
+    for level, delay in sorted({(r["noise"], r["delay"]) for r in sim}):
+        rs = [r for r in sim if r["noise"] == level and r["delay"] == delay]
         off = np.array([r["offset"] for r in rs])
-        nonzero = int(np.sum(off != 0.0)) if delay == 0.0 else "–"
+        wrong = sum(abs(r["error"]) > 1e-9 for r in rs)
         lines.append(
-            f"| {delay} | {len(rs)} | {off.min():+.3f} / {np.median(off):+.3f} / {off.max():+.3f} | "
-            f"{max(abs(r['error']) for r in rs):.3f} | {nonzero} |"
+            f"| {level} | {delay} | {len(rs)} | {off.min():+.3f} / {np.median(off):+.3f} / "
+            f"{off.max():+.3f} | {max(abs(r['error']) for r in rs):.3f} | {wrong} |"
         )
-    lines += ["", "| world | delay | seed | offset | first | ptm-calibrate |", "|---|---|---|---|---|---|"]
+    head = "| world | noise | delay | seed | offset | first | ptm-calibrate |"
+    lines += ["", head, "|---|---|---|---|---|---|---|"]
     lines += [
-        f"| {r['run']} | {r['delay']} | {r['seed']} | {r['offset']:+.3f} | {r['first']:+.3f} | "
-        f"{r['ptm_calibrate']:+.2f} |"
+        f"| {r['run']} | {r['noise']} | {r['delay']} | {r['seed']} | {r['offset']:+.3f} | "
+        f"{r['first']:+.3f} | {r['ptm_calibrate']:+.2f} |"
         for r in sim
+        if abs(r["error"]) > 1e-9 or r["offset"] != 0.0
     ]
     if real:
         lines += [
@@ -132,12 +144,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--worlds", nargs="+", default=list(WORLDS))
     parser.add_argument("--delays", type=float, nargs="+", default=list(DELAYS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--noise", nargs="+", default=["sim"], help="bench_calibration.py's noise levels")
     parser.add_argument("--work", type=Path, default=BENCH.parent / "out" / "time_offset")
     parser.add_argument("--out", type=Path, default=BENCH / "time_offset.json")
     args = parser.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    sim = simulated(args.worlds, args.delays, args.seeds, args.work)
+    sim = simulated(args.worlds, args.delays, args.seeds, args.noise, args.work)
     real = []
     if DATASETS.is_dir():
         names = [name for name, _, _ in REAL_RUNS]
