@@ -28,13 +28,18 @@ $(VENV): requirements.txt
 install: $(VENV)
 	$(PIP) install -q --no-deps --no-build-isolation .
 
+# Tests that do not use DDS run on PYTEST_WORKERS processes (pytest-xdist, one per core by default);
+# the DDS tests (marker dds: rclpy nodes, child processes, per-test domains) run one at a time after them.
+PYTEST_WORKERS ?= auto
+
 # The whole suite, after the lint (formatting, ruff, the import layers of .importlinter, mypy.ini's types).
 test: lint install
-	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 test
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 -n $(PYTEST_WORKERS) -m "not dds" test
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 -m dds test
 
 # The fast subset, after the lint: no test marked slow (many seconds) or dds (rclpy nodes over DDS).
 check: lint install
-	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider -m "not slow and not dds" test
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider -n $(PYTEST_WORKERS) -m "not slow and not dds" test
 
 # The node suite over DDS on the bundled bag (separate processes, launch-free), then the score.
 demo: install
