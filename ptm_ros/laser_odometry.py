@@ -578,7 +578,7 @@ def learn_time_offset(
     The pass at offset 0 gives :func:`offset_slope`'s estimate ``δ``. It locates the offset but is not
     trusted alone: the matches take up part of each heading error within the step, so ``δ`` falls short
     of the true offset, and odometry turn noise that the matches correct with a lag looks like an offset
-    (a simulated ring with twice the default turn noise: -0.09 s at none). So ``δ`` rounded to the
+    (``bench/time_offset.md``: noisy simulated rings). So ``δ`` rounded to the
     ``learn_step`` grid only picks the candidates: it and its two neighbours (in [-1, 0]) are scored
     like ``ptm-calibrate``'s (:func:`time_offset_scores`: the RMS heading correction) and
     :func:`best_time_offset` chooses among them and 0. When ``δ`` rounds to 0 the stamps are kept
