@@ -46,7 +46,7 @@ from ptm_ros.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.detectors import Detector, EquidistantDetector
 from ptm_ros.errors import DataError, ModelError, PtmError
 from ptm_ros.geometry import interpolate_poses, wrap_angle
-from ptm_ros.laser import LaserConfig, ScanPoints, passage_patch, scan_to_points
+from ptm_ros.laser import LaserConfig, ScanPoints, passage_patch, usable_points
 from ptm_ros.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
@@ -393,11 +393,7 @@ class VisitExtractor:
 
     def _scan_points(self, scan: ScanFields) -> ScanPoints | None:
         """The scan's points (robot frame) within the laser's ``max_range``; None when malformed."""
-        ranges, amin, ainc, rmin, rmax = scan
-        try:
-            return scan_to_points(ranges, amin, ainc, rmin, min(rmax, self.laser.max_range))
-        except PtmError:
-            return None
+        return usable_points(*scan, self.laser)
 
     def _process_scan(self, stamp: float, scan: ScanFields) -> None:
         ranges, amin, ainc, rmin, rmax = scan

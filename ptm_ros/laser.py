@@ -51,7 +51,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import cho_factor, cho_solve, eigh
 from scipy.spatial import cKDTree
 
-from ptm_ros.errors import ConfigError, ModelError, RegistrationError
+from ptm_ros.errors import ConfigError, ModelError, PtmError, RegistrationError
 from ptm_ros.geometry import (
     FloatArray,
     NoMatch,
@@ -84,6 +84,7 @@ __all__ = [
     "register_patches",
     "scan_to_points",
     "to_relative_pose",
+    "usable_points",
     "voxel_downsample",
 ]
 
@@ -280,6 +281,22 @@ def scan_to_points(
     rk = r[keep]
     points = np.column_stack([rk * np.cos(angles), rk * np.sin(angles)]).reshape(-1, 2)
     return ScanPoints(points=points, dropped=int(n - keep.sum()))
+
+
+def usable_points(  # noqa: PLR0917 - the LaserScan fields read best positionally
+    ranges: ArrayLike,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+    laser: LaserConfig,
+) -> ScanPoints | None:
+    """:func:`scan_to_points` with the beams beyond ``laser.max_range`` dropped, None for a malformed
+    scan: the points the laser odometry and the patches use."""
+    try:
+        return scan_to_points(ranges, angle_min, angle_increment, range_min, min(range_max, laser.max_range))
+    except PtmError:
+        return None
 
 
 # ---------------------------------------------------------------------------------------- patches

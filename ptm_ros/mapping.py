@@ -37,9 +37,9 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptm_ros.errors import ConfigError, DataError, PtmError
+from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.geometry import FloatArray, Registrar, RelativePose, interpolate_poses, moved
-from ptm_ros.laser import LaserConfig, scan_to_points
+from ptm_ros.laser import LaserConfig, usable_points
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.posterior import ModelConfig, chained_registrations, split_aliases
 from ptm_ros.refinement import Mapper, RefinementConfig, refine_trajectory
@@ -148,23 +148,21 @@ def topology_trajectory(
 
 
 def scan_points(scans: ScanLog, laser: LaserConfig) -> tuple[FloatArray, list[FloatArray]]:
-    """The scans' stamps (increasing) and points in the robot frame (:func:`ptm_ros.laser.scan_to_points`,
+    """The scans' stamps (increasing) and points in the robot frame (:func:`ptm_ros.laser.usable_points`,
     beams beyond ``laser.max_range`` dropped); a malformed scan has no points."""
     st = np.asarray(scans.stamps, dtype=float).reshape(-1)
     order = np.argsort(st, kind="stable")
     points = []
     for k in order:
-        try:
-            res = scan_to_points(
-                scans.ranges[int(k)],
-                float(scans.angle_min[k]),
-                float(scans.angle_increment[k]),
-                float(scans.range_min[k]),
-                min(float(scans.range_max[k]), laser.max_range),
-            )
-            points.append(res.points)
-        except PtmError:
-            points.append(np.zeros((0, 2)))
+        res = usable_points(
+            scans.ranges[int(k)],
+            float(scans.angle_min[k]),
+            float(scans.angle_increment[k]),
+            float(scans.range_min[k]),
+            float(scans.range_max[k]),
+            laser,
+        )
+        points.append(np.zeros((0, 2)) if res is None else res.points)
     return st[order], points
 
 
