@@ -181,7 +181,7 @@ def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
     corrections (:func:`ptm_ros.laser_odometry.apply_corrections`); the wheel odometry without them."""
     from ptm_ros.laser_odometry import apply_corrections, scan_time_poses
 
-    odom = run.odometry
+    odom = run_odometry(run)
     wheel = scan_time_poses(odom.stamps, odom.poses, extractor.time_offset)
     if not extractor.corrections:
         return wheel
@@ -221,11 +221,12 @@ def detect_visits(
     if progress is not None:
         total = sum(len(d.stamps) for d in (run.odometry, run.scans, run.images) if d is not None)
         messages = progress(messages, total)
+    scans, images = run.scans, run.images  # merged_messages yields a topic only when its stream exists
     for _, topic, k in messages:
         if topic == ODOM:
             visits += extractor.on_odometry(odom.stamps[k], odom.poses[k])
-        elif topic == SCAN:
-            sc = run.scans
+        elif topic == SCAN and scans is not None:
+            sc = scans
             visits += extractor.on_scan(
                 sc.stamps[k],
                 sc.ranges[k],
@@ -234,8 +235,8 @@ def detect_visits(
                 sc.range_min[k],
                 sc.range_max[k],
             )
-        else:
-            visits += extractor.on_image(run.images.stamps[k], run.images.images[k])
+        elif topic == IMAGE and images is not None:
+            visits += extractor.on_image(images.stamps[k], images.images[k])
     visits += extractor.flush()
     if diagnostics is not None:
         diagnostics.update(run_diagnostics(run, extractor))
@@ -668,7 +669,7 @@ def write_outputs(
             ptm,
             out / OUTPUT_FILES["route_graph"],
             grid=walls,
-            trajectory=(run.odometry.stamps, traj) if walls is not None and traj is not None else None,
+            trajectory=(run_odometry(run).stamps, traj) if walls is not None and traj is not None else None,
             config=used.routes,
             log=log,
         )
@@ -683,7 +684,7 @@ def write_outputs(
             report = _write_report(
                 out,
                 ptm,
-                trajectory=traj if traj is not None else run.odometry.poses,
+                trajectory=traj if traj is not None else run_odometry(run).poses,
                 score=score,
                 surprise_trace=surprise,
                 occupancy_map=files.get("map_png"),
@@ -749,7 +750,7 @@ def trajectory_errors(
     theta, t = rigid_alignment(est_xy, true_xy)
     return {
         "ate_smoothed_m": absolute_trajectory_error(est_xy, true_xy),
-        "ate_odometry_m": absolute_trajectory_error(np.asarray(run.odometry.poses)[inside, :2], true_xy),
+        "ate_odometry_m": absolute_trajectory_error(np.asarray(run_odometry(run).poses)[inside, :2], true_xy),
         "poses": int(np.count_nonzero(inside)),
         "alignment": {"theta": theta, "x": float(t[0]), "y": float(t[1])},
     }
@@ -760,7 +761,7 @@ def _paired_with_truth(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The odometry stamps inside the ground truth's span (a mask), the trajectory's and the ground
     truth's positions there; None when fewer than two lie inside."""
-    stamps = np.asarray(run.odometry.stamps, dtype=float)
+    stamps = np.asarray(run_odometry(run).stamps, dtype=float)
     traj = np.asarray(trajectory, dtype=float)
     if traj.shape != (len(stamps), 3):
         msg = f"the trajectory has shape {traj.shape}, the run {len(stamps)} odometry poses"
@@ -953,7 +954,7 @@ def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> A
     sc = run.scans
     if sc is None or len(sc.stamps) == 0:
         return None
-    return grid_along(run.odometry.stamps, trajectory, sc, config.occupancy)
+    return grid_along(run_odometry(run).stamps, trajectory, sc, config.occupancy)
 
 
 def write_occupancy_map(
@@ -1033,7 +1034,7 @@ def map_trajectory(
     the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
     from ptm_ros.mapping import topology_trajectory
 
-    odom = run.odometry
+    odom = run_odometry(run)
     base = odom.poses if odometry is None else odometry
     return topology_trajectory(
         odom.stamps,
