@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ptm_ros.errors import ConfigError, DataError, PtmError
+from ptm_ros.tools.paths import add_params_option
 
 if TYPE_CHECKING:
     from ptm_ros.config import PtmConfig
@@ -37,12 +38,7 @@ DEFAULT_OFFSETS = (0.0, -0.05, -0.1, -0.15, -0.2, -0.25, -0.3)
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("bag", type=Path, help="rosbag2 directory with /odom and /scan")
-    p.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        help="YAML parameter file, any subset of config/ptm.yaml (default: none, the built-in defaults)",
-    )
+    add_params_option(p)
     p.add_argument(
         "--offsets",
         type=float,

@@ -1,8 +1,10 @@
-"""Output paths checked before the work (issue #25): a tool that would fail on its first write after
-minutes of inference fails at once instead, with one line naming the fix (exit code 2)."""
+"""Paths on the command line. Output paths are checked before the work (issue #25): a tool that would fail
+on its first write after minutes of inference fails at once instead, with one line naming the fix (exit
+code 2)."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 from pathlib import Path
@@ -61,3 +63,13 @@ def new_output(path: Path, what: str = "OUT_BAG") -> Path:
         raise ConfigError(msg)
     _probe(_nearest_existing(path, what), what)
     return path
+
+
+def add_params_option(parser: argparse.ArgumentParser) -> None:
+    """The ``--params FILE`` option of the tools that read a parameter file (ptm-run, ptm-calibrate)."""
+    parser.add_argument(
+        "--params",
+        type=Path,
+        default=None,
+        help="YAML parameter file, any subset of config/ptm.yaml (default: none, the built-in defaults)",
+    )

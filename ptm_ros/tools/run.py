@@ -42,6 +42,7 @@ PROG = "ptm-run"
 
 def build_parser() -> argparse.ArgumentParser:
     from ptm_ros.config import DETECTORS, InferenceConfig
+    from ptm_ros.tools.paths import add_params_option
 
     inf = InferenceConfig()
     p = argparse.ArgumentParser(
@@ -73,12 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help=f"particles of the RBPF (default: inference.particles of --params, else {inf.particles})",
     )
-    p.add_argument(
-        "--params",
-        type=Path,
-        default=None,
-        help="YAML parameter file, any subset of config/ptm.yaml (default: none, the built-in defaults)",
-    )
+    add_params_option(p)
     p.add_argument(
         "--seed",
         type=int,
