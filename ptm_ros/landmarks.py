@@ -54,7 +54,7 @@ from ptm_ros.laser_odometry import (
     RunInput,
     learn_time_offset,
 )
-from ptm_ros.visits import MAX_COORDINATE, Visit, pose_field
+from ptm_ros.visits import MAX_COORDINATE, Visit, visit_fields, visit_from_fields
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
 #: The reasons (keys of ``ExtractorDiagnostics.skipped``) for which a landmark the detector declared
@@ -595,9 +595,7 @@ class VisitExtractor:
 # ------------------------------------------------------------------------------------ visit codec
 
 
-def _encode(a: NDArray[Any] | None) -> dict[str, Any] | None:
-    if a is None:
-        return None
+def _encode(a: NDArray[Any]) -> dict[str, Any]:
     arr = np.ascontiguousarray(a)
     return {
         "dtype": arr.dtype.str,
@@ -606,9 +604,8 @@ def _encode(a: NDArray[Any] | None) -> dict[str, Any] | None:
     }
 
 
-def _decode(d: dict[str, Any] | None) -> NDArray[Any] | None:
-    if d is None:
-        return None
+def _decode(d: dict[str, Any], dtype: type[np.generic], /) -> NDArray[Any]:
+    """An array as :func:`_encode` wrote it, in the dtype it was sent in (not ``dtype``, the field's own)."""
     try:
         arr = np.frombuffer(base64.b64decode(d["data"], validate=True), dtype=np.dtype(d["dtype"]))
         return arr.reshape(d["shape"]).copy()
@@ -619,25 +616,12 @@ def _decode(d: dict[str, Any] | None) -> NDArray[Any] | None:
 
 def visit_to_json(visit: Visit) -> str:
     """The lossless JSON form of a visit (schema ``ptm_ros.visit/1``; arrays base64 in native dtype)."""
-    return json.dumps(
-        {
-            "schema": VISIT_SCHEMA,
-            "index": visit.index,
-            "stamp": visit.stamp,
-            "pose": list(visit.pose),
-            "odom_pose": None if visit.odom_pose is None else list(visit.odom_pose),
-            "travel": visit.travel,
-            "rotation": visit.rotation,
-            "signature": _encode(visit.signature),
-            "words": _encode(visit.words),
-            "patch": _encode(visit.patch),
-            "signature_spread": _encode(visit.signature_spread),
-        }
-    )
+    return json.dumps({"schema": VISIT_SCHEMA, **visit_fields(visit, _encode)})
 
 
 def visit_from_json(text: str) -> Visit:
-    """Parse :func:`visit_to_json` output; malformed input raises :class:`DataError`."""
+    """Parse :func:`visit_to_json` output (any array may be left out: None); malformed input raises
+    :class:`DataError`."""
     try:
         d = json.loads(text)
     except json.JSONDecodeError as err:
@@ -647,18 +631,7 @@ def visit_from_json(text: str) -> Visit:
         msg = f"visit message schema must be {VISIT_SCHEMA!r}"
         raise DataError(msg)
     try:
-        return Visit(
-            index=int(d["index"]),
-            stamp=float(d["stamp"]),
-            pose=pose_field(d["pose"]),
-            odom_pose=None if d.get("odom_pose") is None else pose_field(d["odom_pose"]),
-            travel=float(d["travel"]),
-            rotation=float(d["rotation"]),
-            signature=_decode(d.get("signature")),
-            words=_decode(d.get("words")),
-            patch=_decode(d.get("patch")),
-            signature_spread=_decode(d.get("signature_spread")),
-        )
+        return visit_from_fields(d, _decode, arrays_optional=True)
     except (KeyError, TypeError, ValueError, PtmError) as err:
         msg = f"malformed visit message: {err}"
         raise DataError(msg) from err

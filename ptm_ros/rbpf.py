@@ -161,7 +161,7 @@ from ptm_ros.odometry import OdometryConfig, odometry_covariances, place_area
 from ptm_ros.partitions import Labels
 from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
 from ptm_ros.ptm import Landmark, Ptm, make_ptm
-from ptm_ros.visits import Visit, pose_field
+from ptm_ros.visits import Visit, visit_fields, visit_from_fields
 
 IntArray = NDArray[np.intp]
 
@@ -1428,39 +1428,14 @@ def _blocks_of(labels: Labels) -> tuple[tuple[int, ...], ...]:
 
 
 def visit_dict(v: Visit) -> dict[str, Any]:
-    """A visit as plain Python + numpy (for :meth:`TopologyFilter.state_dict` and persistence)."""
-    return {
-        "index": v.index,
-        "stamp": v.stamp,
-        "pose": list(v.pose),
-        "odom_pose": None if v.odom_pose is None else list(v.odom_pose),
-        "travel": v.travel,
-        "rotation": v.rotation,
-        "signature": None if v.signature is None else np.asarray(v.signature).copy(),
-        "words": None if v.words is None else np.asarray(v.words).copy(),
-        "patch": None if v.patch is None else np.asarray(v.patch).copy(),
-        "signature_spread": None if v.signature_spread is None else np.asarray(v.signature_spread).copy(),
-    }
+    """A visit as plain Python + numpy copies (for :meth:`TopologyFilter.state_dict` and persistence)."""
+    return visit_fields(v, lambda a: np.asarray(a).copy())
 
 
 def visit_from_dict(d: dict[str, Any]) -> Visit:
-    """Inverse of :func:`visit_dict` (dicts saved before ``odom_pose`` or ``signature_spread`` existed are
-    read too)."""
-    odom_pose = d.get("odom_pose")
-    return Visit(
-        index=int(d["index"]),
-        stamp=float(d["stamp"]),
-        pose=pose_field(d["pose"]),
-        odom_pose=None if odom_pose is None else pose_field(odom_pose),
-        travel=float(d["travel"]),
-        rotation=float(d["rotation"]),
-        signature=None if d["signature"] is None else np.asarray(d["signature"], dtype=float),
-        words=None if d["words"] is None else np.asarray(d["words"], dtype=np.int64),
-        patch=None if d["patch"] is None else np.asarray(d["patch"], dtype=float),
-        signature_spread=None
-        if d.get("signature_spread") is None
-        else np.asarray(d["signature_spread"], dtype=float),
-    )
+    """Inverse of :func:`visit_dict`, arrays as float64 (``words`` int64); dicts saved before
+    ``odom_pose`` or ``signature_spread`` existed are read too."""
+    return visit_from_fields(d, np.asarray)
 
 
 def run_filter(

@@ -13,9 +13,9 @@ measurements each model needs:
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import SupportsFloat, cast
+from typing import Any, Protocol, SupportsFloat, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,3 +108,64 @@ def pose_field(values: Iterable[SupportsFloat]) -> tuple[float, float, float]:
 def poses_array(visits: Sequence[Visit]) -> NDArray[np.float64]:
     """The odometry poses of a visit sequence as an ``(N, 3)`` array."""
     return np.array([v.pose for v in visits], dtype=float).reshape(-1, 3)
+
+
+#: Writes one array of a visit (never None) in a codec's form: a numpy copy, base64 JSON, …
+ArrayEncoder = Callable[[NDArray[Any]], object]
+
+
+class ArrayDecoder(Protocol):
+    """Reads one array of a visit (never None) back from a codec's form. ``dtype`` is the field's own
+    (float64, int64 for ``words``): a decoder may cast to it or keep the dtype it stored."""
+
+    def __call__(self, value: Any, dtype: type[np.generic], /) -> NDArray[Any]: ...
+
+
+def visit_fields(visit: Visit, encode: ArrayEncoder) -> dict[str, Any]:
+    """The fields of a visit as plain values, in their fixed order (the key order of every visit codec):
+    poses as lists, arrays through ``encode``, None kept None."""
+
+    def array(a: NDArray[Any] | None) -> object:
+        return None if a is None else encode(a)
+
+    return {
+        "index": visit.index,
+        "stamp": visit.stamp,
+        "pose": list(visit.pose),
+        "odom_pose": None if visit.odom_pose is None else list(visit.odom_pose),
+        "travel": visit.travel,
+        "rotation": visit.rotation,
+        "signature": array(visit.signature),
+        "words": array(visit.words),
+        "patch": array(visit.patch),
+        "signature_spread": array(visit.signature_spread),
+    }
+
+
+def visit_from_fields(d: Mapping[str, Any], decode: ArrayDecoder, *, arrays_optional: bool = False) -> Visit:
+    """Inverse of :func:`visit_fields`, reading the fields in the same order. ``odom_pose`` and
+    ``signature_spread`` may be absent (saved before they existed); the other arrays only with
+    ``arrays_optional``.
+
+    Raises:
+        KeyError, TypeError, ValueError: a missing or malformed field (and whatever ``decode`` raises);
+        ModelError: values no :class:`Visit` can hold.
+    """
+
+    def array(name: str, dtype: type[np.generic], *, added_later: bool = False) -> NDArray[Any] | None:
+        value = d.get(name) if arrays_optional or added_later else d[name]
+        return None if value is None else decode(value, dtype)
+
+    odom_pose = d.get("odom_pose")
+    return Visit(
+        index=int(d["index"]),
+        stamp=float(d["stamp"]),
+        pose=pose_field(d["pose"]),
+        odom_pose=None if odom_pose is None else pose_field(odom_pose),
+        travel=float(d["travel"]),
+        rotation=float(d["rotation"]),
+        signature=array("signature", np.float64),
+        words=array("words", np.int64),
+        patch=array("patch", np.float64),
+        signature_spread=array("signature_spread", np.float64, added_later=True),
+    )

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,6 +25,8 @@ from ptm_ros.landmarks import (
 )
 from ptm_ros.laser import LaserConfig
 from ptm_ros.laser_odometry import LaserOdometryConfig
+from ptm_ros.persistence import visit_from_state, visit_to_state
+from ptm_ros.visits import Visit
 
 
 @pytest.fixture(scope="module")
@@ -321,6 +325,86 @@ def test_visit_json_round_trip(sim):
         visit_from_json('{"schema": "other"}')
     with pytest.raises(DataError, match="malformed"):
         visit_from_json('{"schema": "ptm_ros.visit/1", "index": 0}')
+
+
+#: Every optional field set; arrays little-endian so the pinned JSON is the same on any machine.
+FULL_VISIT = Visit(
+    index=2,
+    stamp=12.5,
+    pose=(1.0, -2.0, 0.25),
+    travel=3.5,
+    rotation=0.75,
+    signature=np.array([0.5, -1.25], dtype="<f8"),
+    words=np.array([3, 0, 7], dtype="<i8"),
+    patch=np.array([[0.0, 1.0], [-1.5, 2.0]], dtype="<f8"),
+    odom_pose=(1.5, -2.5, 0.5),
+    signature_spread=np.array([0.125, 0.0], dtype="<f8"),
+)
+BARE_VISIT = Visit(index=0, stamp=0.0, pose=(0.0, 0.0, 0.0))
+OPTIONAL = ("odom_pose", "signature", "words", "patch", "signature_spread")
+#: visit_to_json(FULL_VISIT) as the codec wrote it before the two visit codecs shared one field list
+FULL_JSON = (
+    '{"schema": "ptm_ros.visit/1", "index": 2, "stamp": 12.5, "pose": [1.0, -2.0, 0.25], '
+    '"odom_pose": [1.5, -2.5, 0.5], "travel": 3.5, "rotation": 0.75, '
+    '"signature": {"dtype": "<f8", "shape": [2], "data": "AAAAAAAA4D8AAAAAAAD0vw=="}, '
+    '"words": {"dtype": "<i8", "shape": [3], "data": "AwAAAAAAAAAAAAAAAAAAAAcAAAAAAAAA"}, '
+    '"patch": {"dtype": "<f8", "shape": [2, 2], "data": "AAAAAAAAAAAAAAAAAADwPwAAAAAAAPi/AAAAAAAAAEA="}, '
+    '"signature_spread": {"dtype": "<f8", "shape": [2], "data": "AAAAAAAAwD8AAAAAAAAAAA=="}}'
+)
+BARE_JSON = (
+    '{"schema": "ptm_ros.visit/1", "index": 0, "stamp": 0.0, "pose": [0.0, 0.0, 0.0], "odom_pose": null, '
+    '"travel": 0.0, "rotation": 0.0, '
+    '"signature": null, "words": null, "patch": null, "signature_spread": null}'
+)
+
+
+def assert_identical(got, expected):
+    """Same visit, every optional field included: equal values, same dtypes, None where None."""
+    assert got == expected
+    for name in OPTIONAL:
+        a, b = getattr(got, name), getattr(expected, name)
+        if b is None or isinstance(b, tuple):
+            assert a == b, name
+        else:
+            assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
+def test_both_visit_codecs_round_trip_every_field():
+    for v in (FULL_VISIT, BARE_VISIT):
+        assert_identical(visit_from_json(visit_to_json(v)), v)
+        assert_identical(visit_from_state(visit_to_state(v)), v)
+    # a checkpoint casts lists to the fields' dtypes; a JSON message keeps the dtype it was sent in
+    state = visit_to_state(FULL_VISIT)
+    back = visit_from_state({**state, "signature": [1, 2], "words": [3.0], "signature_spread": [0, 1]})
+    assert back.signature.dtype == np.float64 and back.words.dtype == np.int64
+    i32 = visit_from_json(visit_to_json(replace(BARE_VISIT, words=np.ones(2, dtype="<i4"))))
+    assert i32.words.dtype == np.dtype("<i4")
+    # older checkpoints lack odom_pose and signature_spread; a message may leave out any array …
+    old = {k: v for k, v in state.items() if k not in ("odom_pose", "signature_spread")}
+    assert_identical(visit_from_state(old), replace(FULL_VISIT, odom_pose=None, signature_spread=None))
+    bare = {k: v for k, v in json.loads(FULL_JSON).items() if k not in OPTIONAL}
+    assert_identical(visit_from_json(json.dumps(bare)), replace(FULL_VISIT, **dict.fromkeys(OPTIONAL)))
+    # … but a checkpoint entry must hold signature, words and patch
+    with pytest.raises(DataError, match=r"bad visit entry \(KeyError: 'words'\)"):
+        visit_from_state({k: v for k, v in state.items() if k != "words"})
+    with pytest.raises(DataError, match="malformed visit message: malformed array in visit JSON"):
+        visit_from_json(FULL_JSON.replace("AwAAAAAAAAAAAAAAAAAAAAcAAAAAAAAA", "!"))
+
+
+def test_visit_codecs_write_the_same_text_and_dicts_as_before():
+    assert visit_to_json(FULL_VISIT) == FULL_JSON
+    assert visit_to_json(BARE_VISIT) == BARE_JSON
+    # the checkpoint form: plain values in this key order, then copies of the arrays
+    scalars = {"index": 2, "stamp": 12.5, "pose": [1.0, -2.0, 0.25], "odom_pose": [1.5, -2.5, 0.5]}
+    scalars |= {"travel": 3.5, "rotation": 0.75}
+    state = visit_to_state(FULL_VISIT)
+    assert list(state.items())[:6] == list(scalars.items()) and list(state)[6:] == list(OPTIONAL[1:])
+    for name in OPTIONAL[1:]:
+        arr, orig = state[name], getattr(FULL_VISIT, name)
+        assert arr.dtype == orig.dtype and np.array_equal(arr, orig) and not np.shares_memory(arr, orig)
+    bare = {"index": 0, "stamp": 0.0, "pose": [0.0, 0.0, 0.0], "odom_pose": None, "travel": 0.0}
+    bare |= {"rotation": 0.0, **dict.fromkeys(OPTIONAL[1:])}
+    assert list(visit_to_state(BARE_VISIT).items()) == list(bare.items())
 
 
 class EveryScan(Detector):
