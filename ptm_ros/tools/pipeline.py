@@ -70,7 +70,7 @@ from ptm_ros.io.groundtruth import (
     save_sim_gt,
     with_placed_landmarks,
 )
-from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
+from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
 from ptm_ros.laser import Registration
 from ptm_ros.occupancy import MAP_STEM
 from ptm_ros.partitions import Labels
@@ -247,12 +247,7 @@ def run_diagnostics(run: RunData, extractor: VisitExtractor) -> dict[str, Any]:
     """The input counters of a recorded run (ptm.json's ``diagnostics``): the extractor's, with the
     messages the bag reader skipped added to ``skipped`` under the same reasons as the nodes'
     (:func:`ptm_ros.io.bag.read_run`), and ``read_skipped`` the reader's share of them."""
-    diag = diagnostics_dict(extractor.diagnostics)
-    skipped = dict(diag["skipped"])
-    for reason, n in run.skipped.items():
-        skipped[reason] = skipped.get(reason, 0) + n
-    diag["skipped"] = skipped
-    diag["read_skipped"] = dict(run.skipped)
+    diag = with_input_skips(diagnostics_dict(extractor.diagnostics), run.skipped)
     if extractor.time_offset_estimate is not None:
         diag["time_offset"] = extractor.time_offset_estimate.as_dict()
     return diag
