@@ -90,7 +90,10 @@ slip) yet not blind to a wrong ground truth that is right on half the run (two r
 straight corridors and differ at the corners).
 A run with no window (fewer than three visits, or too little travel) cannot be judged. Above
 :data:`ODOMETRY_FIT_LIMIT`, set between what a run's own ground truth and another run's give (measured
-in ``README.md``, ``ptm-eval``), ``ptm-eval`` refuses the ground truth as another run's.
+in ``README.md``, ``ptm-eval``), ``ptm-eval`` refuses the ground truth as another run's. ``ptm-run``
+applies the same rule before any visit is known, to the bag's whole odometry at points one metre of
+travel apart (:func:`path_samples`) instead of the visits
+(:func:`ptm_ros.io.groundtruth.run_ground_truth_problem`).
 
 Calibration (issue #23, "an honest posterior"). Over many runs ``r = 1..R`` with stated MAP probability
 ``p_r`` (the listed probability of the most probable topology) and outcome ``y_r = 1`` when the MAP
@@ -661,6 +664,22 @@ def odometry_fit(
     r = window_residuals(o[known], g[known], window_m)
     statistic = float(np.quantile(r, quantile)) if r.size else None
     return OdometryFit(statistic, int(r.size), int(known.sum()), window_m, quantile, limit)
+
+
+def path_samples(xy: ArrayLike, spacing: float) -> NDArray[np.intp]:
+    """Indices of the points of a path ``xy (n, 2)`` one every ``spacing`` metres of its travel (the first
+    point, then the first to reach each further multiple of ``spacing`` along the path): the points at
+    which a whole odometry stream is judged by :func:`odometry_fit` (``ptm-run``, before any visit is
+    known), so that neither its rate nor a robot standing still weighs on the fit."""
+    p = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if not (math.isfinite(spacing) and spacing > 0.0):
+        msg = f"spacing must be finite and > 0, got {spacing}"
+        raise ConfigError(msg)
+    if not len(p):
+        return np.zeros(0, dtype=np.intp)
+    travel = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(p, axis=0).T))])
+    marks = spacing * np.arange(int(travel[-1] // spacing) + 1)
+    return np.unique(np.minimum(np.searchsorted(travel, marks, side="left"), len(p) - 1)).astype(np.intp)
 
 
 # --------------------------------------------------------------------------------------------------

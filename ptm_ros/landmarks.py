@@ -642,6 +642,22 @@ def diagnostics_dict(diag: ExtractorDiagnostics) -> dict[str, Any]:
     return asdict(diag)
 
 
+#: Key of ptm.json's ``diagnostics`` holding the input messages skipped before the extractor saw them.
+INPUT_SKIPPED_KEY = "read_skipped"
+
+
+def with_input_skips(extractor: Mapping[str, Any], skipped: Mapping[str, int]) -> dict[str, Any]:
+    """ptm.json's ``diagnostics`` of a run's input: the extractor's counters (:func:`diagnostics_dict`) with
+    the messages skipped before it (``skipped``, by reason: ``ptm-run``'s bag reader, the landmark detector
+    node's input checks, :mod:`ptm_ros.io.validation`) added to its ``skipped`` and kept apart under
+    :data:`INPUT_SKIPPED_KEY` (their share). Reasons counted 0 are left out."""
+    before = {str(k): int(v) for k, v in skipped.items() if v}
+    total = {str(k): int(v) for k, v in dict(extractor.get("skipped") or {}).items()}
+    for reason, n in before.items():
+        total[reason] = total.get(reason, 0) + n
+    return {**extractor, "skipped": total, INPUT_SKIPPED_KEY: before}
+
+
 def landmark_accounting(visits: int, skipped: Mapping[str, int], declared: int | None = None) -> str | None:
     """One sentence reconciling the landmarks a detector declared with the ``visits`` they became, naming
     the landmarks dropped by reason (:data:`LANDMARK_DROPS` in ``skipped``, the extractor's counters);

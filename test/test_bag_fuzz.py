@@ -255,6 +255,7 @@ def check_bringup(bag: Path, out: Path, plan: Plan, written, clean_ptm: dict, mo
     counts = detector_counts(statuses)
     for reason, k in written.at_least.items():  # every bad message of the plan counted, by the reader's name
         assert int(counts.get(reason, 0)) >= k, (reason, counts)
+        assert doc["diagnostics"]["skipped"].get(reason, 0) >= k, (reason, doc["diagnostics"])  # in ptm.json
     if plan.truncate is None and plan.smash is None:  # every message written reached the detector
         for topic, stream in TOPIC_STREAMS.items():
             assert int(counts.get(f"received.{topic}", 0)) == written.messages[stream], (topic, counts)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_corruption import Insert, Plan, Replace, corrupt
+from cli_helpers import call
 from jsonschema import Draft202012Validator
 from ros_helpers import (
     BRINGUP,
@@ -122,6 +124,78 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path, process_logs):
     assert (out / "config.yaml").is_file() and (out / "params.yaml").is_file()
     assert (out / "report.html").is_file() and "most probable topologies" in proc.stdout
     assert "score vs ground truth" in proc.stdout  # the simulator's ground truth beside the bag
+
+
+#: ptm.json's ``diagnostics`` keys of the input (ptm-run: pipeline.run_diagnostics) that ptm-bringup's
+#: equal on a replay; not ``stalled_topics``: a replay's detector never gives up on a silent topic
+#: (``stall_s: 0``), ptm-run's extractor after 5 s of odometry (the simulated panoramas' gaps).
+INPUT_KEYS = (
+    "received",
+    "skipped",
+    "read_skipped",
+    "scan_beams_dropped",
+    "visits",
+    "visits_without_panorama",
+    "visits_without_patch",
+    "laser_odometry",
+)
+
+
+@pytest.mark.dds
+@pytest.mark.slow
+def test_bringup_writes_the_counts_of_bad_scans_that_ptm_run_writes(sim_bag, tmp_path, process_logs):
+    """Issue #25: bad scans (NaN-, inf-filled, empty) cost themselves, and ptm-bringup's ptm.json counts
+    them under ptm-run's keys (``diagnostics.skipped`` and ``read_skipped``, from the landmark detector's
+    final /diagnostics status), with the same figures as ptm-run's ptm.json; both print the same warning."""
+    plan = Plan(
+        inserts=(
+            Insert("nan-scan", "/scan", 0.2),
+            Insert("empty-scan", "/scan", 0.45),
+            Insert("inf-scan", "/scan", 0.7),
+            Insert("nan-scan", "/scan", 0.9),
+        ),
+        replaces=(Replace("empty", 0.3), Replace("nan", 0.6)),
+    )
+    bag = corrupt(sim_bag, tmp_path / "bad-scans", plan).path
+    params = tmp_path / "params.yaml"
+    params.write_text("inference: {seed: 3, particles: 20}\n")
+    up, off = tmp_path / "bringup", tmp_path / "run"
+    cmd = [
+        *BRINGUP,
+        "--bag",
+        str(bag),
+        "--rate",
+        "0",
+        "--params",
+        str(params),
+        "--out",
+        str(up),
+        "--no-report",
+    ]
+    try:
+        proc = run_logged(cmd, process_logs)
+    finally:
+        assert_no_orphans(str(up), str(bag))
+    assert proc.returncode == 0, "ptm-bringup failed (its full log follows the traceback)"
+    code, _, err = call(
+        run_cli.main, [bag, "--out", off, "--params", params, "--no-report", "--no-map", "--quiet"]
+    )
+    assert code == 0, err
+
+    doc_on, doc_off = (json.loads((d / "ptm.json").read_text()) for d in (up, off))
+    assert [e.message for e in Draft202012Validator(ptm_schema()).iter_errors(doc_on)] == []
+    assert doc_on["landmarks"] == doc_off["landmarks"]  # the same scans dropped, the same visits
+    on, offline = doc_on["diagnostics"], doc_off["diagnostics"]
+    bad = {"scan-non-finite": 4, "scan-empty": 2}  # two NaN and one inf inserted, one replaced; 1 + 1 empty
+    assert offline["read_skipped"] == bad and on["read_skipped"] == bad
+    assert {k: on[k] for k in INPUT_KEYS} == {k: offline[k] for k in INPUT_KEYS}
+    assert on["stalled_topics"] == 0
+    assert on["received"]["scan"] == offline["received"]["scan"] > 0
+    assert "registrations" in on and "particles" in on  # the filter's counters stay beside them
+    warning = (
+        "warning: skipped 6 input messages (scan-empty 2, scan-non-finite 4); see diagnostics in ptm.json"
+    )
+    assert f"ptm-run: {warning}" in err and f"ptm-bringup: {warning}" in proc.stderr
 
 
 @pytest.mark.dds

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ptm_ros.errors import DataError
+from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.evaluation import ODOMETRY_FIT_LIMIT, path_samples
 from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
     Passage,
@@ -18,6 +19,7 @@ from ptm_ros.io.groundtruth import (
     load_carmen_gt,
     load_ground_truth,
     load_sim_gt,
+    run_ground_truth_problem,
 )
 
 GT_FILES = {
@@ -217,3 +219,61 @@ def test_load_ground_truth_dispatch_errors(tmp_path: Path) -> None:
     empty_dir.mkdir()
     with pytest.raises(DataError, match=r"bag/ground_truth\.json does not exist"):
         load_ground_truth(empty_dir)
+
+
+# ------------------------------------------------------------------ is it this run's ground truth? (#25)
+
+
+def test_path_samples_are_one_per_spacing_of_travel_whatever_the_rate() -> None:
+    """The points at which ptm-run judges a bag's odometry: one per metre of travel, none added while the
+    robot stands still or by a faster odometry rate."""
+    line = np.column_stack([np.linspace(0.0, 10.0, 101), np.zeros(101)])  # 0.1 m steps
+    assert path_samples(line, 1.0).tolist() == list(range(0, 101, 10))
+    dense = np.column_stack([np.linspace(0.0, 10.0, 1001), np.zeros(1001)])
+    assert len(path_samples(dense, 1.0)) == 11
+    still = np.vstack([line[:51], np.repeat(line[50:51], 200, axis=0), line[51:]])  # 200 samples standing
+    k = path_samples(still, 1.0)
+    assert len(k) == 11 and np.allclose(still[k, 0], np.arange(11.0))
+    assert path_samples(np.zeros((5, 2)), 1.0).tolist() == [0]
+    assert path_samples(np.zeros((0, 2)), 1.0).tolist() == []
+    with pytest.raises(ConfigError, match="spacing"):
+        path_samples(line, 0.0)
+
+
+def _square(side: float, stamps: np.ndarray) -> np.ndarray:
+    """Poses round a square of ``side`` m at 0.5 m/s, at ``stamps`` (s from the first)."""
+    s = (0.5 * (stamps - stamps[0])) % (4 * side)
+    k = (s // side).astype(int)
+    corners = np.array([[0.0, 0.0], [side, 0.0], [side, side], [0.0, side]])
+    heading = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    xy = corners[k] + (s - k * side)[:, None] * heading[k]
+    return np.column_stack([xy, np.arctan2(heading[k, 1], heading[k, 0])])
+
+
+def test_run_ground_truth_problem_refuses_another_runs_and_passes_the_runs_own() -> None:
+    """ptm-eval's rule on a bag's whole odometry (ptm-run, before any visit): the run's own ground truth
+    (the odometry moved rigidly: another frame) passes; another route on the same clock is refused with
+    the figures; one covering less than half of the run's path is refused as such."""
+    stamps = 100.0 + 0.05 * np.arange(4000)  # 20 Hz, 200 s, 100 m
+    truth = _square(12.0, stamps)
+    c, s = np.cos(0.7), np.sin(0.7)
+    odom = np.column_stack([truth[:, :2] @ np.array([[c, s], [-s, c]]) + [3.0, -2.0], truth[:, 2] + 0.7])
+    own = GroundTruthTrajectory(stamps, truth)
+    fit, problem = run_ground_truth_problem(own, stamps, odom)
+    assert problem is None and fit.statistic is not None and fit.statistic < 1e-6
+    assert fit.windows > 80 and fit.visits == len(path_samples(odom[:, :2], 1.0))
+
+    other = GroundTruthTrajectory(stamps, _square(18.0, stamps))
+    fit, problem = run_ground_truth_problem(other, stamps, odom)
+    assert fit.statistic is not None and fit.statistic > ODOMETRY_FIT_LIMIT
+    assert problem is not None and problem.startswith(
+        "the bag's odometry does not move as the ground truth's"
+    )
+    assert f"relative residual {fit.statistic:.2f}" in problem and f"below {ODOMETRY_FIT_LIMIT:g}" in problem
+
+    part = GroundTruthTrajectory(stamps[:1500], truth[:1500])  # its first 75 s (+ 0.5 s): 38 of 100 points
+    _, problem = run_ground_truth_problem(part, stamps, odom)
+    assert problem is not None
+    assert problem.startswith("62 of 100 points of the bag's odometry (1 m of travel apart) lie outside")
+    _, problem = run_ground_truth_problem(GroundTruthTrajectory(stamps[:2100], truth[:2100]), stamps, odom)
+    assert problem is None  # 53 of 100 points inside: judged on them, and they fit

@@ -26,7 +26,7 @@ from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
 from ptm_ros.io.validation import scan_payload
-from ptm_ros.landmarks import visit_to_json
+from ptm_ros.landmarks import ExtractorDiagnostics, diagnostics_dict, visit_to_json, with_input_skips
 from ptm_ros.nodes import common
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
 from ptm_ros.nodes.messages import parse_visit_message
@@ -1092,6 +1092,60 @@ def test_resume_from_an_unusable_state_file_starts_afresh(sim_visits, tmp_path, 
             assert node.diagnostics()["persistence"]["resume_rejected"] == 1  # /diagnostics: WARN
 
 
+def test_input_counts_read_the_detectors_status_as_ptm_run_writes_its_diagnostics():
+    """The detector's /diagnostics values (flattened to dotted keys) back into ptm.json's ``diagnostics``
+    under ptm-run's keys: the extractor's counters, and the node's input-check skips added to ``skipped``
+    and kept apart as ``read_skipped`` (ptm-run: the bag reader's), as pipeline.run_diagnostics does."""
+    from types import SimpleNamespace
+
+    from ptm_ros.nodes.landmark_detector import SKIP_REASONS, input_counts
+    from ptm_ros.tools.pipeline import run_diagnostics
+
+    ext = ExtractorDiagnostics(
+        received={"odometry": 900, "scan": 441, "image": 0},
+        skipped={"scan-stamp-backwards": 1, "landmark-at-same-odometry-sample": 2},
+        scan_beams_dropped=17,
+        visits=9,
+        visits_without_panorama=9,
+        laser_odometry={"matched": 400, "rejected": 3},
+    )
+    node_skips = {**dict.fromkeys(SKIP_REASONS, 0), "scan-empty": 2, "scan-non-finite": 3}
+    status = {
+        "received": {"/odom": 900, "/scan": 446, "/panorama": 0},
+        "published_visits": 9,
+        "finished": True,
+        "extractor": diagnostics_dict(ext),
+        "time_offset": -0.15,
+        **node_skips,
+        "sessions": 1,
+        "odometry-quaternion-normalized": 4,
+    }
+    values = {kv.key: kv.value for kv in common.key_values(status)}
+    counts = input_counts(values)
+    reader = SimpleNamespace(skipped={"scan-empty": 2, "scan-non-finite": 3})
+    extractor = SimpleNamespace(diagnostics=ext, time_offset_estimate=None)
+    assert counts == run_diagnostics(reader, extractor)  # ptm-run's, had its reader skipped those scans
+    assert counts["read_skipped"] == {"scan-empty": 2, "scan-non-finite": 3}
+    assert counts["skipped"] == {
+        "scan-stamp-backwards": 1,
+        "landmark-at-same-odometry-sample": 2,
+        "scan-empty": 2,
+        "scan-non-finite": 3,
+    }
+    assert counts["laser_odometry"] == {"matched": 400, "rejected": 3} and counts["scan_beams_dropped"] == 17
+    # values that are no counts are left out: the extractor's defaults stand, nothing raises
+    broken = {**values, "extractor.visits": "many", "scan-empty": "-1", "extractor.received.scan": "4.5"}
+    counts = input_counts(broken)
+    assert (
+        counts["visits"] == 0
+        and counts["received"]["scan"] == 0
+        and counts["read_skipped"] == {"scan-non-finite": 3}
+    )
+    assert (
+        input_counts({})["skipped"] == {} and input_counts({})["received"] == ExtractorDiagnostics().received
+    )
+
+
 @pytest.mark.dds
 def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypatch, capfd):
     from diagnostic_msgs.msg import DiagnosticArray
@@ -1100,7 +1154,7 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
     from rclpy.parameter import Parameter
     from std_msgs.msg import String
 
-    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode
+    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode, input_counts
 
     stamps = (5_000_000_000 + np.arange(200) * 100_000_000) / 1e9  # whole ns, as messages carry them
     poses = [(0.1 * k, 0.02 * math.sin(0.1 * k), 0.05) for k in range(200)]
@@ -1148,6 +1202,17 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
 
         values = wait_for(detector_status, timeout=10.0)
         assert values["odometry-non-finite"] == "2" and values["published_visits"] == str(len(got) - 1)
+        # the same counts as ptm-run's ptm.json diagnostics (what ptm-bringup writes): its reader drops the
+        # two bad messages, its extractor sees the rest
+        read = make_extractor(PtmConfig(), "equidistant", use_scans=False, use_images=False)
+        for k, (s, p) in enumerate(stream):
+            if k not in bad:
+                read.on_odometry(float(s), p)
+        read.flush()
+        counts = input_counts(values)
+        assert counts == with_input_skips(diagnostics_dict(read.diagnostics), {"odometry-non-finite": 2})
+        assert counts["read_skipped"] == counts["skipped"] == {"odometry-non-finite": 2}
+        assert counts["received"]["odometry"] == len(stream) - 2 and counts["visits"] == len(expected)
         # two bad messages, one warning
         assert capfd.readouterr().err.count("skipped 1 message(s): odometry-non-finite") == 1
 

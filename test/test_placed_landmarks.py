@@ -250,6 +250,10 @@ def test_a_ground_truth_of_another_clock_is_refused_before_the_work(
         str(gt),
     ]
     assert run_cli.main([*argv, "--quiet"]) == 2
+    err = capsys.readouterr().err  # ptm-run's check of the ground truth against the bag's odometry
+    assert "of the bag's odometry (1 m of travel apart) lie outside the ground truth's time span" in err
+    assert "on another clock?" in err and "--force" in err
+    assert run_cli.main([*argv, "--quiet", "--force"]) == 2  # forced, yet no landmark visit to make
     assert "all lie outside the bag's odometry" in capsys.readouterr().err
     assert not (tmp_path / "o" / "ptm.json").exists()
 

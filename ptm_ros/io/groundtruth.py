@@ -23,6 +23,14 @@ Simulator ground truth (schema ``ptm_ros.ground_truth/1``)::
 CARMEN run's, kept by ``ptm-run --detector ground-truth`` in the file it writes (``ptm-eval`` checks the
 landmarks' odometry against it).
 
+Is it this run's ground truth? (issue #25). :func:`within_span`, :func:`odometry_fit_at`,
+:func:`coverage_problem` and :func:`odometry_fit_problem` are the rule ``ptm-eval`` applies to a PTM's
+landmarks (most of them outside the ground truth's time span, or their odometry not moving as the ground
+truth does: :func:`ptm_ros.evaluation.odometry_fit`); :func:`run_ground_truth_problem` applies the same
+rule, with the same thresholds, to a bag's whole odometry before any landmark is known (``ptm-run``, right
+after reading the bag), at points :data:`RUN_FIT_SPACING_M` of travel apart. Each returns the one-line
+problem (None: none); the tools add how to override it (``--force``).
+
 :func:`with_placed_landmarks` adds landmarks fixed along the path and their visits (the
 ``ground-truth`` detector's) to a trajectory that has none (:mod:`ptm_ros.detectors`); :func:`save_sim_gt`
 writes any ground truth in the simulator's schema (what ``ptm-run --detector ground-truth`` leaves beside
@@ -43,10 +51,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.detectors import PlacedLandmarksConfig, landmark_passages, place_landmarks, resample_path
 from ptm_ros.errors import DataError
+from ptm_ros.evaluation import OdometryFit, odometry_fit, path_samples
 from ptm_ros.geometry import FloatArray, interpolate_poses
 
 SIM_SCHEMA = "ptm_ros.ground_truth/1"
 SIM_FILENAME = "ground_truth.json"
+#: How far (s) a stamp may lie outside a ground truth's time span and still be given its end pose.
+MAX_EXTRAPOLATION_S = 0.5
+#: Metres of odometry travel between the points at which ``ptm-run`` judges a ground truth
+#: (:func:`run_ground_truth_problem`).
+RUN_FIT_SPACING_M = 1.0
 _POSE_COLUMNS = "x_corr y_corr theta_corr x_raw y_raw theta_raw"
 _CARMEN_COLUMNS = {
     9: f"scan raw_scan_index logger_timestamp {_POSE_COLUMNS}",
@@ -371,3 +385,89 @@ def interpolate_pose(
         raise DataError(msg)
     out = interpolate_poses(t, P, q)
     return out.reshape((*shape, 3))
+
+
+# --------------------------------------------------------------------------------------------------
+# Is it this run's ground truth? (module docstring)
+
+
+def within_span(
+    truth: GroundTruthTrajectory, stamps: ArrayLike, max_extrapolation: float = MAX_EXTRAPOLATION_S
+) -> NDArray[np.bool_]:
+    """Which ``stamps`` lie within the ground truth's time span, ``max_extrapolation`` s either side
+    included (those have a true pose: :func:`interpolate_pose` with that tolerance)."""
+    q = np.asarray(stamps, dtype=float).reshape(-1)
+    t0, t1 = float(np.min(truth.stamps)), float(np.max(truth.stamps))
+    return (q >= t0 - max_extrapolation) & (q <= t1 + max_extrapolation)
+
+
+def odometry_fit_at(
+    truth: GroundTruthTrajectory,
+    stamps: ArrayLike,
+    odom_xy: ArrayLike,
+    *,
+    max_extrapolation: float = MAX_EXTRAPOLATION_S,
+) -> OdometryFit:
+    """How well odometry positions ``odom_xy (n, 2)`` at ``stamps (n,)`` (in order) fit the ground truth at
+    the same stamps (:func:`ptm_ros.evaluation.odometry_fit`): against its raw odometry when it has one
+    (CARMEN: the same odometry), else its true poses; stamps outside :func:`within_span` are left out."""
+    q = np.asarray(stamps, dtype=float).reshape(-1)
+    odom = np.asarray(odom_xy, dtype=float).reshape(-1, 2)
+    inside = within_span(truth, q, max_extrapolation)
+    which: Literal["corrected", "raw"] = "raw" if truth.poses_raw is not None else "corrected"
+    ref = interpolate_pose(truth, q[inside], which=which, tolerance=max_extrapolation)
+    return odometry_fit(odom[inside], ref[:, :2])
+
+
+def coverage_problem(outside: int, total: int, what: str) -> str | None:
+    """The problem when more than half of ``total`` points (``what`` they are) lie ``outside`` the ground
+    truth's time span: the ground truth of another run, or of part of this one; None otherwise."""
+    if 2 * outside <= total:
+        return None
+    return (
+        f"{outside} of {total} {what} lie outside the ground truth's time span: is it another run's, or "
+        "on another clock?"
+    )
+
+
+def odometry_fit_problem(fit: OdometryFit, *, raw: bool, what: str) -> str | None:
+    """The problem, with the figures, when the odometry (``what``: whose) does not fit the ground truth
+    (:attr:`OdometryFit.fits`): another run's, its clock overlapping this one's; ``raw``: the fit was
+    against the ground truth's raw odometry, else its true poses. None when it fits or cannot be judged."""
+    if fit.fits or fit.statistic is None:
+        return None
+    legacy = (
+        ""
+        if raw
+        else "; one of a real run written without its raw odometry by an older ptm-run: write it again"
+    )
+    return (
+        f"{what} does not move as the ground truth's {'raw odometry' if raw else 'poses'} do: relative "
+        f"residual {fit.statistic:.2f} over {fit.window_m:g} m stretches ({fit.quantile:.0%} quantile of "
+        f"{fit.windows}; a run's own ground truth stays below {fit.limit:g}): is it another run's?{legacy}"
+    )
+
+
+def run_ground_truth_problem(
+    truth: GroundTruthTrajectory,
+    stamps: ArrayLike,
+    poses: ArrayLike,
+    *,
+    spacing: float = RUN_FIT_SPACING_M,
+    max_extrapolation: float = MAX_EXTRAPOLATION_S,
+) -> tuple[OdometryFit, str | None]:
+    """Whether ``truth`` is the ground truth of the run whose odometry is ``poses (n, 3)`` at ``stamps
+    (n,)`` (a bag's, in stamp order), judged before any landmark is known: ``ptm-eval``'s rule
+    (:func:`coverage_problem`, then :func:`odometry_fit_problem`) at the odometry's points ``spacing`` m
+    of travel apart (:func:`ptm_ros.evaluation.path_samples`) instead of the landmarks. Returns the fit
+    and the problem (None: none)."""
+    q = np.asarray(stamps, dtype=float).reshape(-1)
+    xy = np.asarray(poses, dtype=float).reshape(len(q), -1)[:, :2]
+    k = path_samples(xy, spacing)
+    outside = int(np.count_nonzero(~within_span(truth, q[k], max_extrapolation)))
+    fit = odometry_fit_at(truth, q[k], xy[k], max_extrapolation=max_extrapolation)
+    what = f"points of the bag's odometry ({spacing:g} m of travel apart)"
+    problem = coverage_problem(outside, len(k), what) or odometry_fit_problem(
+        fit, raw=truth.poses_raw is not None, what="the bag's odometry"
+    )
+    return fit, problem

@@ -16,7 +16,8 @@ interleaves them. Publishes every completed visit on
   ``mapping.keyframe_xy`` / ``keyframe_yaw``), each with an odometry sample at its stamp
   (:class:`ptm_ros.mapping.KeyframeStream`); the end marker (below) counts the keyframes sent;
 * ``/diagnostics`` every second and when the input finishes (the final counts): messages received per
-  topic, the counters below and the extractor's.
+  topic, the counters below and the extractor's (``extractor.*``); :func:`input_counts` turns them into
+  ``ptm-run``'s ptm.json ``diagnostics`` (``ptm-bringup`` writes them into its ptm.json).
 
 QoS of the sensor subscriptions: parameter ``sensor_qos`` — ``reliable`` (default; keep all, so a
 replayed bag loses nothing and the visits equal ``ptm-run``'s) or ``sensor_data`` (best effort, for a
@@ -108,7 +109,7 @@ import math
 import time
 import uuid
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -127,7 +128,14 @@ from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
 from ptm_ros.factories import detector_kind, make_extractor
 from ptm_ros.io.validation import ScanPayload, image_payload, odometry_pose, scan_payload
-from ptm_ros.landmarks import ExtractorConfig, VisitExtractor, diagnostics_dict, visit_to_json
+from ptm_ros.landmarks import (
+    ExtractorConfig,
+    ExtractorDiagnostics,
+    VisitExtractor,
+    diagnostics_dict,
+    visit_to_json,
+    with_input_skips,
+)
 from ptm_ros.mapping import KeyframeStream
 from ptm_ros.nodes.common import (
     CLOCK_RESET,
@@ -756,6 +764,40 @@ class LandmarkDetectorNode(Node):
             values=values,
             warn=bad > 0 or bool(self._silent),
         )
+
+
+#: Prefix of the extractor's counters among the ``/diagnostics`` values
+#: (:meth:`LandmarkDetectorNode.diagnostics`).
+EXTRACTOR_PREFIX = "extractor."
+
+
+def input_counts(values: Mapping[str, str]) -> dict[str, Any]:
+    """ptm.json's ``diagnostics`` of the input from the values of the detector's ``/diagnostics`` status
+    (:meth:`LandmarkDetectorNode.diagnostics`, flattened into dotted keys by
+    :func:`ptm_ros.nodes.common.key_values`), under ``ptm-run``'s keys
+    (:func:`ptm_ros.landmarks.with_input_skips`): the extractor's counters (``extractor.*``, summed over the
+    detector's sessions) with the messages the node's input checks skipped (:data:`SKIP_REASONS`, the
+    names of ``ptm-run``'s bag reader) added to ``skipped`` and kept apart under ``read_skipped``. A value
+    that is not an integer count is left out (the extractor's defaults stand)."""
+
+    def count(text: str) -> int | None:
+        try:
+            n = int(text)
+        except (TypeError, ValueError):
+            return None
+        return n if n >= 0 else None
+
+    extractor = diagnostics_dict(ExtractorDiagnostics())
+    for key, text in values.items():
+        if not key.startswith(EXTRACTOR_PREFIX) or (n := count(text)) is None:
+            continue
+        name, _, sub = key[len(EXTRACTOR_PREFIX) :].partition(".")
+        if sub and isinstance(extractor.get(name), dict):
+            extractor[name][sub] = n
+        elif not sub and isinstance(extractor.get(name), int):
+            extractor[name] = n
+    skipped = {reason: n for reason in SKIP_REASONS if (n := count(values.get(reason, ""))) is not None}
+    return with_input_skips(extractor, skipped)
 
 
 def main(args: Sequence[str] | None = None) -> int:

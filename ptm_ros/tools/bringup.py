@@ -21,8 +21,11 @@ and then the occupancy map it drew online along the MAP topology's smoothed traj
 (``ptm_trajectory``) and the detector's surprise trace (``/landmark_detector/surprise_trace``) before
 the nodes stop. From these and the bag's odometry and scans it then writes what ``ptm-run`` writes, with
 ``ptm-run``'s own writers (:func:`ptm_ros.tools.pipeline.write_outputs`, issue #24): ``ptm.json`` gains
-``bag``, ``detector`` and, with a ground truth (``--ground-truth``, else the bag's own), the trajectory
-errors and the map's quality; ``route_graph.geojson`` (on the map's walls and trajectory) and the report
+``bag``, ``detector``, the input messages skipped and why (``diagnostics``: the landmark detector's
+counts from its final ``/diagnostics`` status under ``ptm-run``'s keys, ``skipped`` and
+``read_skipped`` among them, with the extractor's counters; the same warning line as ``ptm-run``) and,
+with a ground truth (``--ground-truth``, else the bag's own), the trajectory errors and the map's
+quality; ``route_graph.geojson`` (on the map's walls and trajectory) and the report
 with ``ptm-run``'s figures (unless ``--no-report``). On the bundled bag every file but ``params.yaml``
 (the nodes' parameters) and ``config.yaml``'s ``mapping`` section (unused by ``ptm-run``) has
 ``ptm-run``'s content, timings and counters aside (tested).
@@ -400,11 +403,13 @@ def make_plan(args: argparse.Namespace) -> Plan:
 class NodeOutputs:
     """What the nodes made beside ptm.json, collected before they stop: the map publisher's map files
     (keys of ``pipeline.OUTPUT_FILES``) and the trajectory it drew them along (``(stamps, poses)``), the
-    detector's surprise trace (None: none)."""
+    detector's surprise trace (None: none) and its input counts (its final ``/diagnostics`` values as
+    ``ptm-run``'s ptm.json ``diagnostics``: :func:`ptm_ros.nodes.landmark_detector.input_counts`)."""
 
     map_files: dict[str, Path] = field(default_factory=dict)
     trajectory: tuple[Any, Any] | None = None
     surprise: Any | None = None
+    input_counts: dict[str, Any] | None = None  # the detector's, ptm-run's diagnostics keys (None: none came)
 
 
 class Bringup:
@@ -412,6 +417,7 @@ class Bringup:
 
     def __init__(self, plan: Plan) -> None:
         import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Path as PathMsg
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
@@ -441,6 +447,8 @@ class Bringup:
         self.node.create_subscription(String, "/ptm_graph", self._on_graph, LATCHED_QOS)
         self.trajectory: Any = None  # the map publisher's latest ptm_trajectory (nav_msgs/Path)
         self.node.create_subscription(PathMsg, "/ptm_trajectory", self._on_trajectory, LATCHED_QOS)
+        self.detector_status: dict[str, str] | None = None  # the values of the detector's latest status
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 50)
         self.outputs = NodeOutputs()  # what the nodes made, for the outputs written after a bag
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -456,6 +464,13 @@ class Bringup:
 
     def _on_trajectory(self, msg: Any) -> None:
         self.trajectory = msg
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        from ptm_ros.nodes.landmark_detector import NODE_NAME as DETECTOR
+
+        for status in msg.status:
+            if status.hardware_id == DETECTOR:
+                self.detector_status = {kv.key: kv.value for kv in status.values}
 
     def log(self, text: str) -> None:
         with _PRINT_LOCK:
@@ -620,10 +635,27 @@ class Bringup:
     def collect(self, info: dict[str, Any] | None) -> NodeOutputs:
         """At a bag's end, before the nodes stop: what the outputs written after it need from them (the
         saved map of ``info``, its trajectory, the detector's surprise trace)."""
+        counts = self.input_counts()
         if info is None:
-            return NodeOutputs(surprise=self.surprise_trace())
+            return NodeOutputs(surprise=self.surprise_trace(), input_counts=counts)
         files = {f"map_{kind}": Path(info[kind]) for kind in ("image", "yaml", "png")}
-        return NodeOutputs(files, self.map_trajectory(info), self.surprise_trace())
+        return NodeOutputs(files, self.map_trajectory(info), self.surprise_trace(), counts)
+
+    def input_counts(self) -> dict[str, Any] | None:
+        """The detector's counts of the whole input, from its latest ``/diagnostics`` status once one says
+        the input is finished (it publishes one at once, then every second), waiting up to
+        :data:`REPLY_TIMEOUT_S` for it; as ``ptm-run``'s ptm.json ``diagnostics``
+        (:func:`ptm_ros.nodes.landmark_detector.input_counts`). None (logged) when none comes."""
+        from ptm_ros.nodes.landmark_detector import input_counts
+
+        deadline = time.monotonic() + REPLY_TIMEOUT_S
+        while time.monotonic() < deadline and not self.stop_requested:
+            status = self.detector_status
+            if status is not None and status.get("finished") == "True":
+                return input_counts(status)
+            self.executor.spin_once(timeout_sec=0.1)
+        self.log("warning: the detector's final counts did not arrive on /diagnostics: none in ptm.json")
+        return None
 
     def map_trajectory(self, info: dict[str, Any]) -> tuple[Any, Any] | None:
         """``(stamps, poses)`` of the trajectory the saved map was drawn along (the map publisher's
@@ -685,10 +717,13 @@ def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.ptm import load_ptm
     from ptm_ros.tools.pipeline import OUTPUT_FILES, provenance, saved_map, write_outputs
-    from ptm_ros.tools.run import format_summary
+    from ptm_ros.tools.run import format_summary, skipped_warning
 
     ptm = load_ptm(plan.out / OUTPUT_FILES["ptm"])
-    ptm = replace(ptm, extra={**provenance(args.bag, plan.config), **ptm.extra})
+    extra = {**provenance(args.bag, plan.config), **ptm.extra}
+    if outputs.input_counts is not None:  # the detector's counts of the input, under ptm-run's keys
+        extra["diagnostics"] = {**dict(extra.get("diagnostics") or {}), **outputs.input_counts}
+    ptm = replace(ptm, extra=extra)
     t = plan.config.topics
     run = read_run(args.bag, odom_topic=t.odom, scan_topic=t.scan, image_topic=None, require=(t.odom,))
     result = write_outputs(
@@ -704,6 +739,9 @@ def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
         title=f"PTM of {args.bag.name} (node suite over DDS)",
         log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
     )
+    warning = skipped_warning(result.diagnostics)
+    if warning:
+        print(f"{PROG}: warning: {warning}", file=sys.stderr)
     return format_summary(result, args.top)
 
 

@@ -55,7 +55,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
@@ -82,11 +82,11 @@ def true_positions_for(
     import numpy as np
 
     from ptm_ros.errors import DataError
-    from ptm_ros.io.groundtruth import interpolate_pose
+    from ptm_ros.io.groundtruth import interpolate_pose, within_span
 
     stamps = np.array([lm.stamp for lm in ptm.landmarks], dtype=float)
     t0, t1 = float(np.min(ground_truth.stamps)), float(np.max(ground_truth.stamps))
-    inside = (stamps >= t0 - max_extrapolation) & (stamps <= t1 + max_extrapolation)
+    inside = within_span(ground_truth, stamps, max_extrapolation)
     if stamps.size and not np.any(inside):
         msg = (
             f"no landmark stamp ({stamps[0]:.3f} … {stamps[-1]:.3f} s) lies within the ground truth's "
@@ -100,60 +100,28 @@ def true_positions_for(
     return xy
 
 
-def check_truth_covers(score: Score) -> None:
-    """Refuse a score most of whose landmarks had no ground truth (their stamps outside its span): the
-    ground truth of another run, or of part of this one. Raises :class:`DataError` with the figures."""
-    from ptm_ros.errors import DataError
-
-    if 2 * score.n_visits_without_truth > score.n_visits:
-        msg = (
-            f"{score.n_visits_without_truth} of {score.n_visits} landmarks lie outside the ground truth's "
-            "time span: is it another run's? (--force scores the rest anyway)"
-        )
-        raise DataError(msg)
-
-
 def odometry_fit_against(
     ptm: Ptm, truth: GroundTruthTrajectory, *, max_extrapolation: float = 0.5
 ) -> OdometryFit:
     """How well the landmarks' odometry poses (``ptm.json``'s ``pose``) fit the ground truth at their stamps
-    (:func:`ptm_ros.evaluation.odometry_fit`): against its raw odometry when it has one (CARMEN: the same
-    odometry), else its true poses; landmarks more than ``max_extrapolation`` s outside its span are left
-    out, as in :func:`true_positions_for`."""
-    import numpy as np
+    (:func:`ptm_ros.io.groundtruth.odometry_fit_at`, the rule ``ptm-run`` applies to the bag's odometry)."""
+    from ptm_ros.io.groundtruth import odometry_fit_at
 
-    from ptm_ros.evaluation import odometry_fit
-    from ptm_ros.io.groundtruth import interpolate_pose
-
-    stamps = np.array([lm.stamp for lm in ptm.landmarks], dtype=float)
-    odom = np.array([lm.pose[:2] for lm in ptm.landmarks], dtype=float).reshape(-1, 2)
-    t0, t1 = float(np.min(truth.stamps)), float(np.max(truth.stamps))
-    inside = (stamps >= t0 - max_extrapolation) & (stamps <= t1 + max_extrapolation)
-    which: Literal["corrected", "raw"] = "raw" if truth.poses_raw is not None else "corrected"
-    ref = interpolate_pose(truth, stamps[inside], which=which, tolerance=max_extrapolation)
-    return odometry_fit(odom[inside], ref[:, :2])
+    stamps = [lm.stamp for lm in ptm.landmarks]
+    odom = [lm.pose[:2] for lm in ptm.landmarks]
+    return odometry_fit_at(truth, stamps, odom, max_extrapolation=max_extrapolation)
 
 
-def check_odometry_fits(fit: OdometryFit, *, raw: bool) -> None:
-    """Refuse a ground truth the landmarks' odometry does not fit (:attr:`OdometryFit.fits`): another run's,
-    its clock overlapping this one's. Raises :class:`DataError` with the figures (``raw``: the fit was
-    against the ground truth's raw odometry, else its true poses)."""
-    from ptm_ros.errors import DataError
+def another_runs_problem(score: Score, fit: OdometryFit, *, raw: bool) -> str | None:
+    """Why the ground truth looks like another run's, with the figures (None: it does not): most landmarks
+    had no ground truth (their stamps outside its span: another run's, or part of this one), or their
+    odometry does not fit it (``fit``; ``raw``: against its raw odometry). The shared rule of
+    :mod:`ptm_ros.io.groundtruth`, as ``ptm-run`` applies it before the work."""
+    from ptm_ros.io.groundtruth import coverage_problem, odometry_fit_problem
 
-    if fit.fits or fit.statistic is None:
-        return
-    legacy = (
-        ""
-        if raw
-        else "; one of a real run written without its raw odometry by an older ptm-run: write it again"
-    )
-    msg = (
-        f"the landmarks' odometry does not move as the ground truth's {'raw odometry' if raw else 'poses'} "
-        f"do: relative residual {fit.statistic:.2f} over {fit.window_m:g} m stretches ({fit.quantile:.0%} "
-        f"quantile of {fit.windows}; a run's own ground truth stays below {fit.limit:g}): is it another "
-        f"run's?{legacy} (--force scores it anyway)"
-    )
-    raise DataError(msg)
+    return coverage_problem(
+        score.n_visits_without_truth, score.n_visits, "landmarks"
+    ) or odometry_fit_problem(fit, raw=raw, what="the landmarks' odometry")
 
 
 def score_against_ground_truth(
@@ -451,7 +419,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("the following arguments are required: --ground-truth (unless --calibration)")
     args.ptm = args.ptm[0]
 
-    from ptm_ros.errors import PtmError
+    from ptm_ros.errors import DataError, PtmError
     from ptm_ros.evaluation import EvalConfig
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.ptm import load_ptm
@@ -463,9 +431,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         extrapolation = args.max_extrapolation
         score = score_against_ground_truth(ptm, truth, config=config, max_extrapolation=extrapolation)
         fit = odometry_fit_against(ptm, truth, max_extrapolation=extrapolation)
-        if not args.force:
-            check_truth_covers(score)
-            check_odometry_fits(fit, raw=truth.poses_raw is not None)
+        problem = another_runs_problem(score, fit, raw=truth.poses_raw is not None)
+        if problem is not None and not args.force:
+            raise DataError(f"{problem} (--force scores it anyway)")
         quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
             from ptm_ros.report import find_chain_trace, write_report

@@ -66,10 +66,11 @@ from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
     interpolate_pose,
     load_ground_truth,
+    run_ground_truth_problem,
     save_sim_gt,
     with_placed_landmarks,
 )
-from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict
+from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
 from ptm_ros.laser import Registration
 from ptm_ros.occupancy import MAP_STEM
 from ptm_ros.partitions import Labels
@@ -247,12 +248,7 @@ def run_diagnostics(run: RunData, extractor: VisitExtractor) -> dict[str, Any]:
     """The input counters of a recorded run (ptm.json's ``diagnostics``): the extractor's, with the
     messages the bag reader skipped added to ``skipped`` under the same reasons as the nodes'
     (:func:`ptm_ros.io.bag.read_run`), and ``read_skipped`` the reader's share of them."""
-    diag = diagnostics_dict(extractor.diagnostics)
-    skipped = dict(diag["skipped"])
-    for reason, n in run.skipped.items():
-        skipped[reason] = skipped.get(reason, 0) + n
-    diag["skipped"] = skipped
-    diag["read_skipped"] = dict(run.skipped)
+    diag = with_input_skips(diagnostics_dict(extractor.diagnostics), run.skipped)
     if extractor.time_offset_estimate is not None:
         diag["time_offset"] = extractor.time_offset_estimate.as_dict()
     return diag
@@ -427,6 +423,7 @@ def run_offline(
     write_trace: bool = False,
     phases: Phases | None = None,
     jobs: int = 1,
+    force: bool = False,
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
@@ -450,6 +447,12 @@ def run_offline(
     MCMC's cold chains: ``ptm.json`` keeps their summary (:func:`ptm_ros.report.split_chain_trace`);
     ``write_trace`` also writes their full states to ``mcmc_trace.json``, from which the report draws the
     SRQ plot.
+
+    The ground truth is judged right after the bag is read, before the heavy work: one that looks like
+    another run's (:func:`ptm_ros.io.groundtruth.run_ground_truth_problem`: less than half of the bag's
+    odometry inside its time span, or the odometry not moving as it does; ``ptm-eval``'s rule and
+    thresholds) is refused with a :class:`DataError` naming the figures, unless ``force`` (then ``log``
+    receives the problem and the run goes on with it).
     """
     t0 = time.perf_counter()
     ph = phases if phases is not None else Phases(quiet=True)
@@ -458,6 +461,8 @@ def run_offline(
     if checkpoint is not None:
         require_rbpf(config, "saving and resuming the filter state (--autosave/--resume)")
     saved = _load_run_state(checkpoint, log) if checkpoint is not None else None
+    gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
+    truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
     topics = config.topics
     run = read_run(
         bag,
@@ -468,8 +473,8 @@ def run_offline(
         appearance=config.model.appearance,
         progress=ph.wrap("reading the bag", "msg"),
     )
-    gt = Path(ground_truth) if ground_truth is not None else find_ground_truth(bag)
-    truth = load_ground_truth(gt) if gt is not None else None  # a bad file fails before the long part
+    if truth is not None:  # another run's ground truth fails now, not after the inference
+        check_ground_truth_of_run(truth, run_odometry(run), force=force, log=log)
     sensors = run_sensors(run)
     used = with_detector_kind(config, **sensors)
     schedule = None
@@ -561,6 +566,30 @@ def run_offline(
     if checkpoint is not None and checkpoint.every:
         files["state"] = checkpoint.path
     return replace(written, diagnostics=diag, files=files, resumed_visits=resumed)
+
+
+def check_ground_truth_of_run(
+    truth: GroundTruthTrajectory,
+    odometry: OdometryData,
+    *,
+    force: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> None:
+    """Refuse a ground truth that looks like another run's, judged on the run's ``odometry``
+    (:func:`ptm_ros.io.groundtruth.run_ground_truth_problem`): a :class:`DataError` with the figures and
+    the way round it; with ``force``, ``log`` receives the problem instead.
+
+    Raises:
+        DataError: the ground truth looks like another run's, and not ``force``.
+    """
+    _, problem = run_ground_truth_problem(truth, odometry.stamps, odometry.poses)
+    if problem is None:
+        return
+    if not force:
+        msg = f"{problem} (--force uses it anyway)"
+        raise DataError(msg)
+    if log is not None:
+        log(f"--force: the ground truth is used although {problem}")
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,9 @@ Prints the most probable topologies and, when the bag carries a ground truth (``
 or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
 trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``), and the map's
 quality against the same scans at the true poses (``map_quality``, :mod:`ptm_ros.map_quality`).
+A ground truth that looks like another run's is refused right after the bag is read, before the work,
+with exit code 2 and one line naming the figures: ``ptm-eval``'s rule and thresholds applied to the bag's
+odometry (:func:`ptm_ros.io.groundtruth.run_ground_truth_problem`); ``--force`` uses it anyway.
 
 Persistence (``--method rbpf``, issue #8): ``--autosave N`` writes the filter's state every N visits and
 after the last one to ``DIR/filter_state.npz`` (``--state-file`` elsewhere; atomic writes, checksummed);
@@ -87,6 +90,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="score against this ground truth: a CARMEN *-gt-*.txt file or a ground_truth.json (default: "
         "the bag's own ground_truth.json, if any)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="use the ground truth even when it looks like another run's (most of the bag's odometry "
+        "outside its time span, or the odometry not moving as it does; checked before the work; default: "
+        "off, refused)",
     )
     p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
     p.add_argument("--no-report", action="store_true", help="skip the figures and report")
@@ -326,6 +336,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             log=lambda note: phases.note(f"{PROG}: {note}"),
             write_trace=args.trace,
             jobs=jobs,
+            force=args.force,
         )
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
