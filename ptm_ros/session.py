@@ -19,12 +19,13 @@ the offline one on those visits. Beyond ``refit_max_visits`` visits the priors a
 and the filter only moves forward (a replay costs one filter update per visit so far).
 
 Heading noise. With ``model.odometry.learn_heading``, the scale of the odometry's heading noise is learned
-from the laser registrations the filter has made (:mod:`ptm_ros.heading_noise`): after every visit, up to
-``refit_max_visits`` visits, the session re-estimates it and, when the estimate has moved
-:data:`HEADING_HYSTERESIS` lattice steps from the scale in use, replays the filter over the visits so far
-with the new one (the registrations are cached, so a replay registers only pairs it has not seen). The
-rule depends on the visits alone, so a live stream and an offline run learn the same scale at the same
-visits and end with the same ensemble.
+from the laser registrations the filter has made (:mod:`ptm_ros.heading_noise`). After every visit the
+session re-estimates it and, when the estimate has moved :data:`HEADING_HYSTERESIS` lattice steps from the
+scale in use, replays the filter over the visits so far with the new one (the registrations are cached,
+so a replay registers only pairs it has not seen). The rule depends on the visits alone, so a stream
+learns the same scale at the same visits as an offline run, and ends with the same ensemble; a live
+stream freezes the scale with the priors beyond ``refit_max_visits`` visits, an offline run never (as
+``ptm-bringup``'s stream, ``refit_max_visits`` 0).
 
 Checkpoints. :meth:`FilterSession.state_dict` holds the visits with their measurements, the registration
 cache and its counters, the appearance priors in use, and the particle filter's own
@@ -298,7 +299,8 @@ class FilterSession:
         """Re-estimate the heading-noise scale from the registrations so far (module docstring) and replay
         the filter with it when it moved by :data:`HEADING_HYSTERESIS` steps or more."""
         cfg = self.config.model.odometry
-        if not cfg.learn_heading or self._filter is None or self._frozen():
+        live_frozen = self._run is None and self._frozen()  # offline, as a never-frozen stream (ptm-bringup)
+        if not cfg.learn_heading or self._filter is None or live_frozen:
             return state
         valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
         if len(valid) == self._heading.registrations:

@@ -168,3 +168,14 @@ def test_the_batch_estimators_use_the_heading_noise_the_filter_learns():
     assert result.log_posteriors[best] == pytest.approx(model.log_posterior(best))
     unlearned = PosteriorModel(visits, exact.model, registrar=registrar)
     assert result.log_posteriors[best] != pytest.approx(unlearned.log_posterior(best))
+
+
+def test_a_live_stream_freezes_the_scale_with_the_priors_and_an_offline_run_does_not():
+    visits, registrar = _run(0.05, seed=1)
+    config = _config()
+    early = filter_visits(FilterSession(config, registrar=registrar), visits[:12]).heading
+    live = filter_visits(FilterSession(config, refit_max_visits=12, registrar=registrar), visits)
+    assert live.heading.step == early.step
+    offline = filter_visits(FilterSession(config, fitted_to=visits, registrar=registrar), visits)
+    never = filter_visits(FilterSession(config, refit_max_visits=0, registrar=registrar), visits)
+    assert offline.heading == never.heading and offline.heading.step != early.step
