@@ -3,13 +3,10 @@ r"""The heading noise of the odometry, learned from the run's own laser registra
 The thesis fixes the odometry noise by hand (eq. 17) and leaves learning it as future work (Ch. 6.3,
 "learning the parameters"). Its default (:class:`ptm_ros.odometry.OdometryConfig`: ``a_th``, ``b_th``,
 ``c_th``) describes wheel odometry, but the visits' poses come from the laser-corrected odometry
-(:mod:`ptm_ros.laser_odometry`), whose heading drifts far less, by how much depending on the building and
-the laser. Against the ground truth, over 30 m of travel, the corrected heading's error variance is about
-0.2 (Intel), 0.15 (ACES) and 0.75 (MIT-CSAIL) of the default model's, and about 0.01 in the simulator. A
-heading model several times too wide lets the metric likelihood bend a loop far enough to merge places
-tens of metres apart (ACES with the thesis' landmarks: visits 30–47 m apart merged, MAP F1 0.65); one too
-narrow refuses true loops (MIT-CSAIL at a quarter of the default: recall 0.93 → 0.79). So the scale is
-learned from each run.
+(:mod:`ptm_ros.laser_odometry`), whose heading drifts far less, by how much depending on the building, the
+laser and the simulator (``bench/heading_noise.md`` measures it against the ground truth). A heading model
+several times too wide lets the metric likelihood bend a loop far enough to merge places tens of metres
+apart; one too narrow refuses true loops. So the scale is learned from each run.
 
 Model
 -----
@@ -31,6 +28,11 @@ With a log-normal prior :math:`\log k \sim \mathcal N(0, s^2)` (``heading_prior_
 the prior guess), the estimate is the posterior mode over the lattice :math:`k = 2^{m/2}` (a step of
 :math:`\sqrt 2` in the variance; :func:`heading_scale`), profiled over ``ε``. Without registrations it is
 the prior's mode, the default model.
+
+Approximation: the residuals are taken as independent, but two registrations whose paths share segments
+share those segments' heading noise, so a run holds less information about ``k`` than their number says
+(the estimate of one run scatters by about a factor 2 around the truth on simulated grid walks); the prior
+and the lattice's hysteresis in :class:`ptm_ros.session.FilterSession` keep it from chasing that noise.
 """
 
 from __future__ import annotations
