@@ -287,13 +287,14 @@ class FilterSession:
                 return old.update(visit)
             return self._rebuild(self._fitted)
         appearance = self._fit(self._visits)
-        keep = old is not None and (
-            same_model(appearance, old.appearance)
-            or (self._frozen() and (appearance is None) == (old.appearance is None))
-        )
-        if old is not None and keep:
+        if old is not None and self._keeps(old.appearance, appearance):
             return old.update(visit)
         return self._rebuild(appearance)
+
+    def _keeps(self, old: AppearanceModel | None, new: AppearanceModel | None) -> bool:
+        """Whether the filter keeps its appearance priors ``old`` when the visits so far fit ``new``: they
+        are the same, or the priors are frozen and appearance is neither switched on nor off."""
+        return same_model(new, old) or (self._frozen() and (new is None) == (old is None))
 
     def _learn_heading(self, state: FilterState) -> FilterState:
         """Re-estimate the heading-noise scale from the registrations so far (module docstring) and replay
@@ -619,6 +620,12 @@ def _infer_batch(
     from ptm_ros.mcmc import starts_from_filter
 
     inf = config.inference
+    if inf.method == "exact" and len(visits) > inf.max_exact_visits:
+        msg = (
+            f"exact enumeration over {len(visits)} visits is too large: inference.max_exact_visits is "
+            f"{inf.max_exact_visits} (at most 12); use --method rbpf or --method mcmc"
+        )
+        raise ConfigError(msg)
     starts = inf.method == "mcmc" and starts_from_filter(inf.mcmc, len(visits))
     learn = config.model.odometry.learn_heading and registrar is not None and config.model.use_laser
     session = _filter_pass(visits, config, registrar, progress) if starts or learn else None
@@ -629,12 +636,6 @@ def _infer_batch(
         heading = {HEADING_KEY: session.heading.as_dict()}
     model = PosteriorModel(visits, model_config, registrar=registrar, seed=inf.seed)
     if inf.method == "exact":
-        if len(visits) > inf.max_exact_visits:
-            msg = (
-                f"exact enumeration over {len(visits)} visits is too large: inference.max_exact_visits is "
-                f"{inf.max_exact_visits} (at most 12); use --method rbpf or --method mcmc"
-            )
-            raise ConfigError(msg)
         logp = exact_posterior(model, progress=progress)
         probs = normalize_log(logp)
         ranked = dict(top_k(probs, inf.top))
