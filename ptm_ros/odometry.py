@@ -139,6 +139,10 @@ class OdometryConfig:
         penalty_max: c_max, the penalty (negative log prior) at distance 0 [nats]; 0 disables the prior.
         registration_volume: V_reg, volume of registration outcomes when two visits are different
             places [m²·rad].
+        learn_heading: learn a scale on the heading noise (``a_th``, ``b_th``, ``c_th``) from the run's laser
+            registrations (:mod:`ptm_ros.heading_noise`) while the filter runs; off: the values as given.
+        heading_prior_sd: s, the standard deviation of the log-normal prior of that scale around 1 (the
+            values as given).
         registration_outlier: ε, probability that a registration passing its fitness tests between two
             visits of one place is nevertheless a false match, uniform over ``V_reg``: a symmetric alias
             (a crossing or corridor passed in opposite directions by a 180° laser matches best turned
@@ -170,6 +174,8 @@ class OdometryConfig:
     penalty_radius: float = 3.0
     penalty_max: float = 5.0
     registration_volume: float = 25.0
+    learn_heading: bool = True
+    heading_prior_sd: float = 1.0
     registration_outlier: float = 0.1
     n_samples: int = 200
     max_sampled_visits: int = 40
@@ -189,6 +195,7 @@ class OdometryConfig:
             "penalty_radius": (self.penalty_radius, True),
             "penalty_max": (self.penalty_max, False),
             "registration_volume": (self.registration_volume, True),
+            "heading_prior_sd": (self.heading_prior_sd, True),
             "tolerance": (self.tolerance, True),
         }
         for name, (value, strict) in floats.items():
@@ -198,6 +205,9 @@ class OdometryConfig:
                 bound = "> 0" if strict else ">= 0"
                 msg = f"OdometryConfig.{name} must be finite and {bound}, got {value!r}"
                 raise ConfigError(msg)
+        if not isinstance(self.learn_heading, bool):
+            msg = f"OdometryConfig.learn_heading must be true or false, got {self.learn_heading!r}"
+            raise ConfigError(msg)
         eps = self.registration_outlier
         if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0.0 <= eps < 1.0:
             msg = f"OdometryConfig.registration_outlier must be in [0, 1), got {eps!r}"

@@ -18,6 +18,15 @@ visits so far: the session re-fits the priors after every visit and, when they c
 the offline one on those visits. Beyond ``refit_max_visits`` visits the priors are frozen as fitted then
 and the filter only moves forward (a replay costs one filter update per visit so far).
 
+Heading noise. With ``model.odometry.learn_heading``, the scale of the odometry's heading noise is learned
+from the laser registrations the filter has made (:mod:`ptm_ros.heading_noise`). After every visit the
+session re-estimates it and, when the estimate has moved :data:`HEADING_HYSTERESIS` lattice steps from the
+scale in use, replays the filter over the visits so far with the new one (the registrations are cached,
+so a replay registers only pairs it has not seen). The rule depends on the visits alone, so a stream
+learns the same scale at the same visits as an offline run, and ends with the same ensemble; a live
+stream freezes the scale with the priors beyond ``refit_max_visits`` visits, an offline run never (as
+``ptm-bringup``'s stream, ``refit_max_visits`` 0).
+
 Checkpoints. :meth:`FilterSession.state_dict` holds the visits with their measurements, the registration
 cache and its counters, the appearance priors in use, and the particle filter's own
 :meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`. A session restored from it continues exactly where it
@@ -42,7 +51,9 @@ from ptm_ros.config import PtmConfig
 from ptm_ros.doubts import doubts_dict, find_doubts
 from ptm_ros.errors import ConfigError, DataError, ModelError, PtmError
 from ptm_ros.factories import Registration, cached, make_registrar
-from ptm_ros.geometry import Registrar
+from ptm_ros.geometry import Registrar, RelativePose
+from ptm_ros.heading_noise import HeadingScale, heading_residuals, heading_scale, scaled_heading_noise
+from ptm_ros.odometry import OdometryConfig
 from ptm_ros.partitions import Labels
 from ptm_ros.persistence import (
     appearance_from_state,
@@ -82,6 +93,13 @@ SESSION_STATE_SCHEMA = "ptm_ros.filter_session/2"
 VERSUS_KEY = "versus_rbpf"
 #: ``ptm.extra`` key of the visits the map is unsure of (:func:`ptm_ros.doubts.doubts_dict`).
 DOUBTS_KEY = "doubts"
+#: ``ptm.inference`` key of the learned heading-noise scale (:class:`ptm_ros.heading_noise.HeadingScale`).
+HEADING_KEY = "heading_noise"
+#: The learned heading-noise scale moves (and the filter replays) only when the estimate is this many
+#: lattice steps (factors √2) away from the one in use, so that it does not flip between neighbours.
+HEADING_HYSTERESIS = 2
+#: The heading-noise scale before anything is learned: the model as configured.
+UNLEARNED = HeadingScale(1.0, 0, 0.0, 0)
 
 
 @dataclass(frozen=True)
@@ -174,6 +192,7 @@ class FilterSession:
         self._built_at = 0  # visits when the filter was last (re)built
         self.replays = 0
         self.wall_s = 0.0
+        self._heading = UNLEARNED
         inner = registrar
         if inner is None and config.model.use_laser:
             inner = make_registrar(self._visits, config, self.registrations)
@@ -254,26 +273,61 @@ class FilterSession:
         return state
 
     def _advance(self, visit: Visit) -> FilterState:
+        return self._learn_heading(self._advance_appearance(visit))
+
+    def _frozen(self) -> bool:
+        """Whether the learned parts (appearance priors, heading noise) are frozen: beyond
+        ``refit_max_visits`` visits."""
+        return 0 < self.refit_max_visits < len(self._visits)
+
+    def _advance_appearance(self, visit: Visit) -> FilterState:
         old = self._filter
         if self._run is not None:
             if old is not None:
                 return old.update(visit)
             return self._rebuild(self._fitted)
         appearance = self._fit(self._visits)
-        if old is not None:
-            frozen = 0 < self.refit_max_visits < len(self._visits)
-            if same_model(appearance, old.appearance) or (
-                frozen and (appearance is None) == (old.appearance is None)
-            ):
-                return old.update(visit)
+        if old is not None and self._keeps(old.appearance, appearance):
+            return old.update(visit)
         return self._rebuild(appearance)
+
+    def _keeps(self, old: AppearanceModel | None, new: AppearanceModel | None) -> bool:
+        """Whether the filter keeps its appearance priors ``old`` when the visits so far fit ``new``: they
+        are the same, or the priors are frozen and appearance is neither switched on nor off."""
+        return same_model(new, old) or (self._frozen() and (new is None) == (old is None))
+
+    def _learn_heading(self, state: FilterState) -> FilterState:
+        """Re-estimate the heading-noise scale from the registrations so far (module docstring) and replay
+        the filter with it when it moved by :data:`HEADING_HYSTERESIS` steps or more."""
+        cfg = self.config.model.odometry
+        live_frozen = self._run is None and self._frozen()  # offline, as a never-frozen stream (ptm-bringup)
+        if not cfg.learn_heading or self._filter is None or live_frozen:
+            return state
+        valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+        if len(valid) == self._heading.registrations:
+            return state
+        learned = heading_scale(heading_residuals(self._visits, valid, cfg), cfg.heading_prior_sd)
+        if abs(learned.step - self._heading.step) < HEADING_HYSTERESIS:
+            self._heading = replace(self._heading, registrations=learned.registrations)
+            return state
+        self._heading = learned
+        return self._rebuild(self._filter.appearance)
+
+    @property
+    def heading(self) -> HeadingScale:
+        """The heading-noise scale in use (:data:`UNLEARNED` until one is learned)."""
+        return self._heading
+
+    def odometry_config(self) -> OdometryConfig:
+        """The odometry model in use: the configured one with the learned heading-noise scale."""
+        return scaled_heading_noise(self.config.model.odometry, self._heading.scale)
 
     def _new_filter(self, appearance: AppearanceModel | None) -> TopologyFilter:
         inf = self.config.inference
         return TopologyFilter(
             rbpf_config(self.config),
             make_prior(self.config.model.prior),
-            self.config.model.odometry,
+            self.odometry_config(),
             appearance=appearance,
             registrar=self._registrar,
             seed=inf.seed,
@@ -302,6 +356,7 @@ class FilterSession:
         self._built_at = 0
         self.replays = 0
         self.wall_s = 0.0
+        self._heading = UNLEARNED
         self.registrations.clear()
         self._start_greedy()
 
@@ -318,6 +373,7 @@ class FilterSession:
             "built_at": self._built_at,
             "replays": self.replays,
             "wall_s": self.wall_s,
+            "heading": self._heading.as_dict(),
             "filter": None if flt is None else flt.state_dict(),
         }
 
@@ -341,6 +397,8 @@ class FilterSession:
             self._built_at = int(state["built_at"])
             self.replays = int(state["replays"])
             self.wall_s = float(state["wall_s"])
+            heading = state.get("heading")  # absent in states saved before it was learned
+            self._heading = UNLEARNED if heading is None else HeadingScale.from_dict(heading)
             if state["filter"] is not None:
                 self._filter = self._restore_filter(
                     state["filter"], appearance_from_state(state["appearance"])
@@ -363,7 +421,7 @@ class FilterSession:
             state,
             rbpf_config(self.config),
             make_prior(self.config.model.prior),
-            self.config.model.odometry,
+            self.odometry_config(),
             appearance=appearance,
             registrar=self._registrar,
         )
@@ -393,6 +451,7 @@ class FilterSession:
             flt,
             self.config,
             greedy=self.greedy,
+            **({HEADING_KEY: self._heading.as_dict()} if self.config.model.odometry.learn_heading else {}),
             **({} if self._run is not None else {"replays": self.replays}),
         )
 
@@ -555,16 +614,28 @@ def _infer_batch(
     progress: Progress | None,
     sweeps: Callable[[int, int], None] | None,
 ) -> Inference:
-    """:func:`infer` for the batch estimators, ``exact`` and ``mcmc``."""
+    """:func:`infer` for the batch estimators, ``exact`` and ``mcmc``: the batch model with the heading
+    noise the particle filter learns on the same visits (:func:`_filter_pass`, when MCMC starts from the
+    filter's ensemble or ``model.odometry.learn_heading`` is on)."""
+    from ptm_ros.mcmc import starts_from_filter
+
     inf = config.inference
-    model = PosteriorModel(visits, config.model, registrar=registrar, seed=inf.seed)
+    if inf.method == "exact" and len(visits) > inf.max_exact_visits:
+        msg = (
+            f"exact enumeration over {len(visits)} visits is too large: inference.max_exact_visits is "
+            f"{inf.max_exact_visits} (at most 12); use --method rbpf or --method mcmc"
+        )
+        raise ConfigError(msg)
+    starts = inf.method == "mcmc" and starts_from_filter(inf.mcmc, len(visits))
+    learn = config.model.odometry.learn_heading and registrar is not None and config.model.use_laser
+    session = _filter_pass(visits, config, registrar, progress) if starts or learn else None
+    model_config = config.model
+    heading: dict[str, Any] = {}
+    if session is not None and learn:
+        model_config = replace(config.model, odometry=session.odometry_config())
+        heading = {HEADING_KEY: session.heading.as_dict()}
+    model = PosteriorModel(visits, model_config, registrar=registrar, seed=inf.seed)
     if inf.method == "exact":
-        if len(visits) > inf.max_exact_visits:
-            msg = (
-                f"exact enumeration over {len(visits)} visits is too large: inference.max_exact_visits is "
-                f"{inf.max_exact_visits} (at most 12); use --method rbpf or --method mcmc"
-            )
-            raise ConfigError(msg)
         logp = exact_posterior(model, progress=progress)
         probs = normalize_log(logp)
         ranked = dict(top_k(probs, inf.top))
@@ -572,23 +643,30 @@ def _infer_batch(
             probabilities=ranked,
             positions=_metric_positions(model, ranked),
             log_posteriors={lab: logp[lab] for lab in ranked},
-            details={"n_topologies_evaluated": len(logp)},
+            details={"n_topologies_evaluated": len(logp), **heading},
         )
     if inf.method == "mcmc":
-        from ptm_ros.mcmc import starts_from_filter
-
-        ensemble = None
-        if starts_from_filter(inf.mcmc, len(visits)):  # the filter's ensemble: the starts and the yardstick
-            laser = model.registrar is not None  # the yardstick scores the same data as the batch model
-            every = replace(
-                config,
-                model=replace(config.model, use_laser=laser),
-                inference=replace(inf, method="rbpf", top=inf.particles),
-            )
-            ensemble = infer(visits, every, registrar=model.registrar, progress=progress).probabilities
-        return _infer_mcmc(model, config, ensemble, sweeps)
+        # the filter's ensemble: the starts and the yardstick
+        ensemble = session.inference().probabilities if starts and session is not None else None
+        out = _infer_mcmc(model, config, ensemble, sweeps)
+        return replace(out, details={**out.details, **heading})
     msg = f"inference method {inf.method!r} is not available"
     raise ConfigError(msg)
+
+
+def _filter_pass(
+    visits: Sequence[Visit], config: PtmConfig, registrar: Registrar | None, progress: Progress | None
+) -> FilterSession:
+    """The particle filter over ``visits`` beside a batch estimator, on the same data (laser pairs from
+    ``registrar``, none without one), listing all its particles: MCMC's starts and yardstick, and the
+    heading noise it learns."""
+    every = replace(
+        config,
+        model=replace(config.model, use_laser=registrar is not None and config.model.use_laser),
+        inference=replace(config.inference, method="rbpf", top=config.inference.particles),
+    )
+    session = FilterSession(every, fitted_to=visits, registrar=registrar)
+    return filter_visits(session, visits, progress=progress)
 
 
 def _metric_positions(model: PosteriorModel, labels: Iterable[Labels]) -> dict[Labels, np.ndarray]:

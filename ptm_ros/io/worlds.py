@@ -19,7 +19,7 @@ consecutive pair (the last to the first included) joined by a corridor. The worl
   like the simulation of thesis Figs. 39-40 (33 visits by default).
 * ``t-junction``: a tiny T of three 5 m corridors for fast tests (6 visits per cycle, 3 by default).
 * ``twin-junctions``: two T-junctions 5 m apart on one corridor, alike to the laser, the second reached
-  from the first only around a 15 x 12 m loop of identical corridors; the first has a wall of another
+  from the first only around a 25 x 20 m loop of identical corridors; the first has a wall of another
   texture across from its branch (weak evidence, to the camera only). After the loop the odometry cannot
   tell whether the robot is back at the first junction or at its twin; the drive on to the first tells
   them apart (8 visits by default: ``make demo``'s world).
@@ -480,7 +480,7 @@ def t_junction() -> World:
 
 
 def twin_junctions() -> World:
-    """Two identical T-junctions 5 m apart on one corridor, the second reached around a 15 x 12 m loop.
+    """Two identical T-junctions 5 m apart on one corridor, the second reached around a 25 x 20 m loop.
 
     The route enters the first junction ``j1`` heading east (a branch on its left, the corridor on
     ahead), drives the loop through the corners ``c-e``, ``c-ne``, ``c-nw`` and reaches the second
@@ -493,9 +493,9 @@ def twin_junctions() -> World:
     places = [
         Place("end-w", 0.0, 0.0, "corridor-end"),
         Place("j1", 5.0, 0.0, "junction"),
-        Place("c-e", 20.0, 0.0, "corner"),
-        Place("c-ne", 20.0, 12.0, "corner"),
-        Place("c-nw", 5.0, 12.0, "corner"),
+        Place("c-e", 30.0, 0.0, "corner"),
+        Place("c-ne", 30.0, 20.0, "corner"),
+        Place("c-nw", 5.0, 20.0, "corner"),
         Place("j2", 5.0, 5.0, "junction"),
         Place("end-p", 10.0, 5.0, "corridor-end"),
     ]
@@ -511,7 +511,7 @@ def twin_junctions() -> World:
     return build_world(
         "twin-junctions",
         "two identical T-junctions 5 m apart on one corridor, the second reached from the first around a "
-        "15 x 12 m loop of identical corridors; the robot then returns to the first",
+        "25 x 20 m loop of identical corridors; the robot then returns to the first",
         places,
         corridors,
         route=["j1", "c-e", "c-ne", "c-nw", "j2", "end-p", "j2", "j1", "end-w"],
