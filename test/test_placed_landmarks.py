@@ -203,7 +203,9 @@ def test_ptm_run_with_the_ground_truth_detector_scores_the_true_topology(
         r"done in ([0-9.]+) s of wall time \(to the PTM ([0-9.]+) s, smoothing ([0-9.]+) s", printed
     )
     assert done is not None, printed
-    assert float(done[1]) >= float(done[2]) + float(done[3]) - 0.1
+    # three figures printed to 0.1 s, each within 0.05 s of its value: the sum of the parts may exceed the
+    # whole by up to 0.15 s (4.3 against 4.2 + 0.2 failed a bound of 0.1 by the float rounding of the sum)
+    assert float(done[1]) >= float(done[2]) + float(done[3]) - 0.15 - 1e-9
     assert eval_cli.main([str(out / "ptm.json"), "--ground-truth", str(out), "--no-topologies"]) == 0
     score = json.loads(capsys.readouterr().out)
     assert score["true_places_from"] == "place-ids" and score["n_true_places"] == len(
