@@ -22,7 +22,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import itertools
-import json
 import platform
 import shutil
 import time
@@ -31,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from run_all import DATASETS, REAL_RUNS, prepare_runs
+from run_all import DATASETS, REAL_RUNS, prepare_runs, write_bench
 
 BENCH = Path(__file__).resolve().parent
 WORLDS = ("aliased-loop", "twin-rooms", "room-row", "aliased-ring", "t-junction")
@@ -165,9 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "simulated": sim,
         "real": real,
     }
-    args.out.write_text(json.dumps(doc, indent=1))
-    write_md(doc, args.out.with_suffix(".md"))
-    print(args.out.with_suffix(".md").read_text())
+    write_bench(doc, args.out, write_md)
     return 0
 
 

@@ -53,7 +53,7 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 
@@ -86,6 +86,13 @@ REAL_RUNS = (
     ("aces", "aces/aces-raw-440.clf.gz", "aces/aces-gt-440.txt"),
     ("mit-csail", "mit-csail/mit-csail.clf.gz", "mit-csail/mit-csail-gt-406.txt"),
 )
+
+
+def write_bench(doc: dict, out: Path, write_md: Callable[[dict, Path], None]) -> None:
+    """A benchmark's record: ``doc`` to ``out`` (JSON) and its markdown (``write_md``) beside it, printed."""
+    out.write_text(json.dumps(doc, indent=1))
+    write_md(doc, out.with_suffix(".md"))
+    print(out.with_suffix(".md").read_text())
 
 
 def run_components(names: list[str] | None) -> list[dict]:

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from ptm_ros.geometry import FloatArray, RelativePose, wrap_angle
-from ptm_ros.odometry import OdometryConfig
+from ptm_ros.odometry import OdometryConfig, odometry_covariances
 from ptm_ros.visits import Visit
 
 #: The lattice of scales: ``k = 2^(m/2)`` for ``m`` in this range (0.001 … 16).
@@ -105,9 +105,9 @@ class HeadingScale:
 
 def path_heading_variances(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
     """``(N,)`` cumulative heading variance of the odometry from visit 0 to each visit (eq. 17's heading
-    terms summed over the segments), so that :math:`V_{ij}` is ``c[j] - c[i]``."""
-    seg = [config.a_th * v.rotation + config.c_th * v.travel + config.b_th for v in visits[1:]]
-    return np.concatenate([[0.0], np.cumsum(seg)])
+    variances of :func:`~ptm_ros.odometry.odometry_covariances` summed), so that :math:`V_{ij}` is
+    ``c[j] - c[i]``."""
+    return np.concatenate([[0.0], np.cumsum(odometry_covariances(visits, config)[:, 2, 2])])
 
 
 def heading_residuals(
