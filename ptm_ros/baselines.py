@@ -547,10 +547,11 @@ def robust_loop_closure(
     if n == 0:
         empty = np.zeros(0)
         return (), LoopClosureDetails((), (), empty, empty.astype(bool), (), u, 0)
-    if registrar is None:
-        register = patch_registrar(visits, LaserConfig() if laser_config is None else laser_config)
-    else:
-        register = registrar
+    register: Registrar = (
+        patch_registrar(visits, LaserConfig() if laser_config is None else laser_config)
+        if registrar is None
+        else registrar
+    )
     candidates = loop_candidates(u, config)
     loops = []
     for i, j in candidates:

@@ -14,9 +14,9 @@ from dataclasses import replace
 from ptm_ros.config import PtmConfig
 from ptm_ros.detectors import Detector, EquidistantDetector, ScheduledDetector
 from ptm_ros.errors import ConfigError
-from ptm_ros.geometry import NoMatch, Registrar, RelativePose
+from ptm_ros.geometry import NoMatch, RelativePose
 from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
-from ptm_ros.laser import patch_registrar
+from ptm_ros.laser import PatchRegistrar, WorkerPool, patch_registrar
 from ptm_ros.visits import Visit
 
 #: What a laser registration of a visit pair gives (None: no information).
@@ -83,10 +83,11 @@ def make_extractor(
     use_images: bool,
     record_corrections: bool = False,
     schedule: Sequence[float] | None = None,
+    patches: WorkerPool | None = None,
 ) -> VisitExtractor:
     """The streaming visit extractor shared by ``ptm-run`` and the detector node (``record_corrections``:
     keep the laser-odometry corrections for smoothing the whole trajectory offline; ``schedule``: the
-    ``ground-truth`` detector's stamps)."""
+    ``ground-truth`` detector's stamps; ``patches``: where the patches are built)."""
     ext = ExtractorConfig(
         use_scans=use_scans and config.model.use_laser,
         use_images=use_images,
@@ -101,12 +102,13 @@ def make_extractor(
         appearance=config.model.appearance,
         config=ext,
         laser_odometry=config.laser_odometry,
+        patches=patches,
     )
 
 
 def make_registrar(
     visits: Sequence[Visit], config: PtmConfig, diag: MutableMapping[str, int] | None = None
-) -> Registrar:
+) -> PatchRegistrar:
     """Laser registration of visit j's patch onto visit i's (i < j) under the same-place hypothesis
     (``visits`` may grow after the call: a pair is registered when asked for); ``diag`` receives the
     registration counters."""

@@ -36,6 +36,7 @@ import json
 import math
 from collections import deque
 from collections.abc import Callable, Mapping
+from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -45,8 +46,8 @@ from numpy.typing import NDArray
 from ptm_ros.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.detectors import Detector, EquidistantDetector
 from ptm_ros.errors import DataError, ModelError, PtmError
-from ptm_ros.geometry import interpolate_poses, wrap_angle
-from ptm_ros.laser import LaserConfig, ScanPoints, passage_patch, usable_points
+from ptm_ros.geometry import FloatArray, interpolate_poses, wrap_angle
+from ptm_ros.laser import LaserConfig, ScanPoints, WorkerPool, passage_patch, passage_slice, usable_points
 from ptm_ros.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
@@ -115,6 +116,20 @@ class _Held:
     scan_points: list[NDArray[np.float64]] = field(default_factory=list)
 
 
+def _ready(patch: FloatArray | Future[FloatArray] | None) -> bool:
+    return not isinstance(patch, Future) or patch.done()
+
+
+@dataclass
+class _Finished:
+    """A visit complete but for its patch (a patch being built elsewhere is a future)."""
+
+    pending: _Pending
+    patch: FloatArray | Future[FloatArray] | None
+    signature: NDArray[np.float64] | None
+    spread: NDArray[np.float64] | None
+
+
 @dataclass
 class _Pending:
     k: int  # index of the odometry sample in the extractor's odometry log
@@ -133,6 +148,9 @@ class VisitExtractor:
     Feed messages with :meth:`on_odometry`, :meth:`on_scan`, :meth:`on_image` in any interleaving (each
     topic in order); each returns the visits completed by it, in visit order. :meth:`flush` completes
     everything at the end of the data.
+
+    ``patches`` (optional) builds the patches elsewhere while the stream goes on: a visit is then returned
+    by the first call after its patch is ready (the visits, their order and the counters are the same).
     """
 
     def __init__(
@@ -143,8 +161,10 @@ class VisitExtractor:
         appearance: AppearanceConfig | None = None,
         config: ExtractorConfig | None = None,
         laser_odometry: LaserOdometryConfig | None = None,
+        patches: WorkerPool | None = None,
     ) -> None:
         self.detector = detector if detector is not None else EquidistantDetector()
+        self.patches = patches
         self.laser = laser or LaserConfig()
         self.appearance = appearance or AppearanceConfig()
         self.config = config or ExtractorConfig()
@@ -181,6 +201,7 @@ class VisitExtractor:
         self._scans: deque[tuple[float, NDArray[np.float64]]] = deque()
         self._images: deque[tuple[float, NDArray[np.float64] | None]] = deque()
         self._pending: deque[_Pending] = deque()
+        self._finished: deque[_Finished] = deque()  # in visit order, waiting for their patches
         self._requests: list[float] = []  # detector firings waiting for the odometry around them
         self._last_visit_k: int | None = None
         self._processed = -math.inf
@@ -492,7 +513,6 @@ class VisitExtractor:
                 v.exit_stamp = stamp
 
     def _complete(self, processed: float) -> list[Visit]:
-        out: list[Visit] = []
         while self._pending:
             v = self._pending[0]
             exit_stamp = (
@@ -504,25 +524,21 @@ class VisitExtractor:
                 break
             self._pending.popleft()
             try:
-                out.append(self._finish(v, processed))
-            except ModelError:  # e.g. a travel beyond visits.MAX_TRAVEL: no odometry
+                self._finished.append(self._finish(v))
+            except ModelError:
                 self.diagnostics.skip("visit-invalid")
         self._prune()
+        out: list[Visit] = []
+        while self._finished and (processed == math.inf or _ready(self._finished[0].patch)):
+            try:
+                out.append(self._emit(self._finished.popleft()))
+            except ModelError:  # e.g. a travel beyond visits.MAX_TRAVEL: no odometry
+                self.diagnostics.skip("visit-invalid")
         return out
 
-    def _finish(self, v: _Pending, processed: float) -> Visit:
-        patch = None
-        if self.config.use_scans and self._scans:
-            stamps = np.array([s for s, _ in self._scans])
-            poses = interpolate_poses(self._odom_t, self._odom_p, stamps)
-            try:
-                patch = passage_patch(
-                    [pts for _, pts in self._scans], stamps, poses, v.stamp, v.pose, config=self.laser
-                )
-            except PtmError:
-                self.diagnostics.skip("patch-failed")
-            if patch is not None and len(patch) < self.laser.min_points:
-                patch = None
+    def _finish(self, v: _Pending) -> _Finished:
+        """Everything of visit ``v`` that needs the buffers as they are now; the patch maybe on its way."""
+        patch = self._patch(v) if self.config.use_scans and self._scans else None
         signature = spread = None
         if self.config.use_images and self._images:
             stamps = np.array([s for s, _ in self._images])
@@ -530,18 +546,52 @@ class VisitExtractor:
             if abs(stamps[j] - v.stamp) <= self.config.image_max_dt:
                 signature = self._images[j][1]
                 spread = self._signature_spread(stamps, j)
+        return _Finished(v, patch, signature, spread)
+
+    def _patch(self, v: _Pending) -> FloatArray | Future[FloatArray] | None:
+        """The patch of visit ``v`` (:func:`~ptm_ros.laser.passage_patch` of its passage), built here or
+        submitted to :attr:`patches`."""
+        stamps = np.array([s for s, _ in self._scans])
+        poses = interpolate_poses(self._odom_t, self._odom_p, stamps)
+        try:
+            sl = passage_slice(stamps, poses, v.stamp, v.pose, self.laser.patch_radius)
+        except PtmError:
+            self.diagnostics.skip("patch-failed")
+            return None
+        scans = [pts for _, pts in list(self._scans)[sl]]
+        if self.patches is not None:
+            return self.patches.submit(
+                passage_patch, scans, stamps[sl], poses[sl], v.stamp, v.pose, config=self.laser
+            )
+        return self._built(
+            lambda: passage_patch(scans, stamps[sl], poses[sl], v.stamp, v.pose, config=self.laser)
+        )
+
+    def _built(self, build: Callable[[], FloatArray]) -> FloatArray | None:
+        """A patch, None (counted) when it cannot be built or has too few points."""
+        try:
+            patch = build()
+        except PtmError:
+            self.diagnostics.skip("patch-failed")
+            return None
+        return patch if len(patch) >= self.laser.min_points else None
+
+    def _emit(self, f: _Finished) -> Visit:
+        v, patch = f.pending, f.patch
+        if isinstance(patch, Future):
+            patch = self._built(patch.result)
         self.diagnostics.visits_without_patch += int(self.config.use_scans and patch is None)
-        self.diagnostics.visits_without_panorama += int(self.config.use_images and signature is None)
+        self.diagnostics.visits_without_panorama += int(self.config.use_images and f.signature is None)
         visit = Visit(
             index=self._count,
             stamp=v.stamp,
             pose=(float(v.pose[0]), float(v.pose[1]), float(v.pose[2])),
             travel=v.travel,
             rotation=v.rotation,
-            signature=signature,
+            signature=f.signature,
             patch=patch,
             odom_pose=None if v.wheel is None else (float(v.wheel[0]), float(v.wheel[1]), float(v.wheel[2])),
-            signature_spread=spread,
+            signature_spread=f.spread,
         )
         self._count += 1
         self.diagnostics.visits += 1

@@ -41,10 +41,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import MutableMapping, Sequence
+from collections.abc import Callable, MutableMapping, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -55,7 +56,6 @@ from ptm_ros.errors import ConfigError, ModelError, PtmError, RegistrationError
 from ptm_ros.geometry import (
     FloatArray,
     NoMatch,
-    Registrar,
     RelativePose,
     between,
     compose,
@@ -95,7 +95,8 @@ _MAX_STEP_CORRECTION = (0.5, 0.2)  # (m, rad): larger ICP corrections of one odo
 _NORMAL_NEIGHBOURS = 16  # target points in the PCA of a normal
 _MAX_CURVATURE = 0.05  # eigenvalue ratio above which a neighbourhood has no normal (corner, clutter)
 _STEP_PRIOR_STD = np.array([0.1, 0.1, 0.05])  # m, m, rad: trust in kiss-icp along unseen directions
-_PREPARED_PATCHES = 512  # patches patch_registrar keeps prepared (least recently used dropped)
+_PREPARED_PATCHES = 512  # patches PatchRegistrar keeps prepared (least recently used dropped)
+_T = TypeVar("_T")
 _GN_ITERATIONS = 30  # point-to-plane Gauss–Newton iterations after kiss-icp
 _MIN_RESIDUAL_VARIANCE = 1e-12  # m², keeps the information finite on noise-free data
 
@@ -1406,13 +1407,28 @@ def _floor_cov(cov: FloatArray, min_std: FloatArray) -> FloatArray:
     return 0.5 * (out + out.T)
 
 
-def patch_registrar(
-    visits: Sequence[Visit],
-    config: LaserConfig | None = None,
-    counters: MutableMapping[str, int] | None = None,
-    *,
-    keep_prepared: int = _PREPARED_PATCHES,
-) -> Registrar:
+class WorkerPool(Protocol):
+    """Runs a function elsewhere, :meth:`concurrent.futures.Executor.submit`'s shape (``ptm-run``'s worker
+    processes)."""
+
+    def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]: ...
+
+
+def register_patch_pair(target: FloatArray, source: FloatArray, config: LaserConfig) -> Registration | None:
+    """Patch ``source`` registered onto patch ``target`` from ``(0, 0, 0)`` (:class:`PatchRegistrar`'s
+    registration of one pair, with both patches prepared afresh); None when one cannot be registered."""
+    try:
+        return _register(
+            _PreparedPatch(_as_points(source, "source"), config),
+            _PreparedPatch(_as_points(target, "target"), config),
+            _IDENTITY,
+            config,
+        )
+    except RegistrationError:
+        return None
+
+
+class PatchRegistrar:
     """Registrar over a visit sequence: visit j's patch registered onto visit i's from ``(0, 0, 0)`` (the
     "same place" hypothesis; the rotations tried cover any heading, and odometry drift makes an
     odometry-based guess meaningless). The outcome is :func:`laser_outcome`'s; None when a patch is
@@ -1422,32 +1438,74 @@ def patch_registrar(
     ``visits`` may grow between calls. Each patch is prepared for registration (downsampled, its KD-tree,
     normals and voxel maps built) once and kept for the ``keep_prepared`` (default
     :data:`_PREPARED_PATCHES`) most recently used visits; a visit whose patch object changed is prepared
-    afresh. The outcomes equal :func:`register_patches`' whatever ``keep_prepared``.
+    afresh. The outcomes equal :func:`register_patches`' whatever ``keep_prepared``, and :meth:`many`'s.
     """
-    cfg = LaserConfig() if config is None else config
-    prepared: dict[int, tuple[FloatArray, _PreparedPatch]] = {}
 
-    def prepare(k: int, patch: FloatArray, role: str) -> _PreparedPatch:
-        hit = prepared.pop(k, None)
+    def __init__(
+        self,
+        visits: Sequence[Visit],
+        config: LaserConfig | None = None,
+        counters: MutableMapping[str, int] | None = None,
+        *,
+        keep_prepared: int = _PREPARED_PATCHES,
+    ) -> None:
+        self.visits = visits
+        self.config = LaserConfig() if config is None else config
+        self.counters = counters
+        self.keep_prepared = keep_prepared
+        self._prepared: dict[int, tuple[FloatArray, _PreparedPatch]] = {}
+
+    def _prepare(self, k: int, patch: FloatArray, role: str) -> _PreparedPatch:
+        hit = self._prepared.pop(k, None)
         if hit is None or hit[0] is not patch:
-            hit = (patch, _PreparedPatch(_as_points(patch, role), cfg))
-        prepared[k] = hit  # most recently used last
-        while len(prepared) > max(keep_prepared, 1):
-            del prepared[next(iter(prepared))]
+            hit = (patch, _PreparedPatch(_as_points(patch, role), self.config))
+        self._prepared[k] = hit  # most recently used last
+        while len(self._prepared) > max(self.keep_prepared, 1):
+            del self._prepared[next(iter(self._prepared))]
         return hit[1]
 
-    def registrar(i: int, j: int) -> RelativePose | NoMatch | None:
-        a, b = visits[i].patch, visits[j].patch
+    def _outcome(self, reg: Registration | None, i: int, j: int) -> RelativePose | NoMatch | None:
+        if reg is None:
+            return None
+        if self.counters is not None:
+            self.counters["registrations"] = self.counters.get("registrations", 0) + 1
+            self.counters["registrations_valid"] = self.counters.get("registrations_valid", 0) + int(
+                reg.valid
+            )
+        return laser_outcome(reg, i, j, self.config)
+
+    def __call__(self, i: int, j: int) -> RelativePose | NoMatch | None:
+        a, b = self.visits[i].patch, self.visits[j].patch
         if a is None or b is None:
             return None
-        source, target = prepare(j, b, "source"), prepare(i, a, "target")
+        source, target = self._prepare(j, b, "source"), self._prepare(i, a, "target")
         try:
-            reg = _register(source, target, _IDENTITY, cfg)
+            reg = _register(source, target, _IDENTITY, self.config)
         except RegistrationError:
-            return None
-        if counters is not None:
-            counters["registrations"] = counters.get("registrations", 0) + 1
-            counters["registrations_valid"] = counters.get("registrations_valid", 0) + int(reg.valid)
-        return laser_outcome(reg, i, j, cfg)
+            reg = None
+        return self._outcome(reg, i, j)
 
-    return registrar
+    def many(
+        self, pairs: Sequence[tuple[int, int]], workers: WorkerPool
+    ) -> dict[tuple[int, int], RelativePose | NoMatch | None]:
+        """The outcomes of ``pairs``, registered by ``workers`` (:func:`register_patch_pair`), in order."""
+        futures = {}
+        for i, j in pairs:
+            a, b = self.visits[i].patch, self.visits[j].patch
+            futures[(i, j)] = (
+                None if a is None or b is None else workers.submit(register_patch_pair, a, b, self.config)
+            )
+        return {
+            (i, j): None if f is None else self._outcome(f.result(), i, j) for (i, j), f in futures.items()
+        }
+
+
+def patch_registrar(
+    visits: Sequence[Visit],
+    config: LaserConfig | None = None,
+    counters: MutableMapping[str, int] | None = None,
+    *,
+    keep_prepared: int = _PREPARED_PATCHES,
+) -> PatchRegistrar:
+    """A :class:`PatchRegistrar` over ``visits``."""
+    return PatchRegistrar(visits, config, counters, keep_prepared=keep_prepared)

@@ -168,6 +168,9 @@ IntArray = NDArray[np.intp]
 #: A registrar returns the laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None
 #: (registration failed its fitness test: no information). Same contract as ``ptm_ros.posterior``.
 
+#: Told the visit pairs ``(i, j)`` the filter is about to ask its registrar for (:class:`TopologyFilter`).
+Prefetch = Callable[[list[tuple[int, int]]], None]
+
 #: Resampling schemes: ``optimal`` (Fearnhead–Clifford, unbiased) or ``top`` (keep the heaviest children,
 #: a deterministic beam; biased, a baseline).
 RESAMPLE_METHODS = ("optimal", "top")
@@ -549,7 +552,8 @@ def _separation_update(
     moment-matched state is ``μ += K(m' - m)``, ``P += K(Σ' - Σ)Kᵀ`` with ``K = cov(ξ, δ) Σ^{-1}``
     (the law of total variance: positive semi-definite). The near places of a child are taken one after
     the other, each under the state updated by the previous ones, so that correlated pairs (a split
-    place whose next visits are split too) are not charged twice.
+    place whose next visits are split too) are not charged twice; the rank-2 covariance updates are
+    summed and written once.
     """
     n_child = len(mean)
     out = np.zeros(n_child)
@@ -569,14 +573,25 @@ def _separation_update(
         return out
     order = np.argsort(np.where(near, dist, np.inf), axis=1, kind="stable")  # nearest first
     n_near = near.sum(axis=1)
-    for r in range(int(n_near.max())):
+    n_round = int(n_near.max())
+    # Round r's covariance update is K_r (Σ' - Σ)_r K_rᵀ. A round reads only the rows of p_s and x_n, so the
+    # updates are kept as factors (Kᵀ stacked, Σ' - Σ block-diagonal) and the (D, D) matrices written once.
+    gains = np.zeros((n_child, 2 * n_round, mean.shape[1]))
+    moves = np.zeros((n_child, 2 * n_round, 2 * n_round))
+    for r in range(n_round):
         rows = np.flatnonzero(n_near > r)
         places = order[rows, r]
         cols = pc[places]  # (R, 2)
         ar = np.arange(len(rows))[:, None]
         m_q = mean[rows[:, None], cols] - mean[rows, :2]
+        pick = np.concatenate([cols, np.broadcast_to(np.arange(2), cols.shape)], axis=1)  # rows p_s, x_n
+        cov_rows = cov[rows[:, None], pick, :]  # (R, 4, D)
+        if r:
+            g = gains[rows, : 2 * r]
+            g_pick = np.take_along_axis(g, pick[:, None, :], axis=2).transpose(0, 2, 1)
+            cov_rows += g_pick @ (moves[rows, : 2 * r, : 2 * r] @ g)
         # cov(δ, ξ) = cov(p_s - x_n, ξ) - cov(η_s, ξ), η_s = p_s - x̄_s: only p_s is correlated with η_s
-        c_q = cov[rows[:, None], cols, :] - cov[rows, :2, :]  # (R, 2, D)
+        c_q = cov_rows[:, :2] - cov_rows[:, 2:]  # (R, 2, D)
         c_q[ar, np.arange(2), cols] -= excess[rows, places][:, None]
         s_q = c_q[ar, :, cols].transpose(0, 2, 1) - c_q[:, :, :2]  # cov(δ): (R, 2, 2)
         s_q = 0.5 * (s_q + s_q.swapaxes(-1, -2))
@@ -584,13 +599,20 @@ def _separation_update(
         out[rows] += log_e
         det = s_q[:, 0, 0] * s_q[:, 1, 1] - s_q[:, 0, 1] * s_q[:, 1, 0]
         ok = (s_q[:, 0, 0] > 0.0) & (det > 1e-12 * np.maximum(np.square(s_q[:, 0, 0] + s_q[:, 1, 1]), 1e-300))
-        if not np.any(ok):
-            continue
         rows, c_q, s_q, s_new, shift = rows[ok], c_q[ok], s_q[ok], s_new[ok], shift[ok]
         gain_t = np.linalg.solve(s_q, c_q)  # Kᵀ = Σ^{-1} cov(δ, ξ): (R, 2, D)
         mean[rows] += np.einsum("rk,rkd->rd", shift, gain_t)
-        upd = gain_t.transpose(0, 2, 1) @ ((s_new - s_q) @ gain_t)  # K (Σ' - Σ) Kᵀ: (R, D, D)
-        cov[rows] += 0.5 * (upd + upd.transpose(0, 2, 1))
+        gains[rows, 2 * r : 2 * r + 2] = gain_t
+        moves[rows, 2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = s_new - s_q
+    moved = np.flatnonzero(np.any(moves != 0.0, axis=(1, 2)))
+    g = gains[moved]
+    upd = g.transpose(0, 2, 1) @ (moves[moved] @ g)  # Σ_r K_r (Σ' - Σ)_r K_rᵀ: (M, D, D)
+    upd += upd.transpose(0, 2, 1)
+    upd *= 0.5
+    if len(moved) == n_child:
+        cov += upd
+    else:
+        cov[moved] += upd
     return out
 
 
@@ -768,6 +790,8 @@ class TopologyFilter:
         appearance: a fitted appearance model, or None to ignore appearance (eq. 46).
         registrar: laser measurements between visits ``(i, j)``, ``i < j``, cached per pair; None: no laser.
         seed: seeds ``np.random.default_rng``; resampling is the only randomness.
+        prefetch: told, before a visit's registrations are asked for one by one, the pairs not asked for
+            before (e.g. to register them in parallel and cache them behind ``registrar``).
     """
 
     def __init__(
@@ -779,6 +803,7 @@ class TopologyFilter:
         appearance: AppearanceModel | None = None,
         registrar: Registrar | None = None,
         seed: int = 0,
+        prefetch: Prefetch | None = None,
     ) -> None:
         if not isinstance(config, RbpfConfig):
             msg = f"config must be an RbpfConfig, got {type(config).__name__}"
@@ -791,6 +816,7 @@ class TopologyFilter:
         self.odometry = odometry
         self.appearance = appearance
         self.registrar = registrar
+        self.prefetch = prefetch
         self._stride = 5 if registrar is not None else 2
         self._rng = np.random.default_rng(seed)
         self._visits: list[Visit] = []
@@ -1046,6 +1072,11 @@ class TopologyFilter:
         z_of: dict[int, RelativePose] = {}
         fitness = np.zeros(len(sel))
         if self.registrar is not None:
+            if self.prefetch is not None:
+                wanted = dict.fromkeys(
+                    (int(st.last[p, k]), n) for p, k in zip(par[~is_new], kk[~is_new], strict=True)
+                )
+                self.prefetch([key for key in wanted if key not in pairs])
             for r in np.flatnonzero(~is_new):
                 i = int(st.last[par[r], kk[r]])
                 z = self._registration(i, n, pairs)
@@ -1240,6 +1271,7 @@ class TopologyFilter:
         *,
         appearance: AppearanceModel | None = None,
         registrar: Registrar | None = None,
+        prefetch: Prefetch | None = None,
     ) -> TopologyFilter:
         """A filter restored from :meth:`state_dict`, continuing exactly where it stopped.
 
@@ -1249,7 +1281,7 @@ class TopologyFilter:
         if state.get("schema") != STATE_SCHEMA:
             msg = f"not an RBPF state ({STATE_SCHEMA}), got schema {state.get('schema')!r}"
             raise ModelError(msg)
-        flt = cls(config, prior, odometry, appearance=appearance, registrar=registrar)
+        flt = cls(config, prior, odometry, appearance=appearance, registrar=registrar, prefetch=prefetch)
         if int(state["stride"]) != flt._stride:
             msg = "the filter state was saved with a different laser setting (registrar given or not)"
             raise ModelError(msg)

@@ -52,7 +52,8 @@ import html
 import json
 import math
 import shutil
-from collections.abc import Hashable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -64,6 +65,7 @@ from ptm_ros.convergence import most_visited, srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.evaluation import Score, first_wrong_visit, timeline_masses, unlisted_bound
 from ptm_ros.figures import ess_fraction, sig
+from ptm_ros.laser import WorkerPool
 from ptm_ros.map_quality import ClassGrid, leaked_cells
 from ptm_ros.occupancy import FREE, OCCUPIED, UNKNOWN
 from ptm_ros.partitions import IntSequence, Labels, num_places
@@ -1143,6 +1145,7 @@ def write_report(
     title: str = "Probabilistic topological map",
     config: ReportConfig | None = None,
     chain_trace: Mapping[str, Any] | None = None,
+    workers: WorkerPool | None = None,
 ) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` into ``out_dir``; returns the HTML path.
 
@@ -1154,7 +1157,8 @@ def write_report(
     figures as a line and a note that the plot needs ``ptm-run --trace``; ``occupancy_map`` an image of
     the metric map (shown with :data:`MAP_CAPTION`) and ``extra_figures`` image files to include (both
     copied into ``out_dir`` unless already there); ``map_comparison`` the map side by side with its
-    reference or its route graph (:func:`draw_map_comparison`); ``notes`` extra summary lines.
+    reference or its route graph (:func:`draw_map_comparison`); ``notes`` extra summary lines;
+    ``workers`` (optional) draws the figures while the pages are written.
     """
     config = config or ReportConfig()
     if not ptm.topologies:
@@ -1177,25 +1181,32 @@ def write_report(
     chains = chain_states(ptm, chain_trace)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    drawn: list[Future[Path]] = []
+
+    def draw(fn: Callable[..., Path], *args: Any, **kwargs: Any) -> None:
+        if workers is None:
+            fn(*args, **kwargs)
+        else:
+            drawn.append(workers.submit(fn, *args, **kwargs))
+
+    draw(draw_histogram, ptm, out / HISTOGRAM, score=score, config=config)
+    draw(draw_topologies, ptm, out / TOPOLOGIES, trajectory=traj, score=score, config=config)
     figures = [
-        ("PTM histogram", draw_histogram(ptm, out / HISTOGRAM, score=score, config=config).name),
-        (
-            f"Top {min(config.top_k, len(ptm.topologies))} topologies",
-            draw_topologies(ptm, out / TOPOLOGIES, trajectory=traj, score=score, config=config).name,
-        ),
+        ("PTM histogram", HISTOGRAM),
+        (f"Top {min(config.top_k, len(ptm.topologies))} topologies", TOPOLOGIES),
     ]
     if score is not None:
-        figures.append(("Scores against ground truth", draw_scores(score, out / SCORES, config=config).name))
+        draw(draw_scores, score, out / SCORES, config=config)
+        figures.append(("Scores against ground truth", SCORES))
     if ptm_timeline(ptm):
         truth = score.true_labels if score is not None else None
-        figures.append(
-            (TIMELINE_CAPTION, draw_timeline(ptm, out / TIMELINE, truth=truth, config=config).name)
-        )
+        draw(draw_timeline, ptm, out / TIMELINE, truth=truth, config=config)
+        figures.append((TIMELINE_CAPTION, TIMELINE))
     notes = list(notes)
     declared = None
     if surprise_trace is not None and len(surprise_trace.stamps):
         declared = len(surprise_trace.landmarks)
-        draw_surprise(surprise_trace, out / SURPRISE, config=config)
+        draw(draw_surprise, surprise_trace, out / SURPRISE, config=config)
         figures.append(("Bayesian surprise of the landmark detector (thesis Fig. 62)", SURPRISE))
         notes.append(
             f"landmark detector: {len(surprise_trace.stamps)} measurements, "
@@ -1207,7 +1218,7 @@ def write_report(
         thin = ptm.inference.get(SRQ_THIN_KEY)
         every = f"states, one per {thin} sweeps" if isinstance(thin, int) and thin > 1 else "states"
         note = f"atom: the state most visited over all chains ({sum(map(len, chains))} {every})"
-        draw_srq(points, out / SRQ, config=config, note=note + (f"; {trapped}" if trapped else ""))
+        draw(draw_srq, points, out / SRQ, config=config, note=note + (f"; {trapped}" if trapped else ""))
         figures.append(("Scaled regeneration quantiles of the MCMC chains (thesis Fig. 42)", SRQ))
         devs = ", ".join(f"{name} {srq_deviation(x, y):.3f}" for name, (x, y) in points.items())
         notes.append(f"SRQ max |y − x| (0 = ideal mixing): {devs}" + (f"; atom {trapped}" if trapped else ""))
@@ -1218,13 +1229,14 @@ def write_report(
         figures.append((MAP_CAPTION, _place_extra(occupancy_map, out, taken, "map")))
     if map_comparison is not None:
         caption = REFERENCE_CAPTION if map_comparison.reference is not None else ROUTES_CAPTION
-        figures.append(
-            (caption, draw_map_comparison(map_comparison, out / MAP_COMPARISON, config=config).name)
-        )
+        draw(draw_map_comparison, map_comparison, out / MAP_COMPARISON, config=config)
+        figures.append((caption, MAP_COMPARISON))
     figures += [(Path(f).stem, _place_extra(f, out, taken, f"extra{k}")) for k, f in enumerate(extra_figures)]
     md = _markdown(title, ptm, score, figures, config, notes=notes, declared=declared)
     (out / REPORT_MD).write_text(md, encoding="utf-8")
     html_path = out / REPORT_HTML
     page = _html(title, ptm, score, figures, config, notes=notes, declared=declared)
     html_path.write_text(page, encoding="utf-8")
+    for future in drawn:
+        future.result()  # a figure's error is the report's
     return html_path

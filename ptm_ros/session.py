@@ -38,6 +38,7 @@ exactly that of an uninterrupted offline run.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -53,6 +54,7 @@ from ptm_ros.errors import ConfigError, DataError, ModelError, PtmError
 from ptm_ros.factories import Registration, cached, make_registrar
 from ptm_ros.geometry import Registrar, RelativePose
 from ptm_ros.heading_noise import HeadingScale, heading_residuals, heading_scale, scaled_heading_noise
+from ptm_ros.laser import PatchRegistrar, WorkerPool
 from ptm_ros.odometry import OdometryConfig
 from ptm_ros.partitions import Labels
 from ptm_ros.persistence import (
@@ -82,7 +84,7 @@ from ptm_ros.ptm import (
     make_ptm,
     timeline_list,
 )
-from ptm_ros.rbpf import FilterState, RbpfConfig, TopologyFilter
+from ptm_ros.rbpf import FilterState, Prefetch, RbpfConfig, TopologyFilter
 from ptm_ros.visits import Visit
 
 #: A progress wrapper: ``progress(items, total)`` yields the items (e.g. a tqdm bar); None: none.
@@ -157,6 +159,8 @@ class FilterSession:
         registrar: a laser registrar over the run's visits to share with other users (offline: the batch
             model of MCMC); default: one over the session's own visits, counting into
             :attr:`registrations`. Either way the session caches its outcomes per pair.
+        workers: where the session's own registrar registers the pairs a visit needs, in parallel
+            (:meth:`ptm_ros.laser.PatchRegistrar.many`; the same outcomes); default: one by one, here.
 
     With ``inference.greedy``, beside the filter the session runs the greedy baseline
     (:class:`ptm_ros.baselines.GreedyAssociation`, odometry only, decisions final) on the same visits,
@@ -174,6 +178,7 @@ class FilterSession:
         refit_max_visits: int = 100,
         fitted_to: Sequence[Visit] | None = None,
         registrar: Registrar | None = None,
+        workers: WorkerPool | None = None,
     ) -> None:
         require_rbpf(config, "a filter session")
         if refit_max_visits < 0:
@@ -194,9 +199,13 @@ class FilterSession:
         self.wall_s = 0.0
         self._heading = UNLEARNED
         inner = registrar
+        own = None
         if inner is None and config.model.use_laser:
-            inner = make_registrar(self._visits, config, self.registrations)
+            inner = own = make_registrar(self._visits, config, self.registrations)
         self._registrar = None if inner is None or not config.model.use_laser else cached(inner, self._pairs)
+        self._prefetch: Prefetch | None = None
+        if own is not None and workers is not None:
+            self._prefetch = functools.partial(_register_many, own, workers, self._pairs)
         self._greedy: GreedyAssociation | None = None
         self._start_greedy()
 
@@ -331,6 +340,7 @@ class FilterSession:
             appearance=appearance,
             registrar=self._registrar,
             seed=inf.seed,
+            prefetch=self._prefetch,
         )
 
     def _rebuild(self, appearance: AppearanceModel | None) -> FilterState:
@@ -424,6 +434,7 @@ class FilterSession:
             self.odometry_config(),
             appearance=appearance,
             registrar=self._registrar,
+            prefetch=self._prefetch,
         )
         if flt.visits != tuple(self._visits):
             msg = "the filter's visits differ from the session's"
@@ -460,6 +471,18 @@ class FilterSession:
         return build_ptm(
             self._visits, self.inference(), self.config, frame_id=frame_id, wall_s=self.wall_s, **extra
         )
+
+
+def _register_many(
+    registrar: PatchRegistrar,
+    workers: WorkerPool,
+    cache: dict[tuple[int, int], Registration],
+    pairs: list[tuple[int, int]],
+) -> None:
+    """Register the ``pairs`` not in ``cache`` with ``workers`` and cache them (a session's prefetch)."""
+    todo = [p for p in pairs if p not in cache]
+    if len(todo) > 1:  # one pair is as fast here
+        cache.update(registrar.many(todo, workers))
 
 
 def filter_visits(

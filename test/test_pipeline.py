@@ -41,6 +41,7 @@ from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.evaluate import main as eval_main
 from ptm_ros.tools.pipeline import (
+    RegistrationPool,
     detect_visits,
     inference_notes,
     route_notes,
@@ -612,3 +613,39 @@ def test_the_summary_prints_how_the_mass_moved_and_the_greedy_answer_beside_it()
     visits = [ln.split()[0] for ln in lines[2:]]
     assert visits == ["0", "…", "4", "5", "6", "7", "…", str(len(truth) - 1)]
     assert lines[3] == "  … 3 visits with one topology holding >= 0.95 of the mass"
+
+
+def _without_timings(doc):
+    """A ptm.json document without its wall-clock figures (which differ between any two runs)."""
+    if isinstance(doc, dict):
+        return {k: _without_timings(v) for k, v in doc.items() if k not in {"timing", "wall_s", "update_ms_median", "update_ms_p95"}}
+    if isinstance(doc, list):
+        return [_without_timings(v) for v in doc]
+    return doc
+
+
+@pytest.mark.slow
+def test_worker_processes_give_the_same_files(tjunction_bag, tmp_path, monkeypatch):
+    """``--jobs 2`` builds the patches, the filter's registrations and the report's figures in worker
+    processes: the same ptm.json (but for the timings), map and route graph as one process, and the
+    same report figures."""
+    submitted: list[str] = []
+    submit = RegistrationPool.submit
+
+    def spy(self, fn, /, *args, **kwargs):
+        submitted.append(fn.__name__)
+        return submit(self, fn, *args, **kwargs)
+
+    monkeypatch.setattr(RegistrationPool, "submit", spy)
+    config = small_config(inference={"method": "rbpf", "particles": 50}, detector={"kind": "equidistant"})
+    run_offline(tjunction_bag, tmp_path / "one", config, jobs=1)
+    assert submitted == []
+    run_offline(tjunction_bag, tmp_path / "two", config, jobs=2)
+    assert {"passage_patch", "register_patch_pair", "draw_histogram", "draw_topologies"} <= set(submitted)
+    one, two = (json.loads((tmp_path / d / "ptm.json").read_text()) for d in ("one", "two"))
+    assert _without_timings(one) == _without_timings(two)
+    for name in ("map.pgm", "map.yaml", "route_graph.geojson"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes(), name
+    figures = {p.name for p in (tmp_path / "one").glob("*.png")}
+    assert {"ptm_histogram.png", "ptm_topologies.png"} <= figures
+    assert figures == {p.name for p in (tmp_path / "two").glob("*.png")}

@@ -46,12 +46,15 @@ import functools
 import heapq
 import json
 import multiprocessing
+import os
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
+from multiprocessing.connection import wait
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -70,8 +73,15 @@ from ptm_ros.io.groundtruth import (
     save_sim_gt,
     with_placed_landmarks,
 )
-from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
-from ptm_ros.laser import Registration
+from ptm_ros.landmarks import (
+    IMAGE,
+    ODOM,
+    SCAN,
+    VisitExtractor,
+    diagnostics_dict,
+    with_input_skips,
+)
+from ptm_ros.laser import Registration, WorkerPool
 from ptm_ros.occupancy import MAP_STEM
 from ptm_ros.partitions import Labels
 from ptm_ros.ptm import Ptm, save_ptm
@@ -96,6 +106,8 @@ if TYPE_CHECKING:
     from ptm_ros.map_quality import ClassGrid
     from ptm_ros.routes import RouteConfig
     from ptm_ros.surprise import SurpriseTrace
+
+_T = TypeVar("_T")
 
 #: Names of the files :func:`run_offline` writes (keys of :attr:`RunResult.files`).
 OUTPUT_FILES = {
@@ -133,10 +145,15 @@ def merged_messages(run: RunData) -> Iterator[tuple[float, int, int]]:
     return heapq.merge(*streams)
 
 
-def run_extractor(run: RunData, config: PtmConfig, schedule: Sequence[float] | None = None) -> VisitExtractor:
+def run_extractor(
+    run: RunData,
+    config: PtmConfig,
+    schedule: Sequence[float] | None = None,
+    patches: WorkerPool | None = None,
+) -> VisitExtractor:
     """A fresh visit extractor for a recorded run: the configured detector or the default for its
     sensors (:func:`detector_kind`), scans and panoramas used when the run has them (``schedule``: the
-    ``ground-truth`` detector's stamps)."""
+    ``ground-truth`` detector's stamps; ``patches``: where the patches are built, here by default)."""
     sensors = run_sensors(run)
     return make_extractor(
         config,
@@ -145,6 +162,7 @@ def run_extractor(run: RunData, config: PtmConfig, schedule: Sequence[float] | N
         use_images=sensors["has_images"],
         record_corrections=True,
         schedule=schedule,
+        patches=patches,
     )
 
 
@@ -427,8 +445,8 @@ def run_offline(
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
-    occupancy map files. ``jobs`` > 1: the refinement's scan matches run in that many worker processes
-    (:class:`RegistrationPool`; the same files).
+    occupancy map files. ``jobs`` > 1: the visits' patches and the refinement's scan matches are built
+    in that many worker processes (:class:`RegistrationPool`; the same files).
 
     ``checkpoint`` (RBPF only) saves the filter's state along the way and/or resumes from it: the state
     is the filter session's (:meth:`ptm_ros.session.FilterSession.state_dict`: the filter, the
@@ -454,6 +472,40 @@ def run_offline(
     thresholds) is refused with a :class:`DataError` naming the figures, unless ``force`` (then ``log``
     receives the problem and the run goes on with it).
     """
+    with RegistrationPool(jobs) as pool:
+        return _run_offline(
+            bag,
+            out_dir,
+            config,
+            ground_truth=ground_truth,
+            progress=progress,
+            write_report=write_report,
+            write_map=write_map,
+            checkpoint=checkpoint,
+            log=log,
+            write_trace=write_trace,
+            phases=phases,
+            force=force,
+            pool=pool,
+        )
+
+
+def _run_offline(
+    bag: str | Path,
+    out_dir: str | Path,
+    config: PtmConfig,
+    *,
+    ground_truth: str | Path | None,
+    progress: Progress | None,
+    write_report: bool,
+    write_map: bool,
+    checkpoint: RunCheckpoint | None,
+    log: Callable[[str], None] | None,
+    write_trace: bool,
+    phases: Phases | None,
+    force: bool,
+    pool: RegistrationPool,
+) -> RunResult:
     t0 = time.perf_counter()
     ph = phases if phases is not None else Phases(quiet=True)
     bag = Path(bag)
@@ -485,7 +537,7 @@ def run_offline(
     if saved is not None and checkpoint is not None:
         check_state_config(saved[1], used, checkpoint.path)
     diag: dict[str, Any] = {}
-    extractor = run_extractor(run, config, schedule)
+    extractor = run_extractor(run, config, schedule, patches=pool if pool.jobs > 1 else None)
     visits = detect_visits(run, config, diag, extractor=extractor, progress=ph.wrap("landmark visits", "msg"))
     method = config.inference.method
     if progress is None:
@@ -496,7 +548,7 @@ def run_offline(
         progress = ph.wrap(name, unit)
     session, resumed = None, 0
     if config.inference.method == "rbpf":
-        session = FilterSession(config, fitted_to=visits)
+        session = FilterSession(config, fitted_to=visits, workers=pool if pool.jobs > 1 else None)
         registrar = session.registrar
         if checkpoint is not None:
             resumed, save = _checkpoint(
@@ -528,10 +580,10 @@ def run_offline(
     traj = None
     if write_report or want_map or truth is not None:
         t1 = time.perf_counter()
-        with ph.step("smoothing"), RegistrationPool(jobs) as mapper:
+        with ph.step("smoothing"):
             base = corrected_odometry(run, extractor)
             traj = map_trajectory(
-                run, visits, ptm.map_topology.labels, config, registrar, odometry=base, mapper=mapper
+                run, visits, ptm.map_topology.labels, config, registrar, odometry=base, mapper=pool
             )
         timing["smoothing_s"] = time.perf_counter() - t1
     map_files: dict[str, Path] = {}
@@ -561,6 +613,7 @@ def run_offline(
         log=log,
         chain_trace=chain_trace if write_trace else None,
         phases=ph,
+        workers=pool if pool.jobs > 1 else None,
     )
     files = dict(written.files)
     if checkpoint is not None and checkpoint.every:
@@ -652,6 +705,7 @@ def write_outputs(
     log: Callable[[str], None] | None = None,
     chain_trace: Mapping[str, Any] | None = None,
     phases: Phases | None = None,
+    workers: WorkerPool | None = None,
 ) -> RunResult:
     """Everything ``ptm-run`` and ``ptm-bringup`` write beside a PTM, from the PTM, the configuration
     ``used``, the recorded run and the run's metric map (files of the module docstring):
@@ -669,7 +723,8 @@ def write_outputs(
     * ``mcmc_trace.json``: the MCMC ``chain_trace`` (:func:`ptm_ros.report.split_chain_trace`), if given,
       from which the report draws its SRQ plot.
 
-    ``phases`` shows the map quality, the route graph and the report as progress bars (none by default).
+    ``phases`` shows the map quality, the route graph and the report as progress bars (none by default);
+    ``workers`` (optional) draws the report's figures.
     ``RunResult.diagnostics`` is ``ptm.extra["diagnostics"]`` (callers with the extractor's replace it).
     """
     ph = phases if phases is not None else Phases(quiet=True)
@@ -725,6 +780,7 @@ def write_outputs(
                 + inference_notes(ptm.inference),
                 title=title,
                 chain_trace=chain_trace,
+                workers=workers,
             )
     return RunResult(
         ptm=ptm,
@@ -1079,17 +1135,42 @@ def map_trajectory(
     )
 
 
+def _exit_with_parent() -> None:
+    """A worker's initializer: end the worker as soon as the process that started it has ended (a killed
+    ``ptm-run`` leaves no workers behind holding its pipes)."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        wait([parent.sentinel])
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 class RegistrationPool:
-    """A :class:`~ptm_ros.refinement.Mapper` over ``jobs`` worker processes, started on the first batch of
-    at least ``min_batch`` registrations (smaller batches, and ``jobs`` <= 1, run here: a pool's start-up
-    costs more than they do). Outcomes come back in order, computed by the same function, so the
-    refinement is identical whatever ``jobs``. Workers come from a fork server that has imported
-    :mod:`ptm_ros.refinement` once (forking this process could copy a held lock of its threads)."""
+    """``jobs`` worker processes for a run's independent scan matching: the visits' patches and the
+    filter's registrations (:meth:`submit`, a :class:`~ptm_ros.laser.WorkerPool`) and the refinement's
+    (a :class:`~ptm_ros.refinement.Mapper`; batches of fewer than ``min_batch``, and everything when
+    ``jobs`` <= 1, run here: a pool's start-up costs more than they do). Outcomes are computed by the same
+    functions and come back in order, so the files are identical whatever ``jobs``. Workers come from a
+    fork server that has imported this module and matplotlib once (forking this process could copy a
+    held lock of its threads), started on first use; a worker ends when this process does, even killed."""
 
     def __init__(self, jobs: int, min_batch: int = 32) -> None:
         self.jobs = jobs
         self.min_batch = min_batch
         self._pool: ProcessPoolExecutor | None = None
+
+    def _workers(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload(["ptm_ros.tools.pipeline", "matplotlib.backends.backend_agg"])
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.jobs, mp_context=context, initializer=_exit_with_parent
+            )
+        return self._pool
 
     def __call__(
         self, fn: Callable[[RegistrationJob], Registration | None], jobs: Iterable[RegistrationJob], /
@@ -1097,12 +1178,12 @@ class RegistrationPool:
         batch = list(jobs)
         if self.jobs <= 1 or len(batch) < self.min_batch:
             return map(fn, batch)
-        if self._pool is None:
-            context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload(["ptm_ros.refinement"])
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context)
         chunk = max(1, len(batch) // (4 * self.jobs))
-        return self._pool.map(fn, batch, chunksize=chunk)
+        return self._workers().map(fn, batch, chunksize=chunk)
+
+    def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]:
+        """``fn(*args, **kwargs)`` in a worker process."""
+        return self._workers().submit(fn, *args, **kwargs)
 
     def __enter__(self) -> RegistrationPool:
         return self
