@@ -615,10 +615,13 @@ def test_the_summary_prints_how_the_mass_moved_and_the_greedy_answer_beside_it()
     assert lines[3] == "  … 3 visits with one topology holding >= 0.95 of the mass"
 
 
+TIMINGS = {"timing", "wall_s", "update_ms_median", "update_ms_p95"}
+
+
 def _without_timings(doc):
     """A ptm.json document without its wall-clock figures (which differ between any two runs)."""
     if isinstance(doc, dict):
-        return {k: _without_timings(v) for k, v in doc.items() if k not in {"timing", "wall_s", "update_ms_median", "update_ms_p95"}}
+        return {k: _without_timings(v) for k, v in doc.items() if k not in TIMINGS}
     if isinstance(doc, list):
         return [_without_timings(v) for v in doc]
     return doc
