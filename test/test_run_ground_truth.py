@@ -105,3 +105,31 @@ def test_ptm_run_uses_the_runs_own_ground_truth(runs, extractions, tmp_path):
     assert code == 0, err
     assert "--force" not in err and "score vs ground truth" in stdout
     assert json.loads((out / "ptm.json").read_text())["trajectory_error"]["ground_truth"] == str(runs["own"])
+
+
+def test_ptm_bringup_refuses_another_runs_ground_truth_before_any_node_starts(
+    runs, tmp_path, monkeypatch, capsys
+):
+    """``ptm-bringup --bag B --ground-truth OTHER`` refuses as ``ptm-run`` does, before any node starts;
+    with ``--force`` the plan is made and the problem logged."""
+    from ptm_ros.tools import bringup
+
+    def no_nodes(*args, **kwargs):
+        raise AssertionError("ptm-bringup started the nodes before refusing the ground truth")
+
+    monkeypatch.setattr(bringup, "Bringup", no_nodes)
+    out = tmp_path / "out"
+    args = ["--bag", str(runs["bag"]), "--ground-truth", str(runs["other"]), "--out", str(out)]
+    code, stdout, err = call(bringup.main, args)
+    assert code == 2 and stdout == ""
+    line = one_error_line(err, "ptm-bringup")
+    assert "the bag's odometry does not move as the ground truth's poses do" in line, line
+    assert "(--force uses it anyway)" in line
+    assert not out.exists()
+
+    plan = bringup.make_plan(bringup.build_parser().parse_args([*args, "--force"]))
+    assert plan.truth == runs["other"]
+    assert (
+        "ptm-bringup: --force: the ground truth is used although the bag's odometry"
+        in capsys.readouterr().err
+    )

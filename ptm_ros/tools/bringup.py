@@ -117,6 +117,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --bag, score against this ground truth: a CARMEN *-gt-*.txt file or a ground_truth.json "
         "(default: the bag's own ground_truth.json, if any)",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="use the ground truth even when it looks like another run's (most of the bag's odometry "
+        "outside its time span, or the odometry not moving as it does; checked before the nodes start; "
+        "default: off, refused)",
+    )
     p.add_argument("--no-report", action="store_true", help="skip the report and figures (with --bag)")
     p.add_argument("--top", type=int, default=5, help="topologies to print (default: %(default)s)")
     p.add_argument(
@@ -325,11 +332,12 @@ def make_plan(args: argparse.Namespace) -> Plan:
     from ptm_ros.config import ros_parameters_yaml, save_config
     from ptm_ros.errors import BagError, ConfigError
     from ptm_ros.factories import with_detector_kind
+    from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.mapping import every_sample
     from ptm_ros.nodes.bag_player import bag_topics
     from ptm_ros.tools.paths import output_dir
-    from ptm_ros.tools.pipeline import find_ground_truth
+    from ptm_ros.tools.pipeline import check_ground_truth_of_run, find_ground_truth, run_odometry
 
     config, params_is_ros = load_parameters(args.params)
     t = config.topics
@@ -343,8 +351,11 @@ def make_plan(args: argparse.Namespace) -> Plan:
     truth = args.ground_truth
     if truth is None and args.bag is not None:
         truth = find_ground_truth(args.bag)  # a simulated bag's own, as ptm-run finds it
-    if truth is not None:
-        load_ground_truth(truth)  # a bad file fails now, not after the run
+    if truth is not None and args.bag is not None:  # a bad file or another run's fails now, not after the run
+        odometry = read_run(args.bag, odom_topic=t.odom, scan_topic=None, image_topic=None, require=(t.odom,))
+        check_ground_truth_of_run(
+            load_ground_truth(truth), run_odometry(odometry), force=args.force, log=_note
+        )
     present = {
         name: topic in topics and topics[topic].count > 0
         for name, topic in (("scans", t.scan), ("images", t.panorama))
@@ -707,6 +718,10 @@ class Bringup:
         return codes
 
 
+def _note(note: str) -> None:
+    print(f"{PROG}: {note}", file=sys.stderr)
+
+
 def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
     """After a bag: ``ptm-run``'s outputs from what the nodes made (``pipeline.write_outputs`` on the map
     publisher's ptm.json, map and trajectory, the detector's surprise trace and the bag's odometry and
@@ -737,7 +752,7 @@ def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
         surprise=outputs.surprise,
         write_report=not args.no_report,
         title=f"PTM of {args.bag.name} (node suite over DDS)",
-        log=lambda note: print(f"{PROG}: {note}", file=sys.stderr),
+        log=_note,
     )
     warning = skipped_warning(result.diagnostics)
     if warning:
