@@ -182,11 +182,12 @@ def copy_map(src: Path, dst: Path, max_bytes: int = MAX_MAP_BYTES) -> Path:
 
 
 def pipeline_row(name: str, kind: str, bag: Path, gt: Path, out: Path, config, method: str):  # noqa: PLR0917
-    """``ptm-run``'s pipeline on one run with ``config``: its result and its results row."""
+    """``ptm-run``'s pipeline on one run with ``config``, with ``ptm-run``'s worker processes (one per
+    CPU): its result and its results row."""
     from ptm_ros.tools.pipeline import run_offline
 
     t0 = time.perf_counter()
-    result = run_offline(bag, out, config, ground_truth=gt)
+    result = run_offline(bag, out, config, ground_truth=gt, jobs=os.cpu_count() or 1)
     wall = time.perf_counter() - t0
     row = {"run": name, "kind": kind, "method": method, "wall_s": wall, **score_row(result.score)}
     row["time_offset_s"] = config.laser_odometry.time_offset
@@ -358,7 +359,8 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         "commit to one topology (probability 1). `ate_smoothed_m` / "
         "`ate_odometry_m`: absolute trajectory error (RMSE after the best rigid 2-D alignment, m) of the "
         "smoothed trajectory of the most probable topology and of the raw odometry, at the odometry stamps "
-        "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json). "
+        "inside the ground truth's span. `wall_s` includes the occupancy map (`map_s` in results.json) "
+        "and the report, with `ptm-run`'s worker processes (one per CPU). "
         "`ptm-rbpf` runs with the default parameters; `ptm-rbpf calibrated` (only where the calibration "
         "below chose a non-zero offset) with `laser_odometry.time_offset` = `time_offset_s` (s) from "
         "`ptm-calibrate`, everything else default. `gt-landmarks`: landmarks fixed in the environment "
