@@ -112,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--jobs",
         type=int,
         default=None,
-        help="worker processes for the map's scan matches (default: the machine's CPUs); the same results",
+        help="worker processes for the scan matching (the visits' patches, the filter's registrations, the "
+        "map's refinement) and the report's figures (default: the machine's CPUs); the same results",
     )
     p.add_argument(
         "--autosave",
