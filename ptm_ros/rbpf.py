@@ -605,14 +605,11 @@ def _separation_update(
         gains[rows, 2 * r : 2 * r + 2] = gain_t
         moves[rows, 2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = s_new - s_q
     moved = np.flatnonzero(np.any(moves != 0.0, axis=(1, 2)))
-    g = gains[moved]
-    upd = g.transpose(0, 2, 1) @ (moves[moved] @ g)  # Σ_r K_r (Σ' - Σ)_r K_rᵀ: (M, D, D)
-    upd += upd.transpose(0, 2, 1)
-    upd *= 0.5
-    if len(moved) == n_child:
-        cov += upd
-    else:
-        cov[moved] += upd
+    half = 0.5 * (moves[moved] @ gains[moved])
+    for c, h in zip(moved.tolist(), half, strict=True):  # per child: its (D, D) blocks stay in cache
+        upd = gains[c].T @ h  # ½ Σ_r K_r (Σ' - Σ)_r K_rᵀ
+        upd += upd.T  # symmetric to the last bit
+        cov[c] += upd
     return out
 
 
