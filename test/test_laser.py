@@ -598,7 +598,8 @@ def test_point_to_plane_equals_the_plain_iteration(world, seed, spread):
 def test_patch_registrar_prepares_each_patch_once_and_equals_register_patches(monkeypatch):
     """The registrar keeps every visit's patch prepared across pairs and roles (source of one pair,
     target of another); its outcomes equal fresh :func:`register_patches` calls, also after the prepared
-    patches are evicted (a cache of 2) and when a visit's patch object is replaced."""
+    patches are evicted (a cache of 2), when a visit's patch object is replaced and when the pairs are
+    registered elsewhere (``many``)."""
     from dataclasses import replace as dc_replace
 
     import ptm_ros.laser as laser
@@ -645,6 +646,23 @@ def test_patch_registrar_prepares_each_patch_once_and_equals_register_patches(mo
     monkeypatch.setattr(laser, "_PREPARED_PATCHES", 2)
     for pair in [(0, 1), (2, 3), (0, 3), (1, 2)]:
         check(*pair)
+
+    # many(): the same outcomes and counters, registered elsewhere (a worker pool's submit)
+    from concurrent.futures import ThreadPoolExecutor
+
+    counted: dict[str, int] = {}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        pooled = patch_registrar(visits, cfg, counted).many(pairs, pool)
+    assert list(pooled) == pairs
+    for (i, j), got in pooled.items():
+        want = registrar(i, j)
+        assert type(got) is type(want)
+        if isinstance(want, RelativePose):
+            np.testing.assert_array_equal(got.mean, want.mean)
+            np.testing.assert_array_equal(got.cov, want.cov)
+        if want is not None:
+            assert (got.i, got.j, got.log_bayes) == (want.i, want.j, want.log_bayes)
+    assert counted == {"registrations": 6, "registrations_valid": 1}
 
 
 def test_tiny_or_empty_patches_raise():
