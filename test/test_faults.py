@@ -169,7 +169,7 @@ def test_detector_killed_mid_run_filter_keeps_its_map_and_recovers(
     out = tmp_path / "detector"
     params = tmp_path / "params.yaml"  # the demo's parameters, and a short wait for missed messages
     params.write_text(PARAMS.read_text() + "    end_timeout: 2.0\n")
-    args = ["--bag", str(demo_bag), "--rate", "4", "--params", str(params), "--out", str(out)]
+    args = ["--bag", str(demo_bag), "--rate", "8", "--params", str(params), "--out", str(out)]
     args += ["--no-report", "--respawn", "1"]
     with ros_context(monkeypatch) as ros:  # a probe on the suite's domain
         probe = ros.node("fault_probe")
