@@ -1414,18 +1414,24 @@ class WorkerPool(Protocol):
     def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]: ...
 
 
+def _same_place_registration(
+    source: _PreparedPatch, target: _PreparedPatch, config: LaserConfig
+) -> Registration | None:
+    """``source`` registered onto ``target`` from ``(0, 0, 0)``; None when it cannot be registered."""
+    try:
+        return _register(source, target, _IDENTITY, config)
+    except RegistrationError:
+        return None
+
+
 def register_patch_pair(target: FloatArray, source: FloatArray, config: LaserConfig) -> Registration | None:
     """Patch ``source`` registered onto patch ``target`` from ``(0, 0, 0)`` (:class:`PatchRegistrar`'s
     registration of one pair, with both patches prepared afresh); None when one cannot be registered."""
-    try:
-        return _register(
-            _PreparedPatch(_as_points(source, "source"), config),
-            _PreparedPatch(_as_points(target, "target"), config),
-            _IDENTITY,
-            config,
-        )
-    except RegistrationError:
-        return None
+    return _same_place_registration(
+        _PreparedPatch(_as_points(source, "source"), config),
+        _PreparedPatch(_as_points(target, "target"), config),
+        config,
+    )
 
 
 class PatchRegistrar:
@@ -1479,11 +1485,7 @@ class PatchRegistrar:
         if a is None or b is None:
             return None
         source, target = self._prepare(j, b, "source"), self._prepare(i, a, "target")
-        try:
-            reg = _register(source, target, _IDENTITY, self.config)
-        except RegistrationError:
-            reg = None
-        return self._outcome(reg, i, j)
+        return self._outcome(_same_place_registration(source, target, self.config), i, j)
 
     def many(
         self, pairs: Sequence[tuple[int, int]], workers: WorkerPool

@@ -73,14 +73,7 @@ from ptm_ros.io.groundtruth import (
     save_sim_gt,
     with_placed_landmarks,
 )
-from ptm_ros.landmarks import (
-    IMAGE,
-    ODOM,
-    SCAN,
-    VisitExtractor,
-    diagnostics_dict,
-    with_input_skips,
-)
+from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
 from ptm_ros.laser import Registration, WorkerPool
 from ptm_ros.occupancy import MAP_STEM
 from ptm_ros.partitions import Labels
@@ -445,8 +438,9 @@ def run_offline(
 ) -> RunResult:
     """Bag in, the files of the module docstring out (the score when a ground truth is known: the
     ``ground_truth`` file, else the simulator's beside the bag); ``write_map=False`` skips the
-    occupancy map files. ``jobs`` > 1: the visits' patches and the refinement's scan matches are built
-    in that many worker processes (:class:`RegistrationPool`; the same files).
+    occupancy map files. ``jobs`` > 1: the visits' patches, the filter's registrations, the refinement's
+    scan matches and the report's figures are made in that many worker processes
+    (:class:`RegistrationPool`; the same files).
 
     ``checkpoint`` (RBPF only) saves the filter's state along the way and/or resumes from it: the state
     is the filter session's (:meth:`ptm_ros.session.FilterSession.state_dict`: the filter, the
@@ -537,7 +531,7 @@ def _run_offline(
     if saved is not None and checkpoint is not None:
         check_state_config(saved[1], used, checkpoint.path)
     diag: dict[str, Any] = {}
-    extractor = run_extractor(run, config, schedule, patches=pool if pool.jobs > 1 else None)
+    extractor = run_extractor(run, config, schedule, patches=pool.workers)
     visits = detect_visits(run, config, diag, extractor=extractor, progress=ph.wrap("landmark visits", "msg"))
     method = config.inference.method
     if progress is None:
@@ -548,7 +542,7 @@ def _run_offline(
         progress = ph.wrap(name, unit)
     session, resumed = None, 0
     if config.inference.method == "rbpf":
-        session = FilterSession(config, fitted_to=visits, workers=pool if pool.jobs > 1 else None)
+        session = FilterSession(config, fitted_to=visits, workers=pool.workers)
         registrar = session.registrar
         if checkpoint is not None:
             resumed, save = _checkpoint(
@@ -613,7 +607,7 @@ def _run_offline(
         log=log,
         chain_trace=chain_trace if write_trace else None,
         phases=ph,
-        workers=pool if pool.jobs > 1 else None,
+        workers=pool.workers,
     )
     files = dict(written.files)
     if checkpoint is not None and checkpoint.every:
@@ -1180,6 +1174,11 @@ class RegistrationPool:
             return map(fn, batch)
         chunk = max(1, len(batch) // (4 * self.jobs))
         return self._workers().map(fn, batch, chunksize=chunk)
+
+    @property
+    def workers(self) -> RegistrationPool | None:
+        """This pool as a :class:`~ptm_ros.laser.WorkerPool`; None when ``jobs`` <= 1 (all work here)."""
+        return self if self.jobs > 1 else None
 
     def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]:
         """``fn(*args, **kwargs)`` in a worker process."""
