@@ -33,9 +33,9 @@ keeping the odometry *incremental* (no loop closing happens here: that remains t
   runs and the Intel, ACES and MIT-CSAIL logs (≥ 0.1 s between scans) are matched scan by scan exactly
   as without the gate (a gate on motion alone changed MIT-CSAIL's visits, 74 → 73, and its MAP topology).
 
-Measured on the three real runs (per visit-to-visit step against the corrected trajectories; see the
-closing note of issue #4): Intel heading drift −0.057 → −0.0003 rad/m, ACES 0.0031 → 0.0010 rad/m.
-The visits' poses then obey the default noise model of :mod:`ptm_ros.odometry` (χ²/dof ≤ 1).
+On the real runs the correction removes most of the wheel odometry's error between visits;
+``bench/odometry_noise.md`` compares both, wheel and corrected, with the noise model of
+:mod:`ptm_ros.odometry`.
 """
 
 from __future__ import annotations

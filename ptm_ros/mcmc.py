@@ -181,9 +181,9 @@ class McmcConfig:
             driven start for long runs, where chains from singletons stay trapped; ``ptm-run`` runs the
             filter first, :func:`ptm_ros.session.infer`; :func:`run_mcmc` needs them as
             ``initial``), or "auto" (default): "singletons" up to ``auto_filter_visits`` visits, "rbpf"
-            beyond (:func:`starts_from_filter`). Measured on the real runs (``bench/mcmc.json``, 300 s):
-            from singletons MCMC's best topology stayed 94 nats (Intel, 119 visits) and 21 nats (MIT,
-            74) below the filter's; from the filter's it ended 2.0 and 0.05 nats above.
+            beyond (:func:`starts_from_filter`): on the long real runs chains from singletons stay far
+            below the filter's best topology, chains from the filter's end at or above it
+            (``bench/mcmc.json``).
         auto_filter_visits: most visits for which "auto" starts from singletons (the simulated 33-visit
             world converges from there in ~3 s).
         estimate: the PTM returned as ``probabilities``: "visited" (default) or "histogram".

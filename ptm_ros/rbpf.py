@@ -69,10 +69,10 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    This is the chain rule of the batch integral, which integrates the penalty over the poses
    (importance sampling, eq. 18: what ``ptm-run --method exact`` computes). Evaluating the penalty at
    the means instead (the Laplace estimate's ``c`` at ``X*``; this filter before issue #23) charges a
-   split place — two visits ~1 m apart taken as two places, ``c ≈ 1.5`` nats — its penalty at the
-   point, where the integral over the visits' ~0.5 m uncertainty is ~1.6 nats milder: on
-   ``ptm-sim --seed 11 --landmarks 9`` the "no loop" topology got 0.04 instead of 0.16 (TV 0.125, now
-   0.004). Charging each pair's expectation without updating the state double-charges correlated pairs
+   split place (two visits a metre apart taken as two places) its penalty at the point, where the
+   integral over the visits' uncertainty is much milder, and so undervalued "no loop" topologies
+   (``bench/exact.json``; the test ``test_filter_matches_enumeration_where_the_separation_prior_matters``).
+   Charging each pair's expectation without updating the state double-charges correlated pairs
    (a split place whose next visit is split too: the first penalty pushes both apart), hence the ADF
    update.
 6. The PTM is the normalised particle weights; the effective sample size ``1/Σ w²`` and the number of
@@ -88,28 +88,25 @@ logarithm in the linear case).
 
 Known limitation (EKF inconsistency): a loop closure that corrects a large heading drift (tens of
 degrees) is absorbed by a linear update of a state whose past poses are gone, so the map of that
-topology is distorted (in ``bench/bench_rbpf.py``'s 6×6 world, 2.4 m RMS from the batch optimum after
-closing a 28 m drift) and its later revisits score too low; a wrong topology that avoided the closure
-can then overtake it (true topology 0.2 in the filter, preferred by 22 nats in the batch). A smoothing
+topology is distorted (``bench/bench_rbpf.py``'s 6×6 world, ``bench/rbpf.json``) and its later
+revisits score too low; a wrong topology that avoided the closure can then overtake it. A smoothing
 back-end, or re-optimising a particle's poses after a large innovation, would remove this.
 
-Measured against ``ptm-run --method exact`` (``bench/bench_exact.py``: 24 simulated runs of 8–9 visits
-through every world, 1000 particles; see ``bench/exact.json``), two differences remain:
+Against ``ptm-run --method exact`` (``bench/bench_exact.py``, figures in ``bench/exact.json``) two
+differences remain:
 
 * the EKF linearisation above, also for moderate closures: a closure several metres off the odometry at
   tens of metres from the pivoting headings is scored with the straight-line (linearised) image of the
   heading errors, where the batch Laplace estimate linearises at the closed path (its arc), and
-  importance sampling confirms the batch. ``two-loop`` seed 103: visit 7 closing 10.8 m onto place 1
-  scores 2.3 nats lower than in the batch (TV 0.24); every ``multi-loop`` run (4 m closures at 15 m):
-  ~0.3 nats, TV 0.04–0.07. The gap vanishes as the heading noise goes to 0 (measured on seed 101).
-  A state that keeps the heading errors' pivots (a Lie-group or smoothing filter) would remove it.
+  importance sampling confirms the batch. The gap vanishes as the heading noise goes to 0. Integrating
+  the revisit likelihood along an arc of the turn error instead of its tangent (one pivot, or the
+  odometry's pivots since the place's last visit) closes most of it on the simulated runs but moves real
+  runs' far closures by tens of nats, both ways, because the state no longer knows the path's pivots;
+  a state that keeps them (a Lie-group or smoothing filter) would remove it.
 * the alias decision of a laser registration (below): the filter tests a registration against its state
   *with* the topology's earlier registrations, the batch model (:func:`~ptm_ros.odometry.alias_test`)
-  against the optimum *without* any. On ``t-junction`` seed 106 the batch keeps as a true match a
-  registration (visits 0, 6) that contradicts two others, in a topology whose alternative alias set is
-  14 nats more probable; summing that topology's likelihood over all 16 alias sets (importance
-  sampling each) puts it 5.3 nats above the batch's MAP, the filter 5.1 nats, the batch 8.8 below: TV
-  0.99, an error of the batch model's max-mixture, not of the filter.
+  against the optimum *without* any; where they disagree the batch's max-mixture can keep as a true match
+  a registration that contradicts others, an error of the batch model, not of the filter.
 
 The laser factor is known only after selection (registrations are expensive, so only the selected
 revisits are registered). As in :class:`~ptm_ros.posterior.PosteriorModel`, the data are the outcomes of

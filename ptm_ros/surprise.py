@@ -41,11 +41,10 @@ narrow sectors: around the left (+90°) and right (-90°) directions and straigh
 (junction, door, corner) enters the lateral sectors within about a corridor half-width of the decision
 point and the lateral range jumps from the wall distance to the depth of the opening, a step the
 surprise catches. The area and the wide-sector statistics are dominated by the long forward view and
-ramp up over metres as an opening comes into view, which the forgetting model absorbs. Measured on the
-simulated worlds (``bench/bench_surprise.py``, 192 passages): recall within 2 m 1.00 with no false
-positive (``sectors``, ``sides``), 0.30 (``log-area``; at most ~0.77 when its own prior and memory are
-tuned), 0.01 (``mean-log-range``). Appearance surprise is weaker: on the simulated panoramas the words
-detector beats chance on two of the four worlds and the Fourier variant on none.
+ramp up over metres as an opening comes into view, which the forgetting model absorbs. On the
+simulated worlds the sector features find the passages without false positives and the area and
+range means miss most of them; appearance surprise is weaker (``bench/bench_surprise.py``,
+``bench/surprise.json``).
 
 **Forgetting**, precisely: before each measurement the statistics are multiplied by
 ``exp(-1/memory - Δs/memory_distance)`` with ``Δs`` the odometry travel since the previous measurement

@@ -1,4 +1,5 @@
-"""Issue #9: the nodes under a storm of malformed messages (seeded random), fed straight to their callbacks.
+"""Issue #9: the nodes under a storm of malformed messages (seeded random), fed straight to their callbacks
+(the topology filter's: to its rclpy-free :class:`~ptm_ros.nodes.filter_inbox.FilterInbox`).
 
 Two kinds of storm per node:
 
@@ -9,7 +10,8 @@ Two kinds of storm per node:
   random bytes), some of which are plausible and used. Then a fresh valid stream in a new session: its
   output must equal a clean node's on the same stream.
 
-Every storm asserts zero ``internal_errors`` (no exception reached a callback's last-resort guard), and
+Every storm asserts zero ``internal_errors`` (no exception reached a callback's last-resort guard; the
+inbox has no guard, so any exception fails its storms), and
 that the counters account for every message received. In all, each message kind (odometry, scan,
 panorama, end_of_input, landmark visit, ptm_graph) gets at least ``2 * N_STORM`` malformed messages.
 """
@@ -31,11 +33,12 @@ from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
 from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
+from ptm_ros.nodes.messages import END_SCHEMA
 from ptm_ros.partitions import enumerate_partitions
 from ptm_ros.ptm import Landmark, make_ptm
 from ptm_ros.visits import Visit
 
-pytestmark = pytest.mark.dds  # every test runs the nodes in an rclpy context on its own ROS domain
+pytestmark = pytest.mark.dds  # the nodes run in an rclpy context on its own ROS domain
 
 N_STORM = 5_000  # malformed messages per kind and storm (two storms per kind: >= 10,000 per kind)
 
@@ -502,13 +505,11 @@ def test_detector_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros,
     assert d["clock_resets"] >= 3 and d["sessions"] >= 2  # odometry, scans and panoramas went back
     assert_same_visits(published_visits(node, node.session_id), published_visits(clean))
     ends = [
-        json.loads(m.data)
-        for m in node._visit_pub.items
-        if json.loads(m.data).get("schema") == common.END_SCHEMA
+        json.loads(m.data) for m in node._visit_pub.items if json.loads(m.data).get("schema") == END_SCHEMA
     ]
     assert ends == [
         {
-            "schema": common.END_SCHEMA,
+            "schema": END_SCHEMA,
             "visits": len(published_visits(clean)),
             "session": node.session_id,
             "keyframes": len(node._scan_pub.items),
@@ -551,19 +552,15 @@ def synthetic_visits(rng: np.random.Generator, n: int = 10) -> list[Visit]:
     return out
 
 
-def filter_node(ros, refit: int = 4) -> Any:
-    from rclpy.parameter import Parameter
+def filter_inbox(refit: int = 4) -> Any:
+    """The topology filter node's logic without rclpy (the node hands it every message's text)."""
+    import logging
 
-    from ptm_ros.nodes.topology_filter import TopologyFilterNode
+    from ptm_ros.config import load_config
+    from ptm_ros.nodes.filter_inbox import FilterInbox
 
-    params = {"model.use_laser": False, "inference.particles": 20, "refit_max_visits": refit}
-    node = ros.add(
-        TopologyFilterNode(
-            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
-        )
-    )
-    node._graph_pub, node._marker_pub, node._diag_pub = Recorder(), Recorder(), Recorder()
-    return node
+    config = load_config(None, {"model": {"use_laser": False}, "inference": {"particles": 20}})
+    return FilterInbox(config, logging.getLogger("filter_inbox"), refit_max_visits=refit)
 
 
 def _array(a: np.ndarray) -> dict[str, Any]:
@@ -575,7 +572,7 @@ def neutral_visit_corruption(
 ) -> tuple[str, str]:
     """A ``landmark_visits`` message the filter must drop (``nxt``: index of the next valid visit, which
     has already arrived up to ``nxt - 1``), and the counter that must count it."""
-    from ptm_ros.nodes.landmark_detector import visit_message
+    from ptm_ros.nodes.messages import visit_message
 
     doc = json.loads(visit_message(visits[nxt], session))
     kind = int(rng.integers(9))
@@ -652,34 +649,30 @@ def neutral_visit_corruption(
         ), "implausible"
     count = [-1, "3", True, 2.5, None, 0][int(rng.integers(6))]
     if rng.random() < 0.3:
-        return json.dumps({"schema": common.END_SCHEMA, "visits": nxt, "session": "other"}), "foreign"
-    return json.dumps({"schema": common.END_SCHEMA, "visits": count, "session": session}), "invalid"
+        return json.dumps({"schema": END_SCHEMA, "visits": nxt, "session": "other"}), "foreign"
+    return json.dumps({"schema": END_SCHEMA, "visits": count, "session": session}), "invalid"
 
 
-def test_filter_neutral_storm_leaves_the_ensemble_exact(ros):
-    from std_msgs.msg import String
-
-    from ptm_ros.nodes.landmark_detector import visit_message
+def test_filter_neutral_storm_leaves_the_ensemble_exact():
+    from ptm_ros.nodes.messages import visit_message
     from ptm_ros.session import FilterSession
 
     rng = np.random.default_rng(11)
     visits = synthetic_visits(rng)
-    node = filter_node(ros)
+    node = filter_inbox()
     clean = FilterSession(node.config, refit_max_visits=4)
     counts: dict[str, int] = {}
-    node._on_visit(String(data=visit_message(visits[0], "s")))
+    node.receive(visit_message(visits[0], "s"))
     clean.add(visits[0])
     per_gap = N_STORM // (len(visits) - 1) + 1
     for nxt in range(1, len(visits)):
         for _ in range(per_gap):
             text, counter = neutral_visit_corruption(rng, visits, nxt, "s")
-            node._on_visit(String(data=text))
+            node.receive(text)
             counts[counter] = counts.get(counter, 0) + 1
-        node._on_visit(String(data=visit_message(visits[nxt], "s")))
+        node.receive(visit_message(visits[nxt], "s"))
         clean.add(visits[nxt])
-    node._on_visit(
-        String(data=json.dumps({"schema": common.END_SCHEMA, "visits": len(visits), "session": "s"}))
-    )
+    node.receive(json.dumps({"schema": END_SCHEMA, "visits": len(visits), "session": "s"}))
     d = node.diagnostics()
     assert sum(counts.values()) >= N_STORM
     assert {k: d[k] for k in counts} == counts
@@ -689,8 +682,7 @@ def test_filter_neutral_storm_leaves_the_ensemble_exact(ros):
     assert online.probabilities == offline.probabilities  # bit for bit
     for lab in offline.probabilities:
         assert np.array_equal(online.positions[lab], offline.positions[lab])
-    doc = json.loads(node._graph_pub.items[-1].data)
-    assert doc["stream"] == {"visits": len(visits), "complete": True}
+    assert len(node.session.visits) == len(visits) and node.problems() == sum(counts.values())
 
 
 WILD_JSON = [
@@ -739,23 +731,19 @@ def wild_text(rng: np.random.Generator, text: str) -> str:
     return "".join(chars)
 
 
-def test_filter_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros):
-    from std_msgs.msg import String
-
-    from ptm_ros.nodes.landmark_detector import visit_message
+def test_filter_survives_a_wild_storm_and_then_maps_a_new_session_exactly():
+    from ptm_ros.nodes.messages import visit_message
     from ptm_ros.session import FilterSession
 
     rng = np.random.default_rng(12)
     visits = synthetic_visits(rng)
-    node = filter_node(ros)
+    node = filter_inbox()
     texts = [visit_message(v, "wild storm session") for v in visits]
-    texts.append(
-        json.dumps({"schema": common.END_SCHEMA, "visits": len(visits), "session": "wild storm session"})
-    )
+    texts.append(json.dumps({"schema": END_SCHEMA, "visits": len(visits), "session": "wild storm session"}))
     for k in range(N_STORM):
-        node._on_visit(String(data=wild_text(rng, texts[int(rng.integers(len(texts)))])))
+        node.receive(wild_text(rng, texts[int(rng.integers(len(texts)))]))
         if k % 500 == 0:
-            node._on_visit(String(data=texts[min(k // 500, len(texts) - 1)]))
+            node.receive(texts[min(k // 500, len(texts) - 1)])
     d = node.diagnostics()
     assert d["internal_errors"] == 0 and d["invalid"] > N_STORM // 2
     taken = ("invalid", "duplicates", "implausible", "out_of_order", "foreign", "accepted", "ends")
@@ -764,7 +752,7 @@ def test_filter_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros):
     fresh = synthetic_visits(np.random.default_rng(13))
     clean = FilterSession(node.config, refit_max_visits=4)
     for v in fresh:
-        node._on_visit(String(data=visit_message(v, "fresh")))
+        node.receive(visit_message(v, "fresh"))
         clean.add(v)
     assert node.counters["internal_errors"] == 0 and len(node.session.visits) == len(fresh)
     assert node.session.inference().probabilities == clean.inference().probabilities
@@ -897,7 +885,7 @@ def draw(node: Any, visits: list[Visit], session: str) -> Any:
     the first and last visits one place), and draw the map."""
     from std_msgs.msg import String
 
-    from ptm_ros.nodes.landmark_detector import visit_message
+    from ptm_ros.nodes.messages import visit_message
     from ptm_ros.nodes.topology_filter import graph_document
 
     for v in visits:

@@ -35,25 +35,39 @@ def test_every_top_level_module_is_in_the_core_contract():
     assert set(contract("adapters")["layers"].split()) == ADAPTERS
 
 
-def test_the_core_imports_with_ros_and_bags_absent():
-    """Every core module imports in a fresh interpreter in which rclpy, rosbags and the message packages
-    cannot be imported (a finder that refuses them), and none of them is loaded afterwards."""
-    forbidden = contract("core")["forbidden_modules"].split()
+def imports_without(modules: list[str], contract_name: str) -> None:
+    """Import ``modules`` in a fresh interpreter in which the external modules the contract forbids cannot
+    be imported (a finder that refuses them); afterwards none of them, nor any ptm_ros module the
+    contract forbids, may be loaded."""
+    forbidden = contract(contract_name)["forbidden_modules"].split()
     blocked = tuple(m for m in forbidden if not m.startswith("ptm_ros."))  # the external ones
+    internal = tuple(m for m in forbidden if m.startswith("ptm_ros."))
     code = f"""
 import importlib, importlib.abc, sys
 BLOCKED = {blocked!r}
 class Refuse(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
         if name.split(".")[0] in BLOCKED:
-            raise ImportError(f"{{name}} is not available in the core")
+            raise ImportError(f"{{name}} is not available here")
 sys.meta_path.insert(0, Refuse())
-for mod in {sorted(core_modules())!r}:
+for mod in {sorted(modules)!r}:
     importlib.import_module(mod)
-ADAPTERS = ("ptm_ros.io", "ptm_ros.nodes", "ptm_ros.tools")
-loaded = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED or m.startswith(ADAPTERS))
+INTERNAL = {internal!r}
+loaded = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED or m.startswith(INTERNAL))
 assert not loaded, loaded
 print("ok")
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=False)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_the_core_imports_with_ros_and_bags_absent():
+    """Every core module imports without rclpy, rosbags and the message packages, and loads no adapter."""
+    imports_without(sorted(core_modules()), "core")
+
+
+def test_the_nodes_logic_imports_without_ros():
+    """The nodes' rclpy-free modules (their logic and wire format) import without rclpy and the message
+    packages, and load no node module."""
+    logic = contract("node-logic")["source_modules"].split()
+    imports_without(logic, "node-logic")

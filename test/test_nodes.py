@@ -9,7 +9,6 @@ import io
 import json
 import math
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -22,26 +21,23 @@ import pytest
 from ros_helpers import Inbox, dds_env, next_domain_id, ros_context, wait_for
 
 from ptm_ros.config import PtmConfig, load_config
-from ptm_ros.errors import ConfigError, DataError, ModelError
+from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
 from ptm_ros.io.validation import scan_payload
 from ptm_ros.landmarks import ExtractorDiagnostics, diagnostics_dict, visit_to_json, with_input_skips
 from ptm_ros.nodes import common
+from ptm_ros.nodes.filter_inbox import visit_line
 from ptm_ros.nodes.map_publisher import map_path, parse_graph
-from ptm_ros.nodes.messages import parse_visit_message
+from ptm_ros.nodes.messages import END_SCHEMA, parse_visit_message
 from ptm_ros.nodes.topology_filter import (
-    BENIGN,
-    COUNTERS,
     edge_probabilities,
     ensemble_markers,
     graph_document,
     topology_alpha,
-    visit_line,
 )
 from ptm_ros.occupancy import load_map, to_ros_data, trinary
 from ptm_ros.partitions import enumerate_partitions
-from ptm_ros.persistence import load_filter_state
 from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
 from ptm_ros.session import FilterSession
 from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
@@ -625,12 +621,12 @@ def test_visit_messages_are_parsed_or_rejected(sim_visits):
     v = sim_visits[1]
     back = parse_visit_message(visit_to_json(v))
     assert back == v and np.array_equal(back.patch, v.patch)
-    assert parse_visit_message(json.dumps({"schema": common.END_SCHEMA, "visits": 4})) == 4
+    assert parse_visit_message(json.dumps({"schema": END_SCHEMA, "visits": 4})) == 4
     for bad, match in [
         ("{", "not JSON"),
         ("[1]", "schema must be"),
         (json.dumps({"schema": "ptm_ros.visit/1", "index": 0}), "malformed visit"),
-        (json.dumps({"schema": common.END_SCHEMA, "visits": -1}), "bad count"),
+        (json.dumps({"schema": END_SCHEMA, "visits": -1}), "bad count"),
     ]:
         with pytest.raises(DataError, match=match):
             parse_visit_message(bad)
@@ -706,7 +702,7 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         for v in sim_visits:
             pub.publish(String(data=visit_to_json(v)))
         pub.publish(String(data=visit_to_json(sim_visits[2])))  # a duplicate
-        pub.publish(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": len(sim_visits)})))
+        pub.publish(String(data=json.dumps({"schema": END_SCHEMA, "visits": len(sim_visits)})))
 
         def final_graph():
             msg = graph.last()
@@ -781,7 +777,7 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         assert saved.topologies == ptm.topologies
         reply = ros.call(probe, Trigger, "/topology_filter/reset")
         assert reply.success and "forgot" in reply.message
-        assert not flt.session.visits
+        assert not flt.inbox.session.visits
 
 
 #: nav2_costmap_2d's costs (cost_values.hpp) and its static layer's reading of a map cell
@@ -877,221 +873,6 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
         assert grid.info.resolution == pytest.approx(saved.resolution)
 
 
-@pytest.mark.dds
-def test_filter_node_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_visits, monkeypatch):
-    """Visit stream anomalies, fed straight to the node's callback (no DDS traffic needed)."""
-    from rclpy.parameter import Parameter
-    from std_msgs.msg import String
-    from std_srvs.srv import Trigger
-
-    from ptm_ros.nodes.topology_filter import TopologyFilterNode
-
-    def msg(v):
-        return String(data=visit_to_json(v))
-
-    overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=20)]
-    with ros_context(monkeypatch) as ros:
-        node = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
-        v = sim_visits
-        node._on_visit(msg(v[0]))
-        node._on_visit(msg(v[1]))
-        node._on_visit(msg(v[3]))  # visit 2 never arrives
-        node._on_visit(msg(v[1]))  # a duplicate
-        node._on_visit(msg(v[0]))  # visit 0 delivered again: a duplicate too, not a restart
-        assert any(u.signature is not None for u in node.session.visits)
-        node._on_visit(msg(replace(v[4], signature=np.zeros(3), signature_spread=None)))  # unlike the map's
-        real_add = node.session.add
-
-        def add(visit):
-            if visit.stamp == v[4].stamp:
-                raise ModelError("a visit the models cannot use")
-            return real_add(visit)
-
-        monkeypatch.setattr(node.session, "add", add)
-        node._on_visit(msg(v[4]))
-        assert node.counters["gaps"] == 1 and node.counters["duplicates"] == 2
-        assert node.counters["invalid"] == 1 and node.counters["rejected"] == 1
-        assert len(node.session.visits) == 3 and node.counters["resets"] == 0
-        assert [u.stamp for u in node.session.visits] == [v[0].stamp, v[1].stamp, v[3].stamp]
-        assert not node.complete
-        node._on_visit(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": 4})))
-        assert not node.complete and node.counters["invalid"] == 2  # 5 visits arrived: not the end
-        node._on_visit(String(data=json.dumps({"schema": common.END_SCHEMA, "visits": 5})))
-        assert node.complete  # every announced visit was consumed, mapped or not
-        node._on_visit(msg(replace(v[5], index=0)))  # a different visit 0: the detector restarted
-        assert len(node.session.visits) == 1 and not node.complete and node.counters["resets"] == 1
-        reply = node._on_reset(Trigger.Request(), Trigger.Response())
-        assert reply.success and reply.message == "forgot 1 visits" and node.session.filter is None
-        node._on_visit(msg(v[5]))  # after a reset, numbering starts again from the next visit
-        assert [u.index for u in node.session.visits] == [0] and node.session.visits[0].stamp == v[5].stamp
-        assert node.counters["internal_errors"] == 0
-
-
-@pytest.mark.dds
-def test_filter_node_follows_detector_sessions(sim_visits, monkeypatch):
-    """Visits carry the detector's session id: a new session (from visit 0) starts a new map; visits of
-    another session, old visits, implausible index jumps and inconsistent end markers are dropped."""
-    from rclpy.parameter import Parameter
-    from std_msgs.msg import String
-
-    from ptm_ros.nodes.landmark_detector import visit_message
-    from ptm_ros.nodes.topology_filter import MAX_VISIT_GAP, TopologyFilterNode
-
-    def msg(visit, session, index=None):
-        return String(data=visit_message(visit if index is None else replace(visit, index=index), session))
-
-    def end(count, session):
-        return String(data=json.dumps({"schema": common.END_SCHEMA, "visits": count, "session": session}))
-
-    overrides = [Parameter("model.use_laser", value=False), Parameter("inference.particles", value=20)]
-    v = [replace(u, signature=None) for u in sim_visits]
-    with ros_context(monkeypatch) as ros:
-        node = ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
-        for k in range(3):
-            node._on_visit(msg(v[k], "a"))
-        node._on_visit(msg(v[3], "b", index=1))  # another session, not from its start
-        node._on_visit(end(3, "b"))
-        assert node.counters["foreign"] == 2 and len(node.session.visits) == 3
-        node._on_visit(msg(v[3], "a", index=3 + MAX_VISIT_GAP + 1))  # a corrupt index
-        node._on_visit(msg(v[1], "a", index=3))  # older than the map's latest visit
-        assert node.counters["implausible"] == 1 and node.counters["out_of_order"] == 1
-        node._on_visit(msg(v[0], "a"))  # visit 0 of the same session again: a duplicate
-        assert node.counters["duplicates"] == 1 and node.counters["resets"] == 0
-        node._on_visit(msg(v[0], "b"))  # session b starts (same data: a looped bag): a new map
-        node._on_visit(msg(v[1], "b"))
-        assert node.counters["resets"] == 1 and len(node.session.visits) == 2
-        node._on_visit(msg(v[2], "a"))  # the old session is over
-        node._on_visit(end(1, "b"))  # fewer visits than already arrived
-        assert node.counters["foreign"] == 3 and node.counters["invalid"] == 1 and not node.complete
-        node._on_visit(end(2, "b"))
-        assert node.complete and [u.stamp for u in node.session.visits] == [v[0].stamp, v[1].stamp]
-        assert node.counters["internal_errors"] == 0
-
-
-def filter_node(ros, **params):
-    """An in-process topology_filter without laser, fed through its callback (no DDS traffic needed)."""
-    from rclpy.parameter import Parameter
-
-    from ptm_ros.nodes.topology_filter import TopologyFilterNode
-
-    base = {"model.use_laser": False, "inference.particles": 20, **params}
-    overrides = [Parameter(k, value=v) for k, v in base.items()]
-    return ros.add(TopologyFilterNode(context=ros.context, parameter_overrides=overrides))
-
-
-def stream_messages(visits, session):
-    """The detector's history on landmark_visits: its visits (numbered from 0), then its end marker."""
-    from std_msgs.msg import String
-
-    from ptm_ros.nodes.landmark_detector import visit_message
-
-    end = {"schema": common.END_SCHEMA, "visits": len(visits), "session": session}
-    msgs = [String(data=visit_message(replace(v, index=i), session)) for i, v in enumerate(visits)]
-    return [*msgs, String(data=json.dumps(end))]
-
-
-@pytest.mark.dds
-def test_filter_node_autosaves_and_resumes_from_the_detector_history(sim_visits, tmp_path, monkeypatch):
-    """Issue #8: a filter killed after its last autosave, restarted with ``resume``, skips the visits the
-    detector's transient-local history redelivers that it restored, maps the rest and ends exactly as a
-    filter that was never interrupted. An earlier detector session in that history starts no map."""
-    from std_srvs.srv import Trigger
-
-    v = [replace(u, signature=None) for u in sim_visits]
-    old, new = stream_messages(v[:2], "r"), stream_messages(v[2:], "s")  # a looped bag: two sessions
-    history = old + new
-    state = tmp_path / "filter" / "state.npz"
-    params = {"state_file": str(state), "autosave_every": 2}
-    with ros_context(monkeypatch) as ros:
-        reference = filter_node(ros)
-        for m in history:
-            reference._on_visit(m)
-        assert reference.complete and len(reference.session.visits) == len(v) - 2
-
-        first = filter_node(ros, **params)
-        for m in old + new[:5]:  # session r (2 visits, end), then visits 0..4 of session s
-            first._on_visit(m)
-        assert first.persistence["saves"] == 4  # r: 2 visits; its end; s: visits 0-1, 2-3
-        assert load_filter_state(state)[0]["next_index"] == 4
-        first.state_file = None  # kill -9: no save at shutdown
-
-        resumed = filter_node(ros, resume=True, **params)
-        assert resumed.persistence["resumed_visits"] == 4 and resumed.counters["resets"] == 1
-        assert [u.stamp for u in resumed.session.visits] == [u.stamp for u in v[2:6]]
-        for m in history:  # what a restarted subscription receives from the detector
-            resumed._on_visit(m)
-        assert resumed.complete and resumed.session.visits == reference.session.visits
-        assert resumed.session.inference().probabilities == reference.session.inference().probabilities
-        values = resumed.diagnostics()
-        assert values["redelivered"] == len(old) + 4  # session r whole, visits 0-3 of s
-        assert values["resets"] == 1 and values["accepted"] == len(v)  # before and after the kill
-        bad = [k for k in COUNTERS if k not in BENIGN and values[k]]
-        assert not bad and values["persistence"]["resume_rejected"] == 0
-        saved, meta = load_filter_state(state)  # saved at the end marker
-        assert saved["end_count"] == len(v) - 2 and meta["config"]["inference"]["particles"] == 20
-        reply = resumed._on_save_state(Trigger.Request(), Trigger.Response())
-        assert reply.success and json.loads(reply.message) == {"path": str(state), "visits": len(v) - 2}
-        resumed._on_visit(new[4])  # after the redelivery, a repeat is a duplicate again
-        assert resumed.counters["duplicates"] == 1
-        off = filter_node(ros)
-        reply = off._on_save_state(Trigger.Request(), Trigger.Response())
-        assert not reply.success and "state_file is not set" in reply.message
-
-
-@pytest.mark.dds
-def test_an_empty_new_detector_session_ends_the_input_with_the_map_as_it_is(sim_visits, monkeypatch):
-    """A restarted detector that finds no visit before its input ends: its end marker (0 visits) makes
-    the map final; an end marker of another session announcing visits is still foreign."""
-    v = [replace(u, signature=None) for u in sim_visits]
-    with ros_context(monkeypatch) as ros:
-        node = filter_node(ros)
-        for m in stream_messages(v[:3], "a")[:3]:
-            node._on_visit(m)
-        node._on_visit(stream_messages(v[:2], "b")[-1])  # "b" announces 2 visits it never sent
-        assert node.counters["foreign"] == 1 and not node.complete
-        node._on_visit(stream_messages([], "c")[-1])
-        assert node.complete and node.counters["ends"] == 1 and len(node.session.visits) == 3
-        assert node.counters["resets"] == 0
-
-
-@pytest.mark.dds
-def test_resume_from_an_unusable_state_file_starts_afresh(sim_visits, tmp_path, monkeypatch, capfd):
-    """A corrupt or foreign state file, or one made with another configuration, is moved aside and the
-    filter starts afresh (WARN); the detector's history then rebuilds the map."""
-    v = [replace(u, signature=None) for u in sim_visits]
-    state = tmp_path / "state.npz"
-    params = {"state_file": str(state), "autosave_every": 1}
-    with ros_context(monkeypatch) as ros:
-        fresh = filter_node(ros, resume=True, **params)  # no file yet: a normal start
-        assert fresh.persistence == {
-            "resumed_visits": 0,
-            "resume_rejected": 0,
-            "saves": 0,
-            "save_failures": 0,
-        }
-        for m in stream_messages(v[:3], "s")[:3]:
-            fresh._on_visit(m)
-        fresh.state_file = None
-        good = state.read_bytes()
-        cases = [
-            ({"inference.particles": 21}, good, r"another config \(inference.particles differ\)"),
-            ({"refit_max_visits": 5}, good, "another refit_max_visits"),
-            ({}, good[: len(good) // 2], "truncated or corrupt"),
-            ({}, b"not a state", "not a ptm_ros filter state"),
-        ]
-        for extra, content, reason in cases:
-            state.write_bytes(content)
-            node = filter_node(ros, resume=True, **params, **extra)
-            node.state_file = None
-            assert node.session.filter is None and node.persistence["resume_rejected"] == 1
-            assert not state.exists() and (tmp_path / "state.npz.rejected").read_bytes() == content
-            assert re.search(f"cannot resume from {state}: .*{reason}", capfd.readouterr().err)
-            for m in stream_messages(v[:3], "s"):  # the detector's history rebuilds the map
-                node._on_visit(m)
-            assert node.session.visits == fresh.session.visits and node.complete
-            assert node.diagnostics()["persistence"]["resume_rejected"] == 1  # /diagnostics: WARN
-
-
 def test_input_counts_read_the_detectors_status_as_ptm_run_writes_its_diagnostics():
     """The detector's /diagnostics values (flattened to dotted keys) back into ptm.json's ``diagnostics``
     under ptm-run's keys: the extractor's counters, and the node's input-check skips added to ``skipped``
@@ -1179,7 +960,7 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
             odom.publish(odometry_msg(float(s), p, frame="wheel_odom"))
         counts = {"/odom": len(stream), "/imu": 4}  # a topic the detector does not read is ignored
         end.publish(String(data=json.dumps({"schema": common.END_OF_INPUT_SCHEMA, "counts": counts})))
-        wait_for(lambda: visits.items and json.loads(visits.items[-1].data)["schema"] == common.END_SCHEMA)
+        wait_for(lambda: visits.items and json.loads(visits.items[-1].data)["schema"] == END_SCHEMA)
         got = [parse_visit_message(m.data) for m in visits.items]
         assert got[-1] == len(expected)
         assert got[:-1] == expected  # the offline extractor's visits, poses and stamps bit for bit
@@ -1254,7 +1035,7 @@ def visits_by_session(node):
     out = {}
     for m in node._visit_pub.items:
         doc = json.loads(m.data)
-        if doc["schema"] != common.END_SCHEMA:
+        if doc["schema"] != END_SCHEMA:
             out.setdefault(doc["session"], []).append(parse_visit_message(m.data))
     return list(out.values())
 
@@ -1286,7 +1067,7 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(m
         assert sum(node.skipped.values()) == 0 and d["fed"]["odometry"] == 400
         end = json.loads(node._visit_pub.items[-1].data)
         assert end == {
-            "schema": common.END_SCHEMA,
+            "schema": END_SCHEMA,
             "visits": len(second),
             "session": node.session_id,
             "keyframes": 0,  # odometry alone: no scan to send

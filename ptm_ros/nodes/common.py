@@ -86,9 +86,6 @@ if typing.TYPE_CHECKING:
 #: The bag player's last message, on ``end_of_input`` (std_msgs/String, latched):
 #: ``{"schema": END_OF_INPUT_SCHEMA, "counts": {"/odom": 1343, ...}}``, messages published per topic.
 END_OF_INPUT_SCHEMA = "ptm_ros.end_of_input/1"
-#: The detector's in-band end marker after its last visit on ``landmark_visits``:
-#: ``{"schema": END_SCHEMA, "visits": N}``, the number of visits it published.
-END_SCHEMA = "ptm_ros.visits_end/1"
 
 # ----------------------------------------------------------------------------------------------- QoS
 
@@ -568,21 +565,6 @@ def publish_diagnostics(
     msg.header.stamp = node.get_clock().now().to_msg()
     msg.status = [diagnostic_status(f"{node.get_name()}: {title}", hardware_id, message, values, warn=warn)]
     publisher.publish(msg)
-
-
-class OnceLogger:
-    """Logs the first occurrence of each kind of problem as a warning and later ones at debug level."""
-
-    def __init__(self, logger: Any) -> None:
-        self._logger = logger
-        self._seen: set[str] = set()
-
-    def __call__(self, kind: str, message: str) -> None:
-        if kind in self._seen:
-            self._logger.debug(message)
-            return
-        self._seen.add(kind)
-        self._logger.warning(f"{message} (further '{kind}' problems are counted in /diagnostics, not logged)")
 
 
 # ------------------------------------------------------------------------------------------ bad input

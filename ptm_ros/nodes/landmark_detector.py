@@ -133,7 +133,6 @@ from ptm_ros.landmarks import (
     ExtractorDiagnostics,
     VisitExtractor,
     diagnostics_dict,
-    visit_to_json,
     with_input_skips,
 )
 from ptm_ros.mapping import KeyframeStream
@@ -141,7 +140,6 @@ from ptm_ros.nodes.common import (
     CLOCK_RESET,
     DISPLAY_QOS,
     END_OF_INPUT_SCHEMA,
-    END_SCHEMA,
     FORWARD_JUMP,
     LATCHED_QOS,
     MAP_STREAM_QOS,
@@ -150,7 +148,6 @@ from ptm_ros.nodes.common import (
     TELEPORT,
     Admission,
     GuardConfig,
-    OnceLogger,
     StreamGuard,
     check_parameter_names,
     declare_config,
@@ -164,6 +161,8 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
+from ptm_ros.nodes.logs import OnceLogger
+from ptm_ros.nodes.messages import END_SCHEMA, visit_message
 from ptm_ros.surprise import limit_surprise_trace, surprise_trace, trace_to_dict
 from ptm_ros.visits import Visit
 
@@ -238,13 +237,6 @@ def _same_scan(a: ScanPayload, b: ScanPayload) -> bool:
 
 def _same_image(a: NDArray[Any], b: NDArray[Any]) -> bool:
     return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
-
-
-def visit_message(visit: Visit, session: str) -> str:
-    """The ``landmark_visits`` JSON of a visit: :func:`visit_to_json` plus its ``session`` id."""
-    doc = json.loads(visit_to_json(visit))
-    doc["session"] = session
-    return json.dumps(doc)
 
 
 # ----------------------------------------------------------------------------------------------- node

@@ -90,7 +90,6 @@ from ptm_ros.nodes.common import (
     LATCHED_QOS,
     MAP_STREAM_QOS,
     STREAM_QOS,
-    OnceLogger,
     Publishes,
     advertise,
     check_parameter_names,
@@ -104,6 +103,7 @@ from ptm_ros.nodes.common import (
     time_msg,
     valid_stamp,
 )
+from ptm_ros.nodes.logs import OnceLogger
 from ptm_ros.nodes.messages import parse_visit_envelope
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
 from ptm_ros.ptm import Ptm, from_json_dict

@@ -15,9 +15,12 @@ import math
 import numpy as np
 
 from ptm_ros.errors import DataError, PtmError
-from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json
-from ptm_ros.nodes.common import END_SCHEMA
+from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json, visit_to_json
 from ptm_ros.visits import Visit
+
+#: The detector's in-band end marker after its last visit on ``landmark_visits``:
+#: ``{"schema": END_SCHEMA, "visits": N}``, the number of visits it published.
+END_SCHEMA = "ptm_ros.visits_end/1"
 
 #: What a JSON parser may raise on hostile text besides JSONDecodeError (a ValueError): numbers with
 #: more than 4300 digits (ValueError), nesting deeper than the recursion limit, values beyond float range.
@@ -63,6 +66,14 @@ def check_visit(visit: Visit) -> None:
         if bad:
             msg = f"visit {visit.index}: {name} has non-finite or negative values"
             raise DataError(msg)
+
+
+def visit_message(visit: Visit, session: str) -> str:
+    """The ``landmark_visits`` JSON of a visit: :func:`~ptm_ros.landmarks.visit_to_json` plus its
+    ``session`` id (what :func:`parse_visit_envelope` reads)."""
+    doc = json.loads(visit_to_json(visit))
+    doc["session"] = session
+    return json.dumps(doc)
 
 
 def parse_visit_envelope(text: str) -> tuple[Visit | int, str | None]:

@@ -67,8 +67,8 @@ Bayes, :func:`ptm_ros.appearance.fit_appearance_model`), which a stream only kno
 seeded) filter over the visits so far; otherwise it updates the filter with the new visit. Laser
 registrations are cached per pair, so a replay costs only filter updates. After every visit the
 ensemble is therefore exactly what ``ptm-run`` computes on the visits so far — and at the end of a bag,
-exactly its result. A replay costs N filter updates (measured: 1.7 s at N = 52 with 100 particles),
-so beyond ``refit_max_visits`` visits (default 100; 0 = never, as ``ptm-bringup`` sets for exactness)
+exactly its result. A replay costs N filter updates, so beyond ``refit_max_visits`` visits (default
+100; 0 = never, as ``ptm-bringup`` sets for exactness)
 the priors are frozen as fitted then and the filter only moves forward: a live robot's filter keeps up
 on long runs, at the price of priors fitted to the first visits rather than to all.
 """
@@ -76,9 +76,7 @@ on long runs, at the price of priors fitted to the first visits rather than to a
 from __future__ import annotations
 
 import colorsys
-import dataclasses
 import json
-import math
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -94,14 +92,12 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ptm_ros.config import PtmConfig, save_config
-from ptm_ros.configio import to_dict
 from ptm_ros.doubts import doubt_lines, find_doubts
-from ptm_ros.errors import ConfigError, DataError, PtmError
+from ptm_ros.errors import DataError, PtmError
 from ptm_ros.figures import ess_fraction
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
     STREAM_QOS,
-    OnceLogger,
     Publishes,
     advertise,
     check_parameter_names,
@@ -112,18 +108,10 @@ from ptm_ros.nodes.common import (
     run_node,
     time_msg,
 )
-from ptm_ros.nodes.messages import parse_visit_envelope
-from ptm_ros.persistence import (
-    differences,
-    load_filter_state,
-    save_filter_state,
-)
+from ptm_ros.nodes.filter_inbox import NODE_NAME, FilterInbox, Reaction
+from ptm_ros.nodes.logs import OnceLogger
 from ptm_ros.ptm import Ptm, Topology, to_json_dict
-from ptm_ros.rbpf import FilterState
-from ptm_ros.session import FilterSession
-from ptm_ros.visits import Visit, pose_field
 
-NODE_NAME = "topology_filter"
 GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
 FRAME_ID = "odom"  # default of the frame_id parameter: the frame of the visits, the graph and the markers
 #: What the node publishes (topic: message type, QoS), the table its publishers are made from.
@@ -132,28 +120,7 @@ PUBLISHES: Publishes = {
     "ptm_markers": (MarkerArray, LATCHED_QOS),
     "/diagnostics": (DiagnosticArray, 10),
 }
-#: Schema tag of the node's state file content (its ``session`` is a :class:`FilterSession` state).
-NODE_STATE_SCHEMA = "ptm_ros.topology_filter_state/1"
 MARKER_Z_STEP = 1.0  # m between stacked hypotheses
-MAX_VISIT_GAP = 1000  # visits: a larger jump of the detector's index is a corrupt message
-COUNTERS = (
-    "messages",
-    "accepted",
-    "ends",
-    "invalid",
-    "rejected",
-    "duplicates",
-    "gaps",
-    "implausible",
-    "out_of_order",
-    "foreign",
-    "resets",
-    "redelivered",
-    "internal_errors",
-)
-#: Counters that are no problem (the others turn /diagnostics to WARN).
-BENIGN = ("messages", "accepted", "ends", "resets", "redelivered")
-MAX_RETIRED = 64  # finished detector sessions remembered (their late visits never start a new map)
 
 
 # ----------------------------------------------------------------------------------- graph document
@@ -271,26 +238,12 @@ def newest_doubt(ptm: Ptm | None) -> str | None:
     return doubt_lines(replace(doubts, visits=doubts.visits[-1:]))[-1]
 
 
-def visit_line(index: int, state: FilterState, map_mass: float, *, how: str, ms: float) -> str:
-    """The log line after a visit: the effective sample size ``1/Σw²`` as a share of the particles it is
-    computed over (each particle a distinct topology, so it is near 1 whenever one topology holds nearly
-    all the mass: the line says how much), and the update's time.
-
-    ``visit_line(7, state, 0.806, how="updated", ms=56.3)`` →
-    ``"visit 7: ESS 1.46/100 particles (each a distinct topology; the most probable holds 0.806),
-    updated in 56 ms"``.
-    """
-    return (
-        f"visit {index}: ESS {ess_fraction(state.ess, state.n_topologies)} particles (each a distinct "
-        f"topology; the most probable holds {map_mass:.3f}), {how} in {ms:.0f} ms"
-    )
-
-
 # ----------------------------------------------------------------------------------------------- node
 
 
 class TopologyFilterNode(Node):
-    """The ``topology_filter`` node (see the module docstring)."""
+    """The ``topology_filter`` node (see the module docstring): topics, services, parameters and timers
+    around a :class:`~ptm_ros.nodes.filter_inbox.FilterInbox`, which does the work."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
@@ -317,8 +270,7 @@ class TopologyFilterNode(Node):
             "",
             "file of the filter's saved state (~/save_state, autosave, resume); '' = off",
         )
-        self.state_file = Path(state_file) if state_file else None
-        self.autosave_every = declare_node_parameter(
+        autosave_every = declare_node_parameter(
             self,
             "autosave_every",
             0,
@@ -328,20 +280,14 @@ class TopologyFilterNode(Node):
         resume = declare_node_parameter(
             self, "resume", False, "on start, continue from state_file if it exists (else start afresh)"
         )
-        self.refit_max_visits = refit
-        self.session = FilterSession(self.config, refit_max_visits=refit)
-        self.counters = dict.fromkeys(COUNTERS, 0)
-        self._next_index: int | None = None  # the detector's index of the next visit (None: any)
-        self._end_count: int | None = None  # visits the detector announced at its end
-        self._stream: str | None = None  # the detector session of the map's visits
-        self._first: tuple[float, tuple[float, float, float]] | None = None  # (stamp, pose) of its visit 0
-        self._last_stamp = -math.inf  # stamp of the latest visit in the map
-        self._last: FilterState | None = None
-        self._retired: dict[str, int] = {}  # finished detector sessions -> visits they had
-        self._resumed: dict[str | None, int] = {}  # detector sessions -> visits restored from state_file
-        self._unsaved = 0  # visits taken since the state was last saved
-        self._dirty = False  # anything changed since then (visits, end markers, resets)
-        self.persistence = {"resumed_visits": 0, "resume_rejected": 0, "saves": 0, "save_failures": 0}
+        self.inbox = FilterInbox(
+            self.config,
+            self.get_logger(),
+            refit_max_visits=refit,
+            frame_id=self.frame_id,
+            state_file=Path(state_file) if state_file else None,
+            autosave_every=autosave_every,
+        )
         self._log_once = OnceLogger(self.get_logger())
         self._graph_pub = advertise(self, PUBLISHES, "ptm_graph")
         self._marker_pub = advertise(self, PUBLISHES, "ptm_markers")
@@ -354,339 +300,47 @@ class TopologyFilterNode(Node):
         self.get_logger().info(
             f"RBPF with {self.config.inference.particles} particles, seed {self.config.inference.seed}"
         )
-        if resume and self.state_file is not None:
-            self._resume(self.state_file)
-
-    # -------------------------------------------------------------------------------- visits
+        if resume and self.inbox.state_file is not None:
+            self._react(self.inbox.resume(self.inbox.state_file))
 
     @property
-    def complete(self) -> bool:
-        """Whether the detector reported its end and every visit it announced has been consumed."""
-        if self._end_count is None:
-            return False
-        return (self._next_index or 0) >= self._end_count
-
-    def _drop(self, counter: str, message: str) -> None:
-        self.counters[counter] += 1
-        self._log_once(counter, message)
+    def counters(self) -> dict[str, int]:
+        """The inbox's message counters (the guard of :func:`ptm_ros.nodes.common.guarded` adds to them)."""
+        return self.inbox.counters
 
     @guarded
     def _on_visit(self, msg: String) -> None:
-        self.counters["messages"] += 1
-        try:
-            item, session = parse_visit_envelope(msg.data)
-        except DataError as err:
-            self._drop("invalid", f"dropped a malformed landmark_visits message: {err}")
-            return
-        if isinstance(item, int):
-            self._on_end(item, session)
-            return
-        self._add(item, session)
+        self._react(self.inbox.receive(msg.data))
 
-    def _on_end(self, count: int, session: str | None) -> None:
-        if session != self._stream and session in self._resumed:
-            self.counters["redelivered"] += 1  # the end of a session restored from state_file
+    def _react(self, reaction: Reaction) -> None:
+        if reaction is Reaction.NONE:
             return
-        if self._next_index is not None and session != self._stream:
-            if count != 0 or session in self._retired:
-                self._drop("foreign", f"ignored the end marker of detector session {session!r}")
-                return
-            self.get_logger().warning(
-                f"detector session {session!r} ended without a visit: the map of {self._stream!r} is final"
-            )
-            count = self._next_index  # a restarted detector found nothing more: the input is over
-        if count < (self._next_index or 0):
-            self._drop(
-                "invalid", f"ignored an end marker of {count} visits: {self._next_index} already arrived"
-            )
-            return
-        self._end_count = count
-        self.counters["ends"] += 1
-        self.get_logger().info(f"end of visits reported ({count}); {len(self.session.visits)} in the map")
-        self._dirty = True
-        if self.autosave_every > 0:
-            self._autosave()
-        self._publish()
-
-    def _shapes_differ(self, visit: Visit) -> bool:
-        """Whether the visit's signature or word histogram differs in length from the map's."""
-        for name in ("signature", "words"):
-            new = getattr(visit, name)
-            old = next((a for v in self.session.visits if (a := getattr(v, name)) is not None), None)
-            if new is not None and old is not None and new.shape != old.shape:
-                return True
-        return False
-
-    def _add(self, visit: Visit, session: str | None = None) -> None:
-        """Consume the detector's visit ``visit.index`` of detector session ``session`` (re-indexed from
-        the last reset on; see the module docstring for what is dropped)."""
-        key = (visit.stamp, visit.pose)
-        if self._redelivered(session, visit.index, key):
-            self.counters["redelivered"] += 1
-            if self.counters["redelivered"] == 1:
-                self.get_logger().info("the detector redelivers visits restored from the state file: skipped")
-            return
-        if self._next_index is not None and session != self._stream:
-            if visit.index != 0 or session in self._retired:
-                self._drop("foreign", f"dropped visit {visit.index} of another detector session {session!r}")
-                return
-            self.get_logger().warning(f"detector session {session!r} started: starting a new map")
-            self._retire()
-            self._reset()
-        elif self._next_index is not None and visit.index < self._next_index:
-            if visit.index != 0 or session is not None or key == self._first:
-                self._drop("duplicates", f"dropped visit {visit.index}: already processed")
-                return
-            self.get_logger().warning(
-                "a different visit 0 arrived: the detector restarted; starting a new map"
-            )
-            self._reset()
-        elif self._next_index is not None and visit.index > self._next_index + MAX_VISIT_GAP:
-            self._drop("implausible", f"dropped visit {visit.index}: {self._next_index} was expected")
-            return
-        if visit.stamp < self._last_stamp:
-            self._drop("out_of_order", f"dropped visit {visit.index}: older than the map's latest visit")
-            return
-        if self._shapes_differ(visit):
-            self._drop("invalid", f"dropped visit {visit.index}: measurements shaped unlike the map's")
-            return
-        expected = visit.index if self._next_index is None else self._next_index
-        if visit.index > expected:
-            self._drop("gaps", f"visits {expected}..{visit.index - 1} never arrived; continuing without them")
-        if self._next_index is None:
-            self._stream = session
-            self._first = key if visit.index == 0 else None
-        self._next_index = visit.index + 1
-        self.counters["accepted"] += 1
-        n = len(self.session.visits)
-        if visit.index != n:
-            visit = dataclasses.replace(visit, index=n)
-        replays, wall = self.session.replays, self.session.wall_s
-        self._unsaved += 1
-        self._dirty = True
-        try:
-            self._last = state = self.session.add(visit)
-        except PtmError as err:
-            self._drop("rejected", f"the filter rejected visit {visit.index}: {err}")
-            self._maybe_autosave()
-            if self.complete:
-                self._publish()
-            return
-        self._last_stamp = visit.stamp
-        how = "replayed" if self.session.replays > replays else "updated"
-        flt = self.session.filter
-        map_mass = max(flt.ptm_weights().values(), default=0.0) if flt is not None else 0.0
-        ms = (self.session.wall_s - wall) * 1e3
-        self.get_logger().info(visit_line(visit.index, state, map_mass, how=how, ms=ms))
-        self._maybe_autosave()
         ptm = self._publish()
-        doubt = newest_doubt(ptm)
+        doubt = newest_doubt(ptm) if reaction is Reaction.NEW_VISIT else None
         if doubt:
             self.get_logger().info(doubt)
 
-    def _redelivered(self, session: str | None, index: int, key: tuple[Any, ...]) -> bool:
-        """Whether a visit was restored from the state file (the detector's history delivers it again to
-        a resumed filter). Without session ids, a visit 0 unlike the map's is a restart, not a repeat."""
-        limit = self._resumed.get(session)
-        if limit is None or index >= limit:
-            return False
-        return not (session is None and index == 0 and key != self._first)
-
-    def _retire(self) -> None:
-        """Remember the current detector session as finished (its late visits never start a map)."""
-        if self._stream is None:
-            return
-        self._retired[self._stream] = self._next_index or 0
-        while len(self._retired) > MAX_RETIRED:
-            del self._retired[next(iter(self._retired))]
-
-    def current_ptm(self) -> Ptm:
-        """The ensemble now (an empty PTM before the first visit)."""
-        if self.session.filter is None:
-            return Ptm(
-                landmarks=(), topologies=(), frame_id=self.frame_id, extra={"diagnostics": self.diagnostics()}
-            )
-        return self.session.to_ptm(frame_id=self.frame_id, diagnostics=self.diagnostics())
-
     def _publish(self) -> Ptm | None:
-        if self.session.filter is None and not self.complete:
+        inbox = self.inbox
+        if inbox.session.filter is None and not inbox.complete:
             return None  # nothing to tell yet (a complete empty stream is published: it ends the run)
-        ptm = self.current_ptm()
-        doc = graph_document(ptm, complete=self.complete)
+        ptm = inbox.current_ptm()
+        doc = graph_document(ptm, complete=inbox.complete)
         self._graph_pub.publish(String(data=json.dumps(doc)))
         stamp = ptm.landmarks[-1].stamp if ptm.landmarks else 0.0
         self._marker_pub.publish(ensemble_markers(ptm, self.marker_topologies, stamp))
         return ptm
 
-    # --------------------------------------------------------------------------- persistence
-
-    def state_meta(self) -> dict[str, Any]:
-        """What the state file records about how its state was made (checked on resume)."""
-        return {
-            "node": NODE_NAME,
-            "config": to_dict(self.config),
-            "refit_max_visits": self.refit_max_visits,
-            "frame_id": self.frame_id,
-        }
-
-    def state_dict(self) -> dict[str, Any]:
-        """The node's state: the filter session and the position in the detector's visit stream."""
-        return {
-            "schema": NODE_STATE_SCHEMA,
-            "session": self.session.state_dict(),
-            "next_index": self._next_index,
-            "end_count": self._end_count,
-            "stream": self._stream,
-            "first": None if self._first is None else [self._first[0], list(self._first[1])],
-            "last_stamp": self._last_stamp,
-            "last": None if self._last is None else dataclasses.astuple(self._last),
-            "counters": dict(self.counters),
-            "retired": [[k, n] for k, n in self._retired.items()],
-        }
-
-    def save_state(self) -> Path:
-        """Write :meth:`state_dict` to ``state_file`` (atomically).
-
-        Raises:
-            DataError: no ``state_file``, or it cannot be written (the previous file is then unchanged).
-        """
-        if self.state_file is None:
-            msg = "parameter state_file is not set"
-            raise DataError(msg)
-        self.state_file.parent.mkdir(parents=True, exist_ok=True)
-        path = save_filter_state(self.state_file, self.state_dict(), meta=self.state_meta())
-        self._unsaved, self._dirty = 0, False
-        self.persistence["saves"] += 1
-        return path
-
-    def _maybe_autosave(self) -> None:
-        if self.autosave_every > 0 and self._unsaved >= self.autosave_every:
-            self._autosave()
-
-    def _autosave(self) -> None:
-        if self.state_file is None:
-            return
-        try:
-            self.save_state()
-        except (OSError, DataError) as err:
-            self.persistence["save_failures"] += 1
-            self._log_once("save-failure", f"cannot save the state to {self.state_file}: {err}")
-            return
-        self.get_logger().debug(f"saved the state ({len(self.session.visits)} visits) to {self.state_file}")
-
-    def _resume(self, path: Path) -> None:
-        """Continue from the state file (if it exists). A file that cannot be used (corrupt, foreign, made
-        with another configuration) is moved aside to ``<file>.rejected`` and the filter starts afresh:
-        the detector's transient-local history then rebuilds the map."""
-        if not path.exists():
-            self.get_logger().info(f"resume: no state file {path} yet; starting afresh")
-            return
-        try:
-            state, meta = load_filter_state(path)
-            self._check_meta(meta)
-            self._load_state(state)
-        except (DataError, ConfigError) as err:
-            self._reset_all()
-            self.persistence["resume_rejected"] += 1
-            aside = path.with_name(path.name + ".rejected")
-            try:
-                path.replace(aside)
-            except OSError as move_err:
-                aside = Path(f"(not moved: {move_err})")
-            self.get_logger().error(
-                f"cannot resume from {path}: {err}; starting afresh (file kept as {aside})"
-            )
-            return
-        n = len(self.session.visits)
-        self.persistence["resumed_visits"] = n
-        self.get_logger().info(
-            f"resumed from {path}: {n} visits of detector session {self._stream!r}, "
-            f"next detector visit {self._next_index}"
-        )
-        self._publish()
-
-    def _check_meta(self, meta: dict[str, Any]) -> None:
-        mine = self.state_meta()
-        if meta.get("node") != NODE_NAME:
-            msg = f"the state was saved by {meta.get('node')!r}, not {NODE_NAME}"
-            raise DataError(msg)
-        for key in ("config", "refit_max_visits"):
-            if meta.get(key) != mine[key]:
-                diff = differences(meta.get(key), mine[key]) if isinstance(mine[key], dict) else [key]
-                msg = f"the state was made with another {key} ({', '.join(diff[:5])} differ)"
-                raise ConfigError(msg)
-
-    def _load_state(self, state: dict[str, Any]) -> None:
-        if state.get("schema") != NODE_STATE_SCHEMA:
-            msg = f"not a {NODE_NAME} state (schema {state.get('schema')!r})"
-            raise DataError(msg)
-        try:
-            self.session.load_state(state["session"])
-            self._next_index = None if state["next_index"] is None else int(state["next_index"])
-            self._end_count = None if state["end_count"] is None else int(state["end_count"])
-            self._stream = state["stream"]
-            first = state["first"]
-            self._first = None if first is None else (float(first[0]), pose_field(first[1]))
-            self._last_stamp = float(state["last_stamp"])
-            self._last = None if state["last"] is None else FilterState(*state["last"])
-            unknown = set(state["counters"]) - set(COUNTERS)
-            if unknown:
-                msg = f"unknown counters {sorted(unknown)}"
-                raise DataError(msg)
-            self.counters.update({k: int(v) for k, v in state["counters"].items()})
-            self._retired = {str(k): int(n) for k, n in state["retired"]}
-        except (KeyError, TypeError, ValueError, IndexError) as err:
-            msg = f"malformed {NODE_NAME} state: {type(err).__name__}: {err}"
-            raise DataError(msg) from err
-        self._resumed = dict(self._retired.items())
-        self._resumed[self._stream] = self._next_index or 0
-        self._unsaved, self._dirty = 0, False
-
-    def _reset_all(self) -> None:
-        self.session.reset()
-        self._next_index = self._end_count = self._stream = self._first = self._last = None
-        self._last_stamp = -math.inf
-        self.counters = dict.fromkeys(COUNTERS, 0)
-        self._retired, self._resumed = {}, {}
-
-    @guarded
-    def _on_save_state(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            path = self.save_state()
-        except (OSError, DataError) as err:
-            response.success, response.message = False, f"cannot save the state: {err}"
-            return response
-        response.success = True
-        response.message = json.dumps({"path": str(path), "visits": len(self.session.visits)})
-        return response
-
     def destroy_node(self) -> None:
         """Save the state (if ``state_file`` is set and changed since the last save), then destroy."""
-        if getattr(self, "state_file", None) is not None and getattr(self, "_dirty", False):
-            self._autosave()
+        inbox = getattr(self, "inbox", None)
+        if inbox is not None and inbox.dirty:
+            inbox.autosave()
         super().destroy_node()
-
-    # --------------------------------------------------------------------------- diagnostics
-
-    def diagnostics(self) -> dict[str, Any]:
-        """Counters reported on /diagnostics and in the graph document."""
-        last = self._last
-        return {
-            "visits": len(self.session.visits),
-            "particles": 0 if self.session.filter is None else self.session.filter.n_topologies,
-            "ess": 0.0 if last is None else last.ess,
-            "update_ms": 0.0 if last is None else last.update_s * 1e3,
-            "replays": self.session.replays,
-            "registrations": dict(self.session.registrations),
-            **self.counters,
-            "persistence": dict(self.persistence),
-        }
 
     @guarded
     def _publish_diagnostics(self) -> None:
-        values = self.diagnostics()
-        bad = sum(values[k] for k in COUNTERS if k not in BENIGN)
-        bad += self.persistence["resume_rejected"] + self.persistence["save_failures"]
+        values = self.inbox.diagnostics()
         publish_diagnostics(
             self,
             self._diag_pub,
@@ -697,22 +351,23 @@ class TopologyFilterNode(Node):
                 f"ESS {ess_fraction(values['ess'], values['particles'])}"
             ),
             values=values,
-            warn=bad > 0,
+            warn=self.inbox.problems() > 0,
         )
 
     # ------------------------------------------------------------------------------ services
 
     @guarded
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        if self.session.filter is None:
+        inbox = self.inbox
+        if inbox.session.filter is None:
             response.success, response.message = False, "no visit received yet: nothing to save"
             return response
         out = Path(self.get_parameter("out_dir").value)
         try:
-            ptm = self.session.to_ptm(frame_id=self.frame_id, diagnostics=self.diagnostics())
+            ptm = inbox.current_ptm()
             out.mkdir(parents=True, exist_ok=True)
             path = out / "ptm.json"
-            path.write_text(json.dumps(graph_document(ptm, complete=self.complete), indent=1) + "\n")
+            path.write_text(json.dumps(graph_document(ptm, complete=inbox.complete), indent=1) + "\n")
             save_config(self.config, out / "config.yaml")
         except (OSError, PtmError) as err:
             response.success, response.message = False, f"cannot write {out}/ptm.json: {err}"
@@ -723,22 +378,20 @@ class TopologyFilterNode(Node):
         )
         return response
 
-    def _reset(self) -> None:
-        self.session.reset()
-        self._next_index = None
-        self._end_count = None
-        self._stream = None
-        self._first = None
-        self._last_stamp = -math.inf
-        self._last = None
-        self.counters["resets"] += 1
-        self._dirty = True
+    @guarded
+    def _on_save_state(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            path = self.inbox.save_state()
+        except (OSError, DataError) as err:
+            response.success, response.message = False, f"cannot save the state: {err}"
+            return response
+        response.success = True
+        response.message = json.dumps({"path": str(path), "visits": len(self.inbox.session.visits)})
+        return response
 
     @guarded
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        n = len(self.session.visits)
-        self._reset()
-        self._resumed = {}  # a new map from the next visit on, whatever it is
+        n = self.inbox.forget()
         self._marker_pub.publish(
             ensemble_markers(Ptm(landmarks=(), topologies=(), frame_id=self.frame_id), 0, 0.0)
         )
