@@ -115,12 +115,21 @@ class PtmConfig:
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:
     """Defaults, then the YAML file at ``path`` (if any), then ``overrides`` (nested dicts) on top.
 
+    The file must be valid on its own: a wrong value in it is an error even where an override replaces it
+    (a command-line flag does not hide a broken parameter file).
+
     The file may be plain (``inference: {method: rbpf}``) or a ROS 2 parameter file
     (``/**: {ros__parameters: {...}}`` and/or per-node sections), so one file serves ``ptm-run`` and the
     nodes; the ``ros__parameters`` of every section are merged in file order.
     """
     data: dict[str, Any] = unwrap_ros_parameters(load_yaml(path)) if path is not None else {}
     if overrides:
+        if path is not None:  # the file is checked on its own first: an override does not hide its errors
+            try:
+                from_dict(PtmConfig, data)
+            except ConfigError as err:
+                msg = f"{err} (in {path})"
+                raise ConfigError(msg) from err
         data = _merge(data, overrides)
     return from_dict(PtmConfig, data)
 

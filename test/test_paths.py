@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from cli_helpers import call, one_error_line
 
+from ptm_ros.config import load_config
 from ptm_ros.errors import ConfigError
 from ptm_ros.tools import bringup, convert, run, sim
 from ptm_ros.tools.paths import new_output, output_dir
@@ -132,6 +133,23 @@ def test_broken_yaml_is_one_line(tmp_path, bag):
     assert code == 2
     line = one_error_line(err, "ptm-run")
     assert f"malformed YAML in {params}, line 3, column 13: " in line
+
+
+def test_a_wrong_value_in_the_parameter_file_is_an_error_even_where_a_flag_overrides_it(tmp_path, bag):
+    """Issue #25: ``seed: "x"`` in the file and ``--seed 3`` on the command line used to run with seed 3,
+    the file's error unseen; the file is now checked on its own, before any work."""
+    params = tmp_path / "p.yaml"
+    params.write_text('inference:\n  seed: "x"\n')
+    code, _, err = call(
+        run.main, [bag, "--out", tmp_path / "out", "--params", params, "--seed", "3", "--quiet"]
+    )
+    assert code == 2
+    line = one_error_line(err, "ptm-run")
+    assert "inference.seed: expected an integer, got 'x'" in line and str(params) in line
+    assert not (tmp_path / "out").exists()
+    good = tmp_path / "good.yaml"
+    good.write_text("inference:\n  seed: 5\n")
+    assert load_config(good, {"inference": {"seed": 3}}).inference.seed == 3  # a valid file: the flag wins
 
 
 def test_output_checks_accept_new_and_existing_directories_and_create_nothing(tmp_path, a_file):

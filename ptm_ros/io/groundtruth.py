@@ -442,7 +442,7 @@ def odometry_fit_problem(fit: OdometryFit, *, raw: bool, what: str) -> str | Non
         else "; one of a real run written without its raw odometry by an older ptm-run: write it again"
     )
     return (
-        f"{what} does not move as the ground truth's {'raw odometry' if raw else 'poses'} do: relative "
+        f"{what} does not move as the ground truth's {'raw odometry does' if raw else 'poses do'}: relative "
         f"residual {fit.statistic:.2f} over {fit.window_m:g} m stretches ({fit.quantile:.0%} quantile of "
         f"{fit.windows}; a run's own ground truth stays below {fit.limit:g}): is it another run's?{legacy}"
     )
