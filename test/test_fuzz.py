@@ -762,7 +762,7 @@ def test_filter_survives_a_wild_storm_and_then_maps_a_new_session_exactly():
 
 
 def graph_text(rng: np.random.Generator, n: int = 5) -> str:
-    from ptm_ros.nodes.topology_filter import graph_document
+    from ptm_ros.nodes.messages import graph_document
 
     parts = list(enumerate_partitions(n))
     chosen = [tuple(parts[i]) for i in rng.choice(len(parts), size=6, replace=False)]
@@ -820,48 +820,40 @@ def neutral_graph_corruption(rng: np.random.Generator, text: str) -> tuple[str, 
     return json.dumps({**doc, "topologies": [top, *doc["topologies"][1:]]}), "invalid"
 
 
-def test_map_publisher_storms(ros):
-    from rclpy.parameter import Parameter
-    from std_msgs.msg import String
+def test_map_publisher_storms():
+    """The map publisher's ensemble input (its rclpy-free :class:`~ptm_ros.nodes.map_inbox.MapInbox`):
+    every corrupted document dropped and counted, the latest valid one in force, and each accepted one a
+    valid map whose path (one pose per visit) the node publishes."""
+    import logging
 
-    from ptm_ros.nodes.map_publisher import MapPublisherNode, map_path
+    from ptm_ros.config import load_config
+    from ptm_ros.nodes.map_inbox import MapInbox
+    from ptm_ros.nodes.map_publisher import map_path
 
     rng = np.random.default_rng(14)
-    node = ros.add(
-        MapPublisherNode(
-            context=ros.context, parameter_overrides=[Parameter("out_dir", value="/nonexistent")]
-        )
-    )
-    node._path_pub, node._diag_pub = Recorder(), Recorder()
+    inbox = MapInbox(load_config(), logging.getLogger("map_inbox"))
     counts = {"invalid": 0, "duplicates": 0}
     valid = 0
     latest = None
     for k in range(N_STORM):  # neutral: every corruption is dropped, the latest valid document stays
         if k % 250 == 0:
             latest = graph_text(rng)
-            node._on_graph(String(data=latest))
+            assert inbox.graph(latest) is not None
             valid += 1
         text, counter = neutral_graph_corruption(rng, latest)
-        node._on_graph(String(data=text))
+        assert inbox.graph(text) is None
         counts[counter] += 1
-        assert node.doc == json.loads(latest)
-    assert {k: node.counters[k] for k in counts} == counts
-    assert node.counters["messages"] == N_STORM + valid and len(node._path_pub.items) == valid
+        assert inbox.doc == json.loads(latest)
+    assert {k: inbox.counters[k] for k in counts} == counts
+    assert inbox.counters["messages"] == N_STORM + valid
     for k in range(N_STORM):  # wild: random edits; whatever is accepted must be a valid map
-        node._on_graph(String(data=wild_text(rng, graph_text(rng) if k % 50 == 0 else latest)))
-        if node.ptm is not None:  # the path of the latest valid map: one pose per visit, if a topology
-            expected = len(node.ptm.landmarks) if node.ptm.topologies else 0
-            assert len(node._path_pub.items[-1].poses) == expected
-    assert node.counters["internal_errors"] == 0
+        ptm = inbox.graph(wild_text(rng, graph_text(rng) if k % 50 == 0 else latest))
+        if ptm is not None:  # the path of the map: one pose per visit, if a topology
+            assert ptm is inbox.ptm
+            assert len(map_path(ptm).poses) == (len(ptm.landmarks) if ptm.topologies else 0)
     latest = graph_text(rng)
-    node._on_graph(String(data=latest))
-    expected = map_path(node.ptm)
-    got = node._path_pub.items[-1]
-    assert node.doc == json.loads(latest) and len(got.poses) == len(expected.poses) == 5
-    assert [(p.pose.position.x, p.pose.position.y) for p in got.poses] == [
-        (p.pose.position.x, p.pose.position.y) for p in expected.poses
-    ]
-    assert node.counters["internal_errors"] == 0
+    ptm = inbox.graph(latest)
+    assert ptm is not None and inbox.doc == json.loads(latest) and len(map_path(ptm).poses) == 5
 
 
 def map_publisher(ros) -> Any:
@@ -883,22 +875,19 @@ def map_publisher(ros) -> Any:
 def draw(node: Any, visits: list[Visit], session: str) -> Any:
     """Give the map publisher a session's visits and an ensemble of them (each visit its own place and
     the first and last visits one place), and draw the map."""
-    from std_msgs.msg import String
 
-    from ptm_ros.nodes.messages import visit_message
-    from ptm_ros.nodes.topology_filter import graph_document
+    from ptm_ros.nodes.messages import graph_document, visit_message
 
     for v in visits:
-        node._on_visit(String(data=visit_message(v, session)))
+        node.inbox.visit(visit_message(v, session))
     n = len(visits)
     singles, loop = tuple(range(n)), (*range(n - 1), 0)
     ptm = make_ptm([Landmark.from_visit(v) for v in visits], {singles: 0.4, loop: 0.6})
-    node._on_graph(String(data=json.dumps(graph_document(ptm, complete=True))))
+    node.inbox.graph(json.dumps(graph_document(ptm, complete=True)))
     return node.build_map()
 
 
 def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream, clean_visits):
-    from std_msgs.msg import String
 
     rng = np.random.default_rng(21)
     callback = {"odometry": "_on_odom", "scan": "_on_scan"}
@@ -908,7 +897,7 @@ def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream,
         getattr(clean, callback[b.stream])(message(b))
     expected = draw(clean, clean_visits, "clean")
     assert expected is not None and expected.grid is not None and len(clean._map_pub.items) == 1
-    assert clean.online.counters.resets == 0
+    assert clean.inbox.online.counters.resets == 0
 
     node = map_publisher(ros)
     sent = dict.fromkeys(callback, 0)
@@ -919,11 +908,11 @@ def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream,
         getattr(node, callback[b.stream])(message(b))
     texts = [wild_text(rng, visit_to_json(v)) for v in clean_visits for _ in range(200)]
     for text in texts:  # wild visit messages: dropped or taken, never a crash
-        node._on_visit(String(data=text))
+        node.inbox.visit(text)
     for _ in range(200):  # and wild ensembles
-        node._on_graph(String(data=wild_text(rng, graph_text(rng))))
+        node.inbox.graph(wild_text(rng, graph_text(rng)))
     assert node.counters["internal_errors"] == 0
-    c = node.online.counters
+    c = node.inbox.online.counters
     clean_sent = {s: sum(b.stream == s for b in stream) for s in callback}
     assert c.poses + node.counters["odometry_invalid"] == clean_sent["odometry"] + sent["odometry"]
     assert c.scans + node.counters["scans_invalid"] == clean_sent["scan"] + sent["scan"]
@@ -937,7 +926,7 @@ def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream,
         getattr(node, callback[b.stream])(message(b, b.stamp + shift))
     again = [replace(v, stamp=v.stamp + shift) for v in clean_visits]
     got = draw(node, again, "again")
-    assert got is not None and got.grid is not None and node.online.counters.resets >= 1
+    assert got is not None and got.grid is not None and node.inbox.online.counters.resets >= 1
     np.testing.assert_allclose(got.trajectory, expected.trajectory, atol=1e-9)
     np.testing.assert_array_equal(got.grid.observed, expected.grid.observed)
     np.testing.assert_allclose(got.grid.log_odds, expected.grid.log_odds, atol=1e-9)

@@ -28,14 +28,15 @@ from ptm_ros.io.validation import scan_payload
 from ptm_ros.landmarks import ExtractorDiagnostics, diagnostics_dict, visit_to_json, with_input_skips
 from ptm_ros.nodes import common
 from ptm_ros.nodes.filter_inbox import visit_line
-from ptm_ros.nodes.map_publisher import map_path, parse_graph
-from ptm_ros.nodes.messages import END_SCHEMA, parse_visit_message
-from ptm_ros.nodes.topology_filter import (
+from ptm_ros.nodes.map_publisher import map_path
+from ptm_ros.nodes.messages import (
+    END_SCHEMA,
     edge_probabilities,
-    ensemble_markers,
     graph_document,
-    topology_alpha,
+    parse_graph,
+    parse_visit_message,
 )
+from ptm_ros.nodes.topology_filter import ensemble_markers, topology_alpha
 from ptm_ros.occupancy import load_map, to_ros_data, trinary
 from ptm_ros.partitions import enumerate_partitions
 from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
@@ -750,7 +751,7 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         sc = run.scans
         for msg in scan_msgs(sc):
             scan_pub.publish(msg)
-        counters = mp.online.counters  # every sample received: the map drawn next is the last one
+        counters = mp.inbox.online.counters  # every sample received: the map drawn next is the last one
         wait_for(lambda: (counters.poses, counters.scans) == (len(odom), len(sc.stamps)), timeout=30.0)
         reply = ros.call(probe, Trigger, "/map_publisher/save_map")  # draws everything received
         info = json.loads(reply.message)
@@ -837,8 +838,10 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
         sc = run.scans
         for msg in scan_msgs(sc):
             scan_pub.publish(msg)
-        wait_for(lambda: mp.online.counters.scans == len(sc.stamps), timeout=30.0)
-        wait_for(lambda: mp.ptm is not None and len(mp.ptm.landmarks) == len(sim_visits), timeout=60.0)
+        wait_for(lambda: mp.inbox.online.counters.scans == len(sc.stamps), timeout=30.0)
+        wait_for(
+            lambda: mp.inbox.ptm is not None and len(mp.inbox.ptm.landmarks) == len(sim_visits), timeout=60.0
+        )
         assert ros.call(probe, Trigger, "/map_publisher/save_map").success  # draws and publishes everything
         saved = load_map(tmp_path / "map.yaml")
         static_layer = Inbox(probe, GridMsg, "map", nav2_qos)  # joins late, as a costmap started later does

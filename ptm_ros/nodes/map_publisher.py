@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import array
 import json
-import math
 import queue
 import threading
 import time
@@ -80,12 +79,10 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ptm_ros.config import PtmConfig
-from ptm_ros.errors import DataError, PtmError
-from ptm_ros.factories import cached
+from ptm_ros.errors import PtmError
 from ptm_ros.geometry import Registrar
 from ptm_ros.io.validation import scan_payload
-from ptm_ros.laser import patch_registrar
-from ptm_ros.mapping import MapInputs, MapResult, OnlineMap, draw_map
+from ptm_ros.mapping import MapInputs, MapResult, draw_map
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
     MAP_STREAM_QOS,
@@ -104,13 +101,11 @@ from ptm_ros.nodes.common import (
     valid_stamp,
 )
 from ptm_ros.nodes.logs import OnceLogger
-from ptm_ros.nodes.messages import parse_visit_envelope
+from ptm_ros.nodes.map_inbox import MapInbox
 from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
-from ptm_ros.ptm import Ptm, from_json_dict
-from ptm_ros.visits import Visit
+from ptm_ros.ptm import Ptm
 
 NODE_NAME = "map_publisher"
-PREPARED_PATCHES = 16  # patches kept prepared for registration (each MAP pair is registered once, cached)
 CLOSE_WAIT_S = 3.0  # s the node waits for a drawing in progress when it is destroyed
 BUILD_SHARE = 4.0  # a map that took d seconds to draw waits 4 d before the next: at most 1/5 of a core
 #: What the node publishes (topic: message type, QoS), the table its publishers are made from.
@@ -172,42 +167,6 @@ def map_path(ptm: Ptm) -> PathMsg:
     return path
 
 
-def check_graph(doc: dict[str, Any]) -> None:
-    """What a ``ptm_graph`` document adds to ptm.json (which :func:`ptm_ros.ptm.from_json_dict`
-    validates): its ``stream`` section.
-
-    Raises:
-        DataError: naming the offending item.
-    """
-    stream = doc.get("stream", {})
-    if not isinstance(stream, dict) or not isinstance(stream.get("complete", False), bool):
-        msg = f"stream must be a mapping with a boolean 'complete', got {stream!r:.80}"
-        raise DataError(msg)
-
-
-def parse_graph(text: str) -> tuple[dict[str, Any], Ptm]:
-    """The JSON document of a ``ptm_graph`` message and its validated :class:`Ptm`.
-
-    Raises:
-        DataError: not JSON, or not a valid ptm.json document (:func:`check_graph`).
-    """
-    try:
-        doc = json.loads(text)
-    except (ValueError, OverflowError, RecursionError) as err:
-        msg = f"ptm_graph message is not JSON: {type(err).__name__}: {err}"
-        raise DataError(msg) from err
-    if not isinstance(doc, dict):
-        msg = f"ptm_graph message must be a JSON object, got {type(doc).__name__}"
-        raise DataError(msg)
-    try:
-        ptm = from_json_dict(doc)
-    except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as err:  # beside DataError
-        msg = f"invalid ptm.json document: {type(err).__name__}: {err}"
-        raise DataError(msg) from err
-    check_graph(doc)
-    return doc, ptm
-
-
 class MapPublisherNode(Node):
     """The ``map_publisher`` node (see the module docstring)."""
 
@@ -218,35 +177,15 @@ class MapPublisherNode(Node):
             self, "out_dir", "out/map_publisher", "where ~/save_ptm and ~/save_map write", read_only=False
         )
         self.config: PtmConfig = declare_config(self)
-        self.doc: dict[str, Any] | None = None
-        self.ptm: Ptm | None = None
-        self.counters = {
-            "messages": 0,
-            "invalid": 0,
-            "duplicates": 0,
-            "internal_errors": 0,
-            "visits_ignored": 0,
-            "odometry_invalid": 0,
-            "scans_invalid": 0,
-            "maps": 0,
-            "map_errors": 0,
-        }
-        self.online = OnlineMap(self.config.mapping)
+        self.inbox = MapInbox(self.config, self.get_logger())
         self.map: MapResult | None = None
         self.map_ms = 0.0
-        self._visits: list[Visit] = []
-        self._visit_session: str | None = None
-        self._registrar = self._session_registrar()
-        self._dirty = False
         self._next_build = 0.0  # time.monotonic() before which no map is drawn
         self._closing = False
         self._idle = threading.Event()  # no map being drawn in the background
         self._idle.set()
         self._jobs: queue.Queue[tuple[Any, ...] | None] = queue.Queue()
         self._lock = threading.Lock()  # counters and the latest map, shared with the drawing thread
-        self.scans_received = 0
-        self.scans_expected: int | None = None  # keyframes the detector sent, from its end marker
-        self._text: str | None = None  # the latest document as received
         self._log_once = OnceLogger(self.get_logger())
         self._path_pub = advertise(self, PUBLISHES, "ptm_path")
         self._map_pub = advertise(self, PUBLISHES, "map")
@@ -265,118 +204,31 @@ class MapPublisherNode(Node):
         self._worker.start()
 
     @property
-    def complete(self) -> bool:
-        """Whether the latest document says the filter had every visit of a finished input."""
-        return bool(self.doc is not None and self.doc.get("stream", {}).get("complete", False))
+    def counters(self) -> dict[str, int]:
+        """The inbox's counters (the guard of :func:`ptm_ros.nodes.common.guarded` adds to them)."""
+        return self.inbox.counters
 
     @guarded
     def _on_graph(self, msg: String) -> None:
-        self.counters["messages"] += 1
-        if msg.data == self._text:
-            self.counters["duplicates"] += 1
-            self._log_once("duplicate-graph", "dropped a repeated ptm_graph message")
-            return
-        try:
-            doc, ptm = parse_graph(msg.data)
-        except DataError as err:
-            self.counters["invalid"] += 1
-            self._log_once("invalid-graph", f"dropped an invalid ptm_graph message: {err}")
-            return
-        path = map_path(ptm)
-        self.doc, self.ptm, self._text = doc, ptm, msg.data
-        self._path_pub.publish(path)
-        self._dirty = True
+        ptm = self.inbox.graph(msg.data)
+        if ptm is not None:
+            self._path_pub.publish(map_path(ptm))
 
     # ------------------------------------------------------------------------------ metric map
 
     @guarded
     def _on_visit(self, msg: String) -> None:
-        try:
-            visit, session = parse_visit_envelope(msg.data)
-        except DataError as err:
-            self._ignore_visit("visit-invalid", f"dropped an invalid landmark_visits message: {err}")
-            return
-        if not isinstance(visit, Visit):  # an end marker: the keyframes the detector sent until then
-            keyframes = json.loads(msg.data).get("keyframes")
-            if isinstance(keyframes, int) and not isinstance(keyframes, bool) and keyframes >= 0:
-                self.scans_expected = keyframes
-            return
-        if visit.index == 0 and (session != self._visit_session or not self._visits or session is None):
-            self._visits = [visit]  # a new detector session: its own registrations
-            self._visit_session = session
-            self._registrar = self._session_registrar()
-        elif session == self._visit_session and visit.index == len(self._visits):
-            self._visits.append(visit)
-        else:
-            self._ignore_visit("visit-sequence", f"visit {visit.index} of session {session} out of sequence")
-            return
-        self._dirty = True
-
-    def _session_registrar(self) -> Registrar:
-        """Laser registration of the current session's visits, each pair once (cached)."""
-        return cached(patch_registrar(self._visits, self.config.laser, keep_prepared=PREPARED_PATCHES))
-
-    def _ignore_visit(self, key: str, text: str) -> None:
-        self.counters["visits_ignored"] += 1
-        self._log_once(key, text)
+        self.inbox.visit(msg.data)
 
     @guarded
     def _on_odom(self, msg: Odometry) -> None:
-        stamp = valid_stamp(msg.header)
         _, pose = odometry_sample(msg)
-        if stamp is None or not all(map(math.isfinite, pose)):
-            self.counters["odometry_invalid"] += 1
-            self._log_once("odometry-invalid", "skipped a landmark_odom sample with a bad stamp or pose")
-            return
-        if self.online.add_pose(stamp, pose):
-            self._log_once("map-reset", "the visits' odometry restarted (new session): the map starts afresh")
-
-    @property
-    def scans_complete(self) -> bool:
-        """Whether the detector's end marker came and every keyframe scan it counts has been received."""
-        return self.scans_expected is not None and self.scans_received >= self.scans_expected
+        self.inbox.odometry(valid_stamp(msg.header), pose)
 
     @guarded
     def _on_scan(self, msg: LaserScan) -> None:
-        self.scans_received += 1
-        stamp = valid_stamp(msg.header)
         payload, rejected = scan_payload(msg)
-        if stamp is None or payload is None:
-            self.counters["scans_invalid"] += 1
-            reason = "bad stamp" if stamp is None else f"{rejected[0]}: {rejected[1]}" if rejected else "?"
-            self._log_once("scan-invalid", f"skipped a scan for the map: {reason}")
-            return
-        before = self.online.keyframes
-        self.online.add_scan(stamp, *payload)
-        self._dirty = self._dirty or self.online.keyframes != before
-
-    def _map_inputs(self) -> tuple[list[Visit], tuple[int, ...]] | None:
-        """The visits of the latest ensemble (matched by index and stamp) and its MAP labels; None while
-        the ensemble is empty or its visits have not all arrived."""
-        ptm = self.ptm
-        if ptm is None or not ptm.landmarks or not ptm.topologies:
-            return None
-        n = len(ptm.landmarks)
-        visits = self._visits[:n]
-        if len(visits) < n or any(
-            abs(v.stamp - lm.stamp) > 1e-6 for v, lm in zip(visits, ptm.landmarks, strict=True)
-        ):
-            return None
-        return visits, tuple(ptm.topologies[0].labels)
-
-    def _snapshot(self) -> tuple[MapInputs, tuple[int, ...], str, Registrar] | None:
-        """What the map of the latest ensemble is drawn from (copies), or None when it cannot be yet."""
-        inputs = self._map_inputs()
-        if inputs is None or self.ptm is None:
-            return None
-        visits, labels = inputs
-        try:
-            snap = self.online.snapshot(visits)
-        except DataError as err:
-            self.counters["map_errors"] += 1
-            self._log_once("map-inputs", f"cannot draw the map: {err}")
-            return None
-        return snap, labels, self.ptm.frame_id, self._registrar
+        self.inbox.scan(valid_stamp(msg.header), payload, rejected)
 
     def _draw(
         self, snap: MapInputs, labels: tuple[int, ...], frame: str, registrar: Registrar
@@ -429,7 +281,7 @@ class MapPublisherNode(Node):
         """Draw and publish the map of the latest ensemble's MAP topology now, in this thread (after a
         drawing still running in the background); None when it cannot."""
         self._wait_for_drawing()
-        snap = self._snapshot()
+        snap = self.inbox.snapshot()
         return None if snap is None else self._draw(*snap)
 
     @guarded
@@ -437,10 +289,10 @@ class MapPublisherNode(Node):
         """Hand the drawing thread a map to draw when due (callbacks keep taking samples meanwhile)."""
         if not self._idle.is_set() or self._closing:
             return
-        if not self._dirty or time.monotonic() < self._next_build or self._map_inputs() is None:
+        if not self.inbox.dirty or time.monotonic() < self._next_build or self.inbox.map_inputs() is None:
             return
-        self._dirty = False
-        snap = self._snapshot()
+        self.inbox.dirty = False
+        snap = self.inbox.snapshot()
         if snap is not None:
             self._idle.clear()
             self._jobs.put(snap)
@@ -460,9 +312,9 @@ class MapPublisherNode(Node):
         # draw now when the inputs changed since the last map, or while the drawing thread still draws
         # them (the timer took them: ``self.map`` is then older than what was received)
         drawing = not self._idle.is_set()
-        fresh = self.build_map() if self._dirty or self.map is None or drawing else None
+        fresh = self.build_map() if self.inbox.dirty or self.map is None or drawing else None
         if fresh is not None:
-            self._dirty = False
+            self.inbox.dirty = False
         result = fresh or self.map  # the latest map when the current inputs cannot be drawn yet
         if result is None or result.grid is None:
             why = "no map yet: it needs the ensemble, its visits, their odometry and scans"
@@ -490,8 +342,8 @@ class MapPublisherNode(Node):
                 "trajectory": len(result.stamps),
                 "maps": self.counters["maps"],
                 "map_ms": round(self.map_ms, 1),
-                "complete": self.complete and self.scans_complete,
-                "input": {"scans_received": self.scans_received, **vars(self.online.counters)},
+                "complete": self.inbox.complete and self.inbox.scans_complete,
+                "input": {"scans_received": self.inbox.scans_received, **vars(self.inbox.online.counters)},
             }
         )
         self.get_logger().info(f"wrote {yml} ({grid.width} x {grid.height} cells, {grid.scans} scans)")
@@ -499,10 +351,10 @@ class MapPublisherNode(Node):
 
     @guarded
     def _on_save(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        if self.doc is None or self.ptm is None:
+        if self.inbox.doc is None or self.inbox.ptm is None:
             response.success, response.message = False, "no ensemble received yet: nothing to save"
             return response
-        if not self.ptm.landmarks:
+        if not self.inbox.ptm.landmarks:
             response.success, response.message = (
                 False,
                 "the ensemble holds no landmark visit: nothing to save",
@@ -512,7 +364,7 @@ class MapPublisherNode(Node):
         path = out / "ptm.json"
         try:
             out.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(self.doc, indent=1) + "\n")
+            path.write_text(json.dumps(self.inbox.doc, indent=1) + "\n")
         except OSError as err:
             response.success, response.message = False, f"cannot write {path}: {err}"
             return response
@@ -520,23 +372,23 @@ class MapPublisherNode(Node):
         response.message = json.dumps(
             {
                 "path": str(path),
-                "visits": len(self.ptm.landmarks),
-                "topologies": len(self.ptm.topologies),
-                "complete": self.complete,
+                "visits": len(self.inbox.ptm.landmarks),
+                "topologies": len(self.inbox.ptm.topologies),
+                "complete": self.inbox.complete,
             }
         )
-        self.get_logger().info(f"wrote {path} ({len(self.ptm.landmarks)} visits)")
+        self.get_logger().info(f"wrote {path} ({len(self.inbox.ptm.landmarks)} visits)")
         return response
 
     @guarded
     def _publish_diagnostics(self) -> None:
         values = {
             **self.counters,
-            "visits": 0 if self.ptm is None else len(self.ptm.landmarks),
-            "topologies": 0 if self.ptm is None else len(self.ptm.topologies),
-            "complete": self.complete,
+            "visits": 0 if self.inbox.ptm is None else len(self.inbox.ptm.landmarks),
+            "topologies": 0 if self.inbox.ptm is None else len(self.inbox.ptm.topologies),
+            "complete": self.inbox.complete,
             "map_ms": round(self.map_ms, 1),
-            **{f"map_{k}": v for k, v in vars(self.online.counters).items()},
+            **{f"map_{k}": v for k, v in vars(self.inbox.online.counters).items()},
         }
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()

@@ -1,7 +1,8 @@
-"""The wire format the ptm_ros nodes exchange, checked: ``landmark_visits`` messages.
+"""The wire format the ptm_ros nodes exchange, checked: ``landmark_visits`` and ``ptm_graph`` messages.
 
 The topology filter and the map publisher both read the detector's visit messages
-(:func:`parse_visit_envelope`): one check, so a message one node accepts the other accepts too (the
+(:func:`parse_visit_envelope`): one check, so a message one node accepts the other accepts too; the map
+publisher reads the filter's ensemble documents (:func:`graph_document`, :func:`parse_graph`) (the
 sensor messages' checks, shared with the bag reader, are :mod:`ptm_ros.io.validation`). Bad input never
 raises past these functions except as :class:`~ptm_ros.errors.DataError`, which the nodes count as skips
 (issue #9).
@@ -11,16 +12,21 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from ptm_ros.errors import DataError, PtmError
 from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json, visit_to_json
+from ptm_ros.ptm import Ptm, Topology, from_json_dict, to_json_dict
 from ptm_ros.visits import Visit
 
 #: The detector's in-band end marker after its last visit on ``landmark_visits``:
 #: ``{"schema": END_SCHEMA, "visits": N}``, the number of visits it published.
 END_SCHEMA = "ptm_ros.visits_end/1"
+#: Tag of the topology filter's ``ptm_graph`` documents (:func:`graph_document`).
+GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
 
 #: What a JSON parser may raise on hostile text besides JSONDecodeError (a ValueError): numbers with
 #: more than 4300 digits (ValueError), nesting deeper than the recursion limit, values beyond float range.
@@ -119,3 +125,69 @@ def parse_visit_message(text: str) -> Visit | int:
         DataError: malformed JSON, an unknown schema or a malformed visit.
     """
     return parse_visit_envelope(text)[0]
+
+
+# ------------------------------------------------------------------------------------- ptm_graph
+
+
+def edge_probabilities(topologies: Sequence[Topology]) -> list[dict[str, Any]]:
+    """``P(edge a–b)``: the summed mass of the listed topologies in which two consecutive visits are at
+    places ``a`` and ``b`` (``a < b``, either direction; canonical labels). Sorted by ``(a, b)``."""
+    mass: dict[tuple[int, int], float] = {}
+    for t in topologies:
+        pairs = {(min(a, b), max(a, b)) for a, b in zip(t.labels[:-1], t.labels[1:], strict=True) if a != b}
+        for pair in pairs:
+            mass[pair] = mass.get(pair, 0.0) + t.probability
+    return [{"places": [a, b], "probability": min(p, 1.0)} for (a, b), p in sorted(mass.items())]
+
+
+def graph_document(ptm: Ptm, *, complete: bool) -> dict[str, Any]:
+    """The ``ptm_graph`` message: ptm.json (:func:`ptm_ros.ptm.to_json_dict`) plus
+
+    * ``graph_schema``: ``"ptm_ros.ptm_graph/1"``;
+    * ``edges``: ``[{"places": [a, b], "probability": p}]`` (:func:`edge_probabilities`; places are
+      canonical labels, so place ``a`` is the ``a``-th distinct place in order of first visit);
+    * ``stream``: ``{"visits": N, "complete": bool}`` — ``complete`` once the detector has reported the
+      end of its input and every visit is in.
+    """
+    doc = to_json_dict(ptm)
+    doc["graph_schema"] = GRAPH_SCHEMA
+    doc["edges"] = edge_probabilities(ptm.topologies)
+    doc["stream"] = {"visits": len(ptm.landmarks), "complete": bool(complete)}
+    return doc
+
+
+def check_graph(doc: dict[str, Any]) -> None:
+    """What a ``ptm_graph`` document adds to ptm.json (which :func:`ptm_ros.ptm.from_json_dict`
+    validates): its ``stream`` section.
+
+    Raises:
+        DataError: naming the offending item.
+    """
+    stream = doc.get("stream", {})
+    if not isinstance(stream, dict) or not isinstance(stream.get("complete", False), bool):
+        msg = f"stream must be a mapping with a boolean 'complete', got {stream!r:.80}"
+        raise DataError(msg)
+
+
+def parse_graph(text: str) -> tuple[dict[str, Any], Ptm]:
+    """The JSON document of a ``ptm_graph`` message and its validated :class:`Ptm`.
+
+    Raises:
+        DataError: not JSON, or not a valid ptm.json document (:func:`check_graph`).
+    """
+    try:
+        doc = json.loads(text)
+    except (ValueError, OverflowError, RecursionError) as err:
+        msg = f"ptm_graph message is not JSON: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    if not isinstance(doc, dict):
+        msg = f"ptm_graph message must be a JSON object, got {type(doc).__name__}"
+        raise DataError(msg)
+    try:
+        ptm = from_json_dict(doc)
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as err:  # beside DataError
+        msg = f"invalid ptm.json document: {type(err).__name__}: {err}"
+        raise DataError(msg) from err
+    check_graph(doc)
+    return doc, ptm

@@ -110,9 +110,9 @@ from ptm_ros.nodes.common import (
 )
 from ptm_ros.nodes.filter_inbox import NODE_NAME, FilterInbox, Reaction
 from ptm_ros.nodes.logs import OnceLogger
-from ptm_ros.ptm import Ptm, Topology, to_json_dict
+from ptm_ros.nodes.messages import graph_document
+from ptm_ros.ptm import Ptm
 
-GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
 FRAME_ID = "odom"  # default of the frame_id parameter: the frame of the visits, the graph and the markers
 #: What the node publishes (topic: message type, QoS), the table its publishers are made from.
 PUBLISHES: Publishes = {
@@ -121,36 +121,6 @@ PUBLISHES: Publishes = {
     "/diagnostics": (DiagnosticArray, 10),
 }
 MARKER_Z_STEP = 1.0  # m between stacked hypotheses
-
-
-# ----------------------------------------------------------------------------------- graph document
-
-
-def edge_probabilities(topologies: Sequence[Topology]) -> list[dict[str, Any]]:
-    """``P(edge a–b)``: the summed mass of the listed topologies in which two consecutive visits are at
-    places ``a`` and ``b`` (``a < b``, either direction; canonical labels). Sorted by ``(a, b)``."""
-    mass: dict[tuple[int, int], float] = {}
-    for t in topologies:
-        pairs = {(min(a, b), max(a, b)) for a, b in zip(t.labels[:-1], t.labels[1:], strict=True) if a != b}
-        for pair in pairs:
-            mass[pair] = mass.get(pair, 0.0) + t.probability
-    return [{"places": [a, b], "probability": min(p, 1.0)} for (a, b), p in sorted(mass.items())]
-
-
-def graph_document(ptm: Ptm, *, complete: bool) -> dict[str, Any]:
-    """The ``ptm_graph`` message: ptm.json (:func:`ptm_ros.ptm.to_json_dict`) plus
-
-    * ``graph_schema``: ``"ptm_ros.ptm_graph/1"``;
-    * ``edges``: ``[{"places": [a, b], "probability": p}]`` (:func:`edge_probabilities`; places are
-      canonical labels, so place ``a`` is the ``a``-th distinct place in order of first visit);
-    * ``stream``: ``{"visits": N, "complete": bool}`` — ``complete`` once the detector has reported the
-      end of its input and every visit is in.
-    """
-    doc = to_json_dict(ptm)
-    doc["graph_schema"] = GRAPH_SCHEMA
-    doc["edges"] = edge_probabilities(ptm.topologies)
-    doc["stream"] = {"visits": len(ptm.landmarks), "complete": bool(complete)}
-    return doc
 
 
 # -------------------------------------------------------------------------------------------- markers
