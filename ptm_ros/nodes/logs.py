@@ -6,7 +6,7 @@ from typing import Any, Protocol
 
 
 class Logger(Protocol):
-    """What :class:`FilterInbox` logs through: an rclpy node's logger or a :mod:`logging` logger."""
+    """What the nodes' rclpy-free logic logs through: an rclpy node's logger or a :mod:`logging` logger."""
 
     def debug(self, message: str) -> Any: ...
     def info(self, message: str) -> Any: ...

@@ -1,11 +1,11 @@
 """The wire format the ptm_ros nodes exchange, checked: ``landmark_visits`` and ``ptm_graph`` messages.
 
 The topology filter and the map publisher both read the detector's visit messages
-(:func:`parse_visit_envelope`): one check, so a message one node accepts the other accepts too; the map
-publisher reads the filter's ensemble documents (:func:`graph_document`, :func:`parse_graph`) (the
-sensor messages' checks, shared with the bag reader, are :mod:`ptm_ros.io.validation`). Bad input never
-raises past these functions except as :class:`~ptm_ros.errors.DataError`, which the nodes count as skips
-(issue #9).
+(:func:`parse_visit_envelope`): one check, so a message one node accepts the other accepts too. The map
+publisher reads the filter's ensemble documents (written by :func:`graph_document`, read by
+:func:`parse_graph`). The sensor messages' checks, shared with the bag reader, are
+:mod:`ptm_ros.io.validation`. Bad input never raises past these functions except as
+:class:`~ptm_ros.errors.DataError`, which the nodes count as skips (issue #9).
 """
 
 from __future__ import annotations
