@@ -33,7 +33,7 @@ from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
 from ptm_ros.landmarks import visit_to_json
 from ptm_ros.nodes import common
-from ptm_ros.nodes.messages import END_SCHEMA
+from ptm_ros.nodes.messages import END_OF_INPUT_SCHEMA, END_SCHEMA
 from ptm_ros.partitions import enumerate_partitions
 from ptm_ros.ptm import Landmark, make_ptm
 from ptm_ros.visits import Visit
@@ -138,40 +138,56 @@ def message(b: Base, stamp: float | None = None) -> Any:
     return image_msg(t, b.data)
 
 
-CALLBACK = {"odometry": "_on_odom", "scan": "_on_scan", "image": "_on_image"}
+#: The subscription topics a detector node has by default (its inbox counts messages per topic name).
+TOPICS = {"odom": "/odom", "scan": "/scan", "panorama": "/panorama"}
 
 
-def detector(ros, **extra: Any) -> Any:
-    """A detector node (laser surprise on scans, panoramas on; replay timing: ``stall_s`` 0) whose
-    publishers record instead of sending."""
-    from rclpy.parameter import Parameter
+class Detector:
+    """The landmark detector's logic (its rclpy-free :class:`~ptm_ros.nodes.detector_inbox.DetectorInbox`;
+    laser surprise on scans, panoramas on, replay timing: ``stall_s`` 0) and what it published, by kind."""
 
-    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode
+    def __init__(self) -> None:
+        import logging
 
-    params = {"stall_s": 0.0, "model.use_laser": False, "detector.kind": "laser-surprise", **extra}
-    node = ros.add(
-        LandmarkDetectorNode(
-            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
+        from ptm_ros.config import load_config
+        from ptm_ros.factories import detector_kind
+        from ptm_ros.nodes.detector_inbox import DetectorInbox
+
+        config = load_config(None, {"model": {"use_laser": False}, "detector": {"kind": "laser-surprise"}})
+        kind = detector_kind(config, has_scans=True, has_images=True)
+        self.inbox = DetectorInbox(
+            config, logging.getLogger("detector"), kind=kind, topics=TOPICS, stall_s=0.0
         )
-    )
-    node._visit_pub, node._pose_pub, node._diag_pub = Recorder(), Recorder(), Recorder()
-    node._odom_pub, node._scan_pub = Recorder(), Recorder()
-    return node
+        self.out: list[Any] = []
+
+    def __getattr__(self, name: str) -> Any:  # the inbox's counters, diagnostics, session ids, finish
+        return getattr(self.inbox, name)
+
+    def feed(self, b: Base, msg: Any | None = None) -> None:
+        getattr(self.inbox, b.stream)(message(b) if msg is None else msg)
+        self.out += self.inbox.take()
+
+    def finish(self) -> int:
+        n = self.inbox.finish()
+        self.out += self.inbox.take()
+        return n
+
+    def of(self, kind: type) -> list[Any]:
+        return [o for o in self.out if isinstance(o, kind)]
 
 
-def feed(node: Any, b: Base, msg: Any | None = None) -> None:
-    getattr(node, CALLBACK[b.stream])(message(b) if msg is None else msg)
+def detector() -> Detector:
+    return Detector()
 
 
-def published_visits(node: Any, session: str | None = None) -> list[Visit]:
-    from ptm_ros.nodes.messages import parse_visit_envelope
+def feed(node: Detector, b: Base, msg: Any | None = None) -> None:
+    node.feed(b, msg)
 
-    out = []
-    for m in node._visit_pub.items:
-        item, sid = parse_visit_envelope(m.data)
-        if isinstance(item, Visit) and (session is None or sid == session):
-            out.append(item)
-    return out
+
+def published_visits(node: Detector, session: str | None = None) -> list[Visit]:
+    from ptm_ros.nodes.detector_inbox import VisitOut
+
+    return [o.visit for o in node.of(VisitOut) if session is None or o.session == session]
 
 
 def assert_same_visits(got: list[Visit], expected: list[Visit]) -> None:
@@ -185,11 +201,11 @@ def assert_same_visits(got: list[Visit], expected: list[Visit]) -> None:
 def assert_accounted(node: Any) -> dict[str, Any]:
     """Every message received was skipped (by the node, under one named counter), is held, or was fed to
     the extractor; the extractor received exactly what was fed; no internal error."""
-    from ptm_ros.nodes.landmark_detector import SUBSCRIPTIONS
+    from ptm_ros.nodes.detector_inbox import SUBSCRIPTIONS
 
     d = node.diagnostics()
     for sub, stream in SUBSCRIPTIONS.items():
-        topic = node._subs[sub].topic_name
+        topic = TOPICS[sub]
         skipped = sum(n for reason, n in node.skipped.items() if reason.startswith(f"{stream}-"))
         assert d["received"][topic] == skipped + d["fed"][stream] + d["held"][stream], (stream, d)
         assert d["fed"][stream] == d["extractor"]["received"][stream], (stream, d)
@@ -295,9 +311,9 @@ def neutral_corruption(b: Base, last: Base, rng: np.random.Generator) -> tuple[A
 
 
 @pytest.fixture(scope="module")
-def clean_visits(ros, sim_stream) -> list[Visit]:
+def clean_visits(sim_stream) -> list[Visit]:
     """The visits of a detector fed the simulated run alone."""
-    clean = detector(ros)
+    clean = detector()
     for b in sim_stream:
         feed(clean, b)
     clean.finish()
@@ -306,13 +322,11 @@ def clean_visits(ros, sim_stream) -> list[Visit]:
     return visits
 
 
-def test_detector_neutral_storm_changes_nothing_but_counters(ros, sim_stream, clean_visits):
+def test_detector_neutral_storm_changes_nothing_but_counters(sim_stream, clean_visits):
     rng = np.random.default_rng(20250901)
     expected = clean_visits
 
-    node = detector(ros)
-    from std_msgs.msg import String
-
+    node = detector()
     streams = ("odometry", "scan", "image")
     burst = np.zeros(len(sim_stream), dtype=int)  # bad messages before each valid one, per stream
     for s in streams:
@@ -331,12 +345,12 @@ def test_detector_neutral_storm_changes_nothing_but_counters(ros, sim_stream, cl
             sent[b.stream] += 1
         if i in announce:  # malformed end-of-input announcements
             for text in bad_end_of_input(rng, 40):
-                node._on_end_of_input(String(data=text))
+                node.end_of_input(text)
                 ends += 1
         feed(node, b)
         last[b.stream] = b
     assert min(sent.values()) >= N_STORM and ends >= 2 * N_STORM  # end_of_input: only this storm
-    assert not node.finished and node._end_counts is None
+    assert not node.finished and not node.end_announced
     node.finish()
     d = assert_accounted(node)
     for reason, n in counts.items():
@@ -355,7 +369,7 @@ def test_detector_neutral_storm_changes_nothing_but_counters(ros, sim_stream, cl
 
 def bad_end_of_input(rng: np.random.Generator, n: int) -> list[str]:
     """Malformed ``end_of_input`` announcements (none may end the input)."""
-    schema = common.END_OF_INPUT_SCHEMA
+    schema = END_OF_INPUT_SCHEMA
     pool = [
         "",
         "{",
@@ -384,10 +398,10 @@ def bad_end_of_input(rng: np.random.Generator, n: int) -> list[str]:
     return out
 
 
-def test_detector_bag_loop_is_a_new_session_whichever_topic_restarts_first(ros, sim_stream, clean_visits):
+def test_detector_bag_loop_is_a_new_session_whichever_topic_restarts_first(sim_stream, clean_visits):
     """The run played twice, as a looped bag does (same stamps again), the second time with the odometry
     delivered 2 s late: scans and panoramas restart first and wait for the odometry's restart."""
-    node = detector(ros)
+    node = detector()
     for b in sim_stream:
         feed(node, b)
     late = sorted(sim_stream, key=lambda b: b.stamp + (2.0 if b.stream == "odometry" else 0.0))
@@ -397,7 +411,8 @@ def test_detector_bag_loop_is_a_new_session_whichever_topic_restarts_first(ros, 
     d = assert_accounted(node)
     assert (d["sessions"], d["clock_resets"], d["resyncs"]) == (2, 3, 0)
     assert sum(node.skipped.values()) == 0
-    first, second = (published_visits(node, f"{node._nonce}-{k}") for k in (0, 1))
+    nonce = node.session_id.rsplit("-", 1)[0]
+    first, second = (published_visits(node, f"{nonce}-{k}") for k in (0, 1))
     assert_same_visits(first, clean_visits)
     assert_same_visits(second, clean_visits)
 
@@ -471,9 +486,9 @@ def wild_message(b: Base, rng: np.random.Generator) -> Any:
     return msg
 
 
-def test_detector_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros, sim_stream):
+def test_detector_survives_a_wild_storm_and_then_maps_a_new_session_exactly(sim_stream):
     rng = np.random.default_rng(7)
-    node = detector(ros)
+    node = detector()
     sent = dict.fromkeys(("odometry", "scan", "image"), 0)
     by_stream = {s: [b for b in sim_stream if b.stream == s] for s in sent}
     rate = {s: N_STORM / len(v) for s, v in by_stream.items()}
@@ -495,7 +510,7 @@ def test_detector_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros,
     # the same run again, its clock restarted 500 s earlier: a new session, mapped exactly
     shift = sim_stream[0].stamp - 500.0 - sim_stream[-1].stamp
     again = [replace(b, stamp=b.stamp + shift) for b in sim_stream]
-    clean = detector(ros)
+    clean = detector()
     for b in again:
         feed(clean, b)
         feed(node, b)
@@ -504,25 +519,25 @@ def test_detector_survives_a_wild_storm_and_then_maps_a_new_session_exactly(ros,
     d = assert_accounted(node)
     assert d["clock_resets"] >= 3 and d["sessions"] >= 2  # odometry, scans and panoramas went back
     assert_same_visits(published_visits(node, node.session_id), published_visits(clean))
-    ends = [
-        json.loads(m.data) for m in node._visit_pub.items if json.loads(m.data).get("schema") == END_SCHEMA
-    ]
+    from ptm_ros.nodes.detector_inbox import EndOut, MapPose, MapScan
+
+    ends = [json.loads(o.text) for o in node.of(EndOut)]
     assert ends == [
         {
             "schema": END_SCHEMA,
             "visits": len(published_visits(clean)),
             "session": node.session_id,
-            "keyframes": len(node._scan_pub.items),
+            "keyframes": len(node.of(MapScan)),
         }
     ]
     # the map stream of the new session (odometry samples, keyframe scans) is the clean run's too
     lo, hi = again[0].stamp, again[-1].stamp
 
-    def stamps(recorder: Recorder) -> list[float]:
-        return [t for t in (common.header_stamp(m.header) for m in recorder.items) if lo <= t <= hi]
+    def stamps(det: Detector, kind: type) -> list[float]:
+        return [o.stamp for o in det.of(kind) if lo <= o.stamp <= hi]
 
-    assert stamps(node._scan_pub) == stamps(clean._scan_pub) and len(stamps(clean._scan_pub)) > 20
-    assert stamps(node._odom_pub) == stamps(clean._odom_pub) and len(stamps(clean._odom_pub)) > 100
+    assert stamps(node, MapScan) == stamps(clean, MapScan) and len(stamps(clean, MapScan)) > 20
+    assert stamps(node, MapPose) == stamps(clean, MapPose) and len(stamps(clean, MapPose)) > 100
 
 
 # ------------------------------------------------------------------------------------ topology filter

@@ -24,12 +24,13 @@ from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
-from ptm_ros.io.validation import scan_payload
+from ptm_ros.io.validation import scan_payload, valid_stamp
 from ptm_ros.landmarks import ExtractorDiagnostics, diagnostics_dict, visit_to_json, with_input_skips
-from ptm_ros.nodes import common
+from ptm_ros.nodes import common, stream_guard
 from ptm_ros.nodes.filter_inbox import visit_line
 from ptm_ros.nodes.map_publisher import map_path
 from ptm_ros.nodes.messages import (
+    END_OF_INPUT_SCHEMA,
     END_SCHEMA,
     edge_probabilities,
     graph_document,
@@ -259,11 +260,11 @@ def test_valid_stamp_rejects_what_is_no_ros_time():
     def header(sec, nanosec):
         return SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=nanosec))
 
-    assert common.valid_stamp(header(5, 999_999_999)) == 5.999999999
-    assert common.valid_stamp(header(0, 0)) == 0.0
-    assert common.valid_stamp(header(-1, 0)) is None
-    assert common.valid_stamp(header(3, 1_000_000_000)) is None
-    assert common.valid_stamp(header(3, 2**32 - 1)) is None
+    assert valid_stamp(header(5, 999_999_999)) == 5.999999999
+    assert valid_stamp(header(0, 0)) == 0.0
+    assert valid_stamp(header(-1, 0)) is None
+    assert valid_stamp(header(3, 1_000_000_000)) is None
+    assert valid_stamp(header(3, 2**32 - 1)) is None
 
 
 def test_guard_config_is_validated():
@@ -275,12 +276,14 @@ def test_guard_config_is_validated():
         ({"max_speed": math.nan}, "max_speed must be > 0"),
     ]:
         with pytest.raises(ConfigError, match=match):
-            common.GuardConfig(**kwargs)
-    assert common.GuardConfig(max_speed=math.inf).max_speed == math.inf  # no teleport check
+            stream_guard.GuardConfig(**kwargs)
+    assert stream_guard.GuardConfig(max_speed=math.inf).max_speed == math.inf  # no teleport check
 
 
 def point_guard(**kwargs):
-    return common.StreamGuard(common.GuardConfig(**kwargs), equal=lambda a, b: a == b, position=lambda p: p)
+    return stream_guard.StreamGuard(
+        stream_guard.GuardConfig(**kwargs), equal=lambda a, b: a == b, position=lambda p: p
+    )
 
 
 def test_stream_guard_passes_a_timeline_and_drops_every_isolated_bad_message():
@@ -308,7 +311,7 @@ def test_stream_guard_passes_a_timeline_and_drops_every_isolated_bad_message():
                 assert adm.released == ()
                 outliers += adm.outliers
         adm = guard.admit(t, p)
-        assert adm.event in (None, common.START) and not adm.duplicate
+        assert adm.event in (None, stream_guard.START) and not adm.duplicate
         released += adm.released
         outliers += adm.outliers
     assert released == timeline
@@ -323,7 +326,11 @@ def test_stream_guard_confirms_jumps_resets_and_teleports():
     guard.admit(1e6, (0.0, 0.0))  # a lone bad first message: its own run
     assert guard.admit(0.5, (0.1, 0.0)).released == ()
     adm = guard.admit(1.0, (0.2, 0.0))
-    assert adm.event == common.START and [s for s, _ in adm.released] == [0.0, 0.5, 1.0] and adm.outliers == 1
+    assert (
+        adm.event == stream_guard.START
+        and [s for s, _ in adm.released] == [0.0, 0.5, 1.0]
+        and adm.outliers == 1
+    )
     for s in t[2:]:
         assert guard.admit(s, (0.2 * s, 0.0)).released == ((s, (0.2 * s, 0.0)),)
     # a pause of 100 s: held until three messages confirm it, a bad one in between changes nothing
@@ -332,27 +339,27 @@ def test_stream_guard_confirms_jumps_resets_and_teleports():
     assert guard.admit(-5.0 + 1e3 * 7, (0.0, 0.0)).released == ()
     assert guard.admit(104.1, (1.0, 0.0)).released == ()
     adm = guard.admit(104.2, (1.0, 0.0))
-    assert adm.event == common.FORWARD_JUMP and len(adm.released) == 3 and adm.outliers == 1
+    assert adm.event == stream_guard.FORWARD_JUMP and len(adm.released) == 3 and adm.outliers == 1
     # the clock goes back (a looped bag)
     for s in (10.0, 10.1):
         assert guard.admit(s, (0.0, 0.0)).released == ()
     adm = guard.admit(10.2, (0.0, 0.0))
-    assert adm.event == common.CLOCK_RESET and guard.last_stamp == 10.2
+    assert adm.event == stream_guard.CLOCK_RESET and guard.last_stamp == 10.2
     # odometry jumps 100 m in 0.1 s and goes on from there
     for s in (10.3, 10.4):
         assert guard.admit(s, (100.0, 0.0)).released == ()
     adm = guard.admit(10.5, (100.1, 0.0))
-    assert adm.event == common.TELEPORT and [p for _, p in adm.released][-1] == (100.1, 0.0)
+    assert adm.event == stream_guard.TELEPORT and [p for _, p in adm.released][-1] == (100.1, 0.0)
     # at the end of input: a held pause is used, a held reset or teleport is dropped
     guard.admit(200.0, (100.1, 0.0))
     adm = guard.settle()
-    assert adm.event == common.FORWARD_JUMP and adm.released == ((200.0, (100.1, 0.0)),)
+    assert adm.event == stream_guard.FORWARD_JUMP and adm.released == ((200.0, (100.1, 0.0)),)
     guard.admit(50.0, (100.1, 0.0))
-    assert guard.settle() == common.Admission(outliers=1)
+    assert guard.settle() == stream_guard.Admission(outliers=1)
     # at most MAX_RUNS runs are held: the oldest goes first
-    for k in range(common.StreamGuard.MAX_RUNS + 1):
+    for k in range(stream_guard.StreamGuard.MAX_RUNS + 1):
         adm = guard.admit(1000.0 + 100.0 * k * (-1) ** k, (100.1, 0.0))
-    assert adm.outliers == 1 and guard.held == common.StreamGuard.MAX_RUNS
+    assert adm.outliers == 1 and guard.held == stream_guard.StreamGuard.MAX_RUNS
 
 
 def test_stream_guard_keeps_a_good_message_held_with_a_bad_one():
@@ -366,7 +373,7 @@ def test_stream_guard_keeps_a_good_message_held_with_a_bad_one():
     assert guard.held == 2
     assert guard.admit(0.1, (0.05, 0.0)).released == () and guard.held == 3  # the first one shared
     adm = guard.admit(0.2, (0.1, 0.0))
-    assert adm.event == common.START and adm.outliers == 1
+    assert adm.event == stream_guard.START and adm.outliers == 1
     assert adm.released == ((0.0, (0.0, 0.0)), (0.1, (0.05, 0.0)), (0.2, (0.1, 0.0)))
     for s in (0.3, 0.4, 0.5):
         guard.admit(s, (0.5 * s, 0.0))
@@ -374,7 +381,7 @@ def test_stream_guard_keeps_a_good_message_held_with_a_bad_one():
     guard.admit(125.0, (1.0, 0.0))  # a bad copy ahead of it, continuing it
     guard.admit(100.1, (1.0, 0.0))
     adm = guard.admit(100.2, (1.0, 0.0))
-    assert adm.event == common.FORWARD_JUMP and [t for t, _ in adm.released] == [100.0, 100.1, 100.2]
+    assert adm.event == stream_guard.FORWARD_JUMP and [t for t, _ in adm.released] == [100.0, 100.1, 100.2]
     assert adm.outliers == 1 and guard.held == 0
 
 
@@ -962,7 +969,7 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
         for s, p in stream:
             odom.publish(odometry_msg(float(s), p, frame="wheel_odom"))
         counts = {"/odom": len(stream), "/imu": 4}  # a topic the detector does not read is ignored
-        end.publish(String(data=json.dumps({"schema": common.END_OF_INPUT_SCHEMA, "counts": counts})))
+        end.publish(String(data=json.dumps({"schema": END_OF_INPUT_SCHEMA, "counts": counts})))
         wait_for(lambda: visits.items and json.loads(visits.items[-1].data)["schema"] == END_SCHEMA)
         got = [parse_visit_message(m.data) for m in visits.items]
         assert got[-1] == len(expected)
@@ -971,7 +978,7 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
         for ps, v in zip(poses_in.items, expected, strict=True):
             assert ps.header.frame_id == "wheel_odom" and common.header_stamp(ps.header) == v.stamp
             assert (ps.pose.position.x, ps.pose.position.y) == v.pose[:2]
-        diag = det.diagnostics()
+        diag = det.inbox.diagnostics()
         assert diag["odometry-non-finite"] == 2 and diag["extractor"]["skipped"] == {}
         assert diag["fed"]["odometry"] == len(stream) - 2 and diag["held"]["odometry"] == 0
         assert diag["received"] == {"/odom": len(stream), "/scan": 0, "/panorama": 0} and diag["finished"]
@@ -1001,50 +1008,57 @@ def test_detector_counts_bad_odometry_and_flushes_at_the_announced_end(monkeypat
         assert capfd.readouterr().err.count("skipped 1 message(s): odometry-non-finite") == 1
 
 
-class Recorder:
-    """Stands in for a publisher: keeps what the node publishes."""
-
-    def __init__(self):
-        self.items = []
-
-    def publish(self, msg):
-        self.items.append(msg)
+#: The subscription topics of a detector node by default (its inbox counts messages per topic name).
+DETECTOR_TOPICS = {"odom": "/odom", "scan": "/scan", "panorama": "/panorama"}
 
 
-def odometry_detector(ros, **params):
-    from rclpy.parameter import Parameter
+def detector_inbox(*, use_scans=False, use_images=False, kind=None, silence_s=10.0):
+    """The landmark detector's logic without rclpy (:class:`ptm_ros.nodes.detector_inbox.DetectorInbox`),
+    with the node's defaults but replay timing (``stall_s`` 0)."""
+    import logging
 
-    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode
+    from ptm_ros.factories import detector_kind
+    from ptm_ros.nodes.detector_inbox import DetectorInbox
 
-    params = {"use_scans": False, "use_images": False, "stall_s": 0.0, **params}
-    node = ros.add(
-        LandmarkDetectorNode(
-            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
-        )
+    config = load_config(None, {} if kind is None else {"detector": {"kind": kind}})
+    return DetectorInbox(
+        config,
+        logging.getLogger("landmark_detector"),
+        kind=detector_kind(config, has_scans=use_scans, has_images=use_images),
+        topics=DETECTOR_TOPICS,
+        use_scans=use_scans,
+        use_images=use_images,
+        stall_s=0.0,
+        silence_s=silence_s,
     )
-    node._visit_pub, node._pose_pub, node._diag_pub = Recorder(), Recorder(), Recorder()
-    return node
 
 
 @pytest.mark.dds
 def test_detector_node_refuses_the_ground_truth_detector(monkeypatch):
     """The thesis' perfect detector needs the run's ground truth, which a live node does not have: a
     clear ConfigError (run_node makes it a fatal log and exit code 2), not a node that never fires."""
+    from rclpy.parameter import Parameter
+
+    from ptm_ros.nodes.landmark_detector import LandmarkDetectorNode
+
+    params = {"use_scans": False, "use_images": False, "detector.kind": "ground-truth"}
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
     with ros_context(monkeypatch) as ros, pytest.raises(ConfigError, match="only ptm-run can use it"):
-        odometry_detector(ros, **{"detector.kind": "ground-truth"})
+        ros.add(LandmarkDetectorNode(context=ros.context, parameter_overrides=overrides))
 
 
-def visits_by_session(node):
+def visits_by_session(outputs):
+    """The visits a detector inbox queued, per detector session in order, and its end markers."""
+    from ptm_ros.nodes.detector_inbox import EndOut, VisitOut
+
     out = {}
-    for m in node._visit_pub.items:
-        doc = json.loads(m.data)
-        if doc["schema"] != END_SCHEMA:
-            out.setdefault(doc["session"], []).append(parse_visit_message(m.data))
-    return list(out.values())
+    for o in outputs:
+        if isinstance(o, VisitOut):
+            out.setdefault(o.session, []).append(o.visit)
+    return list(out.values()), [json.loads(o.text) for o in outputs if isinstance(o, EndOut)]
 
 
-@pytest.mark.dds
-def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(monkeypatch):
+def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport():
     """Odometry pauses for 60 s (a forward jump: same session, nothing lost), then jumps 500 m (odometry
     reset: a new session, visits from 0): each session's visits are ptm-run's on its samples."""
     stamps = 5.0 + 0.1 * np.arange(400)
@@ -1057,30 +1071,27 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport(m
         return [v for t, p in part for v in ext.on_odometry(float(t), p)] + ext.flush()
 
     samples = list(zip(stamps, poses, strict=True))
-    with ros_context(monkeypatch) as ros:
-        node = odometry_detector(ros)
-        for t, p in samples:
-            node._on_odom(odometry_msg(float(t), p))
-        node.finish()
-        first, second = visits_by_session(node)
-        assert first == offline(samples[:300]) and len(first) >= 5
-        assert second == offline(samples[300:]) and second[0].index == 0
-        d = node.diagnostics()
-        assert (d["forward_jumps"], d["teleports"], d["sessions"], d["clock_resets"]) == (1, 1, 2, 0)
-        assert sum(node.skipped.values()) == 0 and d["fed"]["odometry"] == 400
-        end = json.loads(node._visit_pub.items[-1].data)
-        assert end == {
+    box = detector_inbox()
+    for t, p in samples:
+        box.odometry(odometry_msg(float(t), p))
+    box.finish()
+    (first, second), ends = visits_by_session(box.take())
+    assert first == offline(samples[:300]) and len(first) >= 5
+    assert second == offline(samples[300:]) and second[0].index == 0
+    d = box.diagnostics()
+    assert (d["forward_jumps"], d["teleports"], d["sessions"], d["clock_resets"]) == (1, 1, 2, 0)
+    assert sum(box.skipped.values()) == 0 and d["fed"]["odometry"] == 400
+    assert ends == [
+        {
             "schema": END_SCHEMA,
             "visits": len(second),
-            "session": node.session_id,
+            "session": box.session_id,
             "keyframes": 0,  # odometry alone: no scan to send
         }
+    ]
 
 
-@pytest.mark.dds
-def test_detector_rejoins_a_scan_stream_whose_first_messages_were_stamped_ahead(
-    sim_bag, tmp_path, monkeypatch
-):
+def test_detector_rejoins_a_scan_stream_whose_first_messages_were_stamped_ahead(sim_bag, tmp_path):
     """The bag's first 11 scans stamped 100 s ahead (confirmed as the stream's start), then the scans on
     the odometry's clock: the stream rejoins the session at once and what the extractor held of the
     stretch ahead is dropped, so the node's visits are those ptm-run's reader gives (it keeps the longest
@@ -1094,47 +1105,55 @@ def test_detector_rejoins_a_scan_stream_whose_first_messages_were_stamped_ahead(
     run = read_run(bag, image_topic=None)  # ptm-run's reader: the 11 scans ahead are skipped
     expected = detect_visits(run, load_config(None, {"detector": {"kind": "laser-surprise"}}))
     assert len(expected) >= 3
-    with ros_context(monkeypatch) as ros:
-        node = odometry_detector(ros, use_scans=True, **{"detector.kind": "laser-surprise"})
-        for raw in iter_raw(bag, ["/odom", "/scan"]):
-            if raw.topic == "/odom":
-                node._on_odom(deserialize_message(raw.rawdata, Odometry))
-            else:
-                node._on_scan(deserialize_message(raw.rawdata, LaserScan))
-        node.finish()
-        (got,) = visits_by_session(node)
-        diag = node.diagnostics()
+    box = detector_inbox(use_scans=True, kind="laser-surprise")
+    for raw in iter_raw(bag, ["/odom", "/scan"]):
+        if raw.topic == "/odom":
+            box.odometry(deserialize_message(raw.rawdata, Odometry))
+        else:
+            box.scan(deserialize_message(raw.rawdata, LaserScan))
+    box.finish()
+    (got,), _ = visits_by_session(box.take())
+    diag = box.diagnostics()
     assert [v.stamp for v in got] == [v.stamp for v in expected]
     assert [v.input_pose for v in got] == [v.input_pose for v in expected]
     assert diag["clock_resets"] == 1 and diag["sessions"] == 1  # the scans came back: no new session
     assert diag["extractor"]["skipped"]["scan-off-clock"] > 0
 
 
-@pytest.mark.dds
 def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
-    with ros_context(monkeypatch) as ros:
-        node = odometry_detector(ros, use_scans=True, use_images=True, silence_s=10.0)
-        assert node.check_silence(100.0) == []  # nothing received yet
-        node._first_rx = 50.0
-        node._last_rx = {"odom": 99.0, "scan": 98.0}  # no panorama since the first message
-        assert node.check_silence(100.0) == ["panorama"] and node.counters["silences"] == 1
-        assert node.check_silence(101.0) == ["panorama"] and node.counters["silences"] == 1  # same silence
-        node._last_rx["panorama"] = 101.5
-        assert node.check_silence(102.0) == []
-        assert node.check_silence(200.0) == []  # everything stopped: a paused robot or bag, not a silence
-        node._last_rx = {"odom": 200.0, "scan": 185.0, "panorama": 199.0}
-        assert node.check_silence(200.5) == ["scan"] and node.counters["silences"] == 2
-        from types import SimpleNamespace
+    """An expected topic silent for ``silence_s`` while others deliver is reported once per silence; a
+    pause of every topic is none. Messages count as arrivals whatever they hold (these are empty)."""
+    from types import SimpleNamespace
 
-        from ptm_ros.nodes import landmark_detector
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Image, LaserScan
 
-        monkeypatch.setattr(landmark_detector, "time", SimpleNamespace(monotonic=lambda: 200.6))
-        node._publish_diagnostics()
-        status = node._diag_pub.items[-1].status[0]
-        values = {kv.key: kv.value for kv in status.values}
-        assert status.level == status.WARN and values["silent"] == "scan" and values["silences"] == "2"
-        node.silence_s = 0.0
-        assert node.check_silence(300.0) == []  # off
+    from ptm_ros.nodes import detector_inbox as module
+
+    now = {"t": 50.0}
+    monkeypatch.setattr(module, "time", SimpleNamespace(monotonic=lambda: now["t"]))
+
+    def at(t, take, msg):
+        now["t"] = t
+        take(msg)
+
+    box = detector_inbox(use_scans=True, use_images=True, silence_s=10.0)
+    assert box.check_silence(100.0) == []  # nothing received yet
+    at(50.0, box.odometry, Odometry())
+    at(98.0, box.scan, LaserScan())
+    at(99.0, box.odometry, Odometry())  # no panorama since the first message
+    assert box.check_silence(100.0) == ["panorama"] and box.counters["silences"] == 1
+    assert box.check_silence(101.0) == ["panorama"] and box.counters["silences"] == 1  # same silence
+    at(101.5, box.image, Image())
+    assert box.check_silence(102.0) == []
+    assert box.check_silence(200.0) == []  # everything stopped: a paused robot or bag, not a silence
+    at(185.0, box.scan, LaserScan())
+    at(199.0, box.image, Image())
+    at(200.0, box.odometry, Odometry())
+    assert box.check_silence(200.5) == ["scan"] and box.counters["silences"] == 2
+    assert box.diagnostics()["silent"] == "scan"
+    box.silence_s = 0.0
+    assert box.check_silence(300.0) == []  # off
 
 
 @pytest.mark.dds
@@ -1183,7 +1202,7 @@ def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monk
         )
         assert proc.returncode == 0, proc.stderr
         doc = json.loads(wait_for(end.last).data)
-        assert doc["schema"] == common.END_OF_INPUT_SCHEMA
+        assert doc["schema"] == END_OF_INPUT_SCHEMA
         assert doc["counts"] == {t: len(v) for t, v in recorded.items()}
         wait_for(lambda: all(len(got[t]) == len(recorded[t]) for t in recorded))
         assert got == recorded  # every message, in order, byte for byte

@@ -7,7 +7,7 @@ docstring). Each returns the usable content or a :data:`Rejection` ``(reason, de
 bad content.
 
 Stamp order differs by nature between the two paths. A node sees one message at a time and holds stamp
-jumps until later messages confirm them (:class:`ptm_ros.nodes.common.StreamGuard`). A bag is read
+jumps until later messages confirm them (:class:`ptm_ros.nodes.stream_guard.StreamGuard`). A bag is read
 whole, so :func:`stamp_order` keeps, per topic, the longest run of messages whose stamps increase
 strictly (in log order) and skips the others: a stretch stamped back in time, a lone message stamped
 ahead, a repeated stamp. Every skip is counted by its reason: ``<topic>-duplicate`` (the stamp of the
@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ptm_ros.errors import PtmError
-from ptm_ros.io.bag import NS_PER_S, decode_image, quaternion_to_yaw
+from ptm_ros.io.bag import NS_PER_S, decode_image, ns_to_stamp, quaternion_to_yaw
 
 if TYPE_CHECKING:
     from ptm_ros.appearance import AppearanceConfig
@@ -45,6 +45,12 @@ def header_stamp_ns(header: Any) -> int | None:
     if sec < 0 or not 0 <= nanosec < NS_PER_S:
         return None
     return sec * NS_PER_S + nanosec
+
+
+def valid_stamp(header: Any) -> float | None:
+    """A message header's stamp in seconds, or None when it is no ROS time (:func:`header_stamp_ns`)."""
+    ns = header_stamp_ns(header)
+    return None if ns is None else ns_to_stamp(ns)
 
 
 def odometry_pose(msg: Any) -> tuple[NDArray[np.float64] | None, Rejection | None, bool]:

@@ -195,7 +195,7 @@ class BagPlayer:
         from rclpy.duration import Duration
         from std_msgs.msg import String
 
-        from ptm_ros.nodes.common import END_OF_INPUT_SCHEMA
+        from ptm_ros.nodes.messages import END_OF_INPUT_SCHEMA
 
         deadline = time.monotonic() + timeout
         acked = True

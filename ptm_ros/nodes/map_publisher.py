@@ -81,7 +81,7 @@ from std_srvs.srv import Trigger
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
 from ptm_ros.geometry import Registrar
-from ptm_ros.io.validation import scan_payload
+from ptm_ros.io.validation import scan_payload, valid_stamp
 from ptm_ros.mapping import MapInputs, MapResult, draw_map
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
@@ -98,7 +98,6 @@ from ptm_ros.nodes.common import (
     pose_msg,
     run_node,
     time_msg,
-    valid_stamp,
 )
 from ptm_ros.nodes.logs import OnceLogger
 from ptm_ros.nodes.map_inbox import MapInbox

@@ -25,6 +25,9 @@ from ptm_ros.visits import Visit
 #: The detector's in-band end marker after its last visit on ``landmark_visits``:
 #: ``{"schema": END_SCHEMA, "visits": N}``, the number of visits it published.
 END_SCHEMA = "ptm_ros.visits_end/1"
+#: The bag player's last message, on ``end_of_input`` (std_msgs/String, latched):
+#: ``{"schema": END_OF_INPUT_SCHEMA, "counts": {"/odom": 1343, ...}}``, messages published per topic.
+END_OF_INPUT_SCHEMA = "ptm_ros.end_of_input/1"
 #: Tag of the topology filter's ``ptm_graph`` documents (:func:`graph_document`).
 GRAPH_SCHEMA = "ptm_ros.ptm_graph/1"
 
