@@ -18,7 +18,7 @@ import math
 import time
 import uuid
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -28,7 +28,14 @@ from numpy.typing import NDArray
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
 from ptm_ros.factories import make_extractor
-from ptm_ros.io.validation import ScanPayload, image_payload, odometry_pose, scan_payload, valid_stamp
+from ptm_ros.io.validation import (
+    Rejection,
+    ScanPayload,
+    image_payload,
+    odometry_pose,
+    scan_payload,
+    valid_stamp,
+)
 from ptm_ros.landmarks import VisitExtractor, diagnostics_dict
 from ptm_ros.mapping import KeyframeStream
 from ptm_ros.nodes.logs import Logger, OnceLogger
@@ -258,56 +265,50 @@ class DetectorInbox:
 
     def odometry(self, msg: Any) -> None:
         """Take an ``odom`` message (nav_msgs/Odometry or any object with its fields)."""
-        if not self._count("odom"):
-            return
-        stamp = valid_stamp(msg.header)
-        if stamp is None:
-            self._skip("odometry-bad-stamp", f"stamp {msg.header.stamp.sec} s {msg.header.stamp.nanosec} ns")
-        else:
-            pose, rejected, normalised = odometry_pose(msg)
-            if rejected is not None:
-                self._skip(*rejected)
-            else:
+
+        def read(m: Any) -> tuple[Any, Rejection | None]:
+            pose, rejected, normalised = odometry_pose(m)
+            if rejected is None:
                 if normalised:
                     self.counters["odometry-quaternion-normalized"] += 1
                     self._log_once("quaternion", "normalised an odometry orientation that was not unit")
-                if msg.header.frame_id:
-                    self.frame_id = msg.header.frame_id
-                if msg.child_frame_id:
-                    self.child_frame_id = msg.child_frame_id
-                self._admit("odometry", stamp, pose)
-        self.check_end()
+                self.frame_id = m.header.frame_id or self.frame_id
+                self.child_frame_id = m.child_frame_id or self.child_frame_id
+            return pose, rejected
+
+        self._take("odom", "odometry", msg, read)
 
     def scan(self, msg: Any) -> None:
         """Take a ``scan`` message (sensor_msgs/LaserScan or any object with its fields)."""
-        if not self._count("scan"):
-            return
-        stamp = valid_stamp(msg.header)
-        if stamp is None:
-            self._skip("scan-bad-stamp", f"stamp {msg.header.stamp.sec} s {msg.header.stamp.nanosec} ns")
-        else:
-            payload, rejected = scan_payload(msg)
-            if rejected is not None:
-                self._skip(*rejected)
-            else:
-                if msg.header.frame_id:
-                    self.scan_frame_id = msg.header.frame_id
-                self._admit("scan", stamp, payload)
-        self.check_end()
+
+        def read(m: Any) -> tuple[Any, Rejection | None]:
+            payload, rejected = scan_payload(m)
+            if rejected is None:
+                self.scan_frame_id = m.header.frame_id or self.scan_frame_id
+            return payload, rejected
+
+        self._take("scan", "scan", msg, read)
 
     def image(self, msg: Any) -> None:
         """Take a ``panorama`` message (sensor_msgs/Image or any object with its fields)."""
-        if not self._count("panorama"):
+        self._take("panorama", "image", msg, lambda m: image_payload(m, self.config.model.appearance))
+
+    def _take(
+        self, key: str, stream: str, msg: Any, read: Callable[[Any], tuple[Any, Rejection | None]]
+    ) -> None:
+        """A message of subscription ``key``: counted, its stamp and content checked (``read`` returns
+        the content or why it is rejected), admitted to ``stream``'s guard; then the end is checked."""
+        if not self._count(key):
             return
         stamp = valid_stamp(msg.header)
         if stamp is None:
-            self._skip("image-bad-stamp", f"stamp {msg.header.stamp.sec} s {msg.header.stamp.nanosec} ns")
+            self._skip(f"{stream}-bad-stamp", f"stamp {msg.header.stamp.sec} s {msg.header.stamp.nanosec} ns")
         else:
-            image, rejected = image_payload(msg, self.config.model.appearance)
+            payload, rejected = read(msg)
             if rejected is not None:
                 self._skip(*rejected)
             else:
-                self._admit("image", stamp, image)
+                self._admit(stream, stamp, payload)
         self.check_end()
 
     # -------------------------------------------------------------------------- stream guards
