@@ -1138,11 +1138,12 @@ def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
         take(msg)
 
     box = detector_inbox(use_scans=True, use_images=True, silence_s=10.0)
-    assert box.check_silence(100.0) == []  # nothing received yet
+    assert box.check_silence(100.0) == [] and not box.warns()  # nothing received yet
     at(50.0, box.odometry, Odometry())
     at(98.0, box.scan, LaserScan())
     at(99.0, box.odometry, Odometry())  # no panorama since the first message
-    assert box.check_silence(100.0) == ["panorama"] and box.counters["silences"] == 1
+    problems = box.problems()  # the empty messages are skipped: counted, so WARN already
+    assert box.check_silence(100.0) == ["panorama"] and box.counters["silences"] == 1 and box.warns()
     assert box.check_silence(101.0) == ["panorama"] and box.counters["silences"] == 1  # same silence
     at(101.5, box.image, Image())
     assert box.check_silence(102.0) == []
@@ -1151,9 +1152,12 @@ def test_detector_reports_a_topic_that_falls_silent(monkeypatch):
     at(199.0, box.image, Image())
     at(200.0, box.odometry, Odometry())
     assert box.check_silence(200.5) == ["scan"] and box.counters["silences"] == 2
-    assert box.diagnostics()["silent"] == "scan"
+    assert box.diagnostics()["silent"] == "scan" and problems > 0
+    box.skipped = dict.fromkeys(box.skipped, 0)  # without the skips, the silence alone is a WARN
+    assert box.problems() == 0 and box.warns()
+    assert box.check_silence(200.6) == ["scan"] and box.warns()
     box.silence_s = 0.0
-    assert box.check_silence(300.0) == []  # off
+    assert box.check_silence(300.0) == [] and not box.warns()  # off
 
 
 @pytest.mark.dds

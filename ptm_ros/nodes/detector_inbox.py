@@ -520,8 +520,10 @@ class DetectorInbox:
 
     def check_silence(self, now: float) -> list[str]:
         """Expected topics silent for more than ``silence_s`` at ``now`` (monotonic s) while another topic
-        delivered within ``silence_s``; each new silence is counted and logged once."""
+        delivered within ``silence_s``; each new silence is counted and logged once. None with
+        ``silence_s`` 0, before the first message and after the end of input (a silence then ends)."""
         if self.silence_s <= 0.0 or self.finished or self._first_rx is None:
+            self._silent = set()  # off, over or not started: no topic is silent
             return []
         expected = ["odom"]
         expected += ["scan"] if self.extractor.config.use_scans else []
@@ -563,8 +565,13 @@ class DetectorInbox:
             **self.counters,
         }
 
+    def warns(self) -> bool:
+        """Whether ``/diagnostics`` says WARN: a message skipped or an error (:meth:`problems`), or an
+        expected topic silent now (:meth:`check_silence`)."""
+        return self.problems() > 0 or bool(self._silent)
+
     def problems(self) -> int:
-        """Messages skipped by the checks and the extractor, and errors (non-zero: WARN)."""
+        """Messages skipped by the checks and the extractor, and errors."""
         values = diagnostics_dict(self.extractor.diagnostics)
         past = sum_counters(self._past, values)
         return (

@@ -380,7 +380,7 @@ class LandmarkDetectorNode(Node):
             hardware_id=NODE_NAME,
             message=f"{inbox.published} visits, {bad} messages skipped",
             values=values,
-            warn=bad > 0 or bool(values["silent"]),
+            warn=inbox.warns(),
         )
 
 
