@@ -845,7 +845,10 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
         sc = run.scans
         for msg in scan_msgs(sc):
             scan_pub.publish(msg)
-        wait_for(lambda: mp.inbox.online.counters.scans == len(sc.stamps), timeout=30.0)
+        # every odometry sample too (another topic: it may still be in flight when the scans are in)
+        counters = mp.inbox.online.counters
+        n_odom = len(run.odometry.stamps)
+        wait_for(lambda: counters.scans == len(sc.stamps) and counters.poses == n_odom, timeout=30.0)
         wait_for(
             lambda: mp.inbox.ptm is not None and len(mp.inbox.ptm.landmarks) == len(sim_visits), timeout=60.0
         )
