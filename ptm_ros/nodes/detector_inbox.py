@@ -412,7 +412,7 @@ class DetectorInbox:
     def _new_session(self, cause: str) -> None:
         """Complete the current session's visits and start afresh (odometry went back or teleported)."""
         self._emit(self.extractor.flush())
-        self._past = sum_counters(self._past, diagnostics_dict(self.extractor.diagnostics))
+        self._past = self._extractor_counters()
         self.extractor = self._make_extractor()
         self.session += 1
         self.session_visits = 0
@@ -559,7 +559,7 @@ class DetectorInbox:
             "session_visits": self.session_visits,
             "finished": self.finished,
             "silent": ",".join(sorted(self._silent)),
-            "extractor": sum_counters(self._past, diagnostics_dict(self.extractor.diagnostics)),
+            "extractor": self._extractor_counters(),
             "time_offset": self.extractor.time_offset,  # the session's (learned once its first scans are in)
             **self.skipped,
             **self.counters,
@@ -572,11 +572,13 @@ class DetectorInbox:
 
     def problems(self) -> int:
         """Messages skipped by the checks and the extractor, and errors."""
-        values = diagnostics_dict(self.extractor.diagnostics)
-        past = sum_counters(self._past, values)
         return (
-            sum(past["skipped"].values())
+            sum(self._extractor_counters()["skipped"].values())
             + sum(self.skipped.values())
             + self.counters["internal_errors"]
             + self.counters["extractor_errors"]
         )
+
+    def _extractor_counters(self) -> dict[str, Any]:
+        """The extractor's counters, summed over the sessions so far."""
+        return sum_counters(self._past, diagnostics_dict(self.extractor.diagnostics))
