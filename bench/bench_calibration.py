@@ -9,8 +9,8 @@ default parameters (default detector for a bag with scans; ``--no-map --no-repor
 ``ptm.json`` with :func:`ptm_ros.tools.evaluate.calibration_record`: the MAP probability, whether the MAP
 topology is exactly the true one, the consistent mass and the mass on the true topology.
 
-Figures (:func:`ptm_ros.evaluation.calibration_summary`) overall, per family, per family x variant, per
-variant and per noise level: ECE (10 equal-width bins) and its chance level (a calibrated mapper's mean
+Figures (:func:`ptm_ros.scoring.evaluation.calibration_summary`) overall, per family, per family x variant,
+per variant and per noise level: ECE (10 equal-width bins) and its chance level (a calibrated mapper's mean
 ECE on the same stated probabilities), Brier score, overconfident failures (consistent mass < 0.05),
 mean mass on the true topology, MAP-right rate against the mean stated MAP probability, and the failing
 MAPs' kind (false merges only, missed merges only, both). Writes ``--out`` (``bench/calibration.json``),
@@ -51,8 +51,8 @@ from typing import Any
 
 import numpy as np
 
-from ptm_ros.evaluation import CalibrationSummary
 from ptm_ros.io.simulator import OdometryNoiseConfig
+from ptm_ros.scoring.evaluation import CalibrationSummary
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -123,7 +123,7 @@ def run_case(case: Case, work: str, keep_bags: bool, params: str | None = None) 
     (JSON values)."""
     from ptm_ros.io.simulator import SimConfig, simulate, write_run
     from ptm_ros.io.worlds import get_world
-    from ptm_ros.ptm import load_ptm
+    from ptm_ros.model.ptm import load_ptm
     from ptm_ros.tools import run as ptm_run
     from ptm_ros.tools.evaluate import calibration_record
 
@@ -166,7 +166,7 @@ def true_place_names(world_name: str, ptm_path: Path) -> list[str]:
     noise or the seed), so it is recomputed here rather than read from the (deleted) bag."""
     from ptm_ros.io.simulator import SimConfig, plan_trajectory
     from ptm_ros.io.worlds import get_world
-    from ptm_ros.ptm import load_ptm
+    from ptm_ros.model.ptm import load_ptm
 
     world, config = get_world(world_name), SimConfig()
     ptm = load_ptm(ptm_path)
@@ -354,8 +354,8 @@ def wrong_maps_section(wrong: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Namespace, wall: float) -> None:
-    from ptm_ros.evaluation import OVERCONFIDENT_MASS
     from ptm_ros.io.calibration_plot import write_reliability_diagram
+    from ptm_ros.scoring.evaluation import OVERCONFIDENT_MASS
 
     overall, overall_summary = summarize(rows)
     by = {

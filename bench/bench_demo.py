@@ -4,7 +4,7 @@
 simulated (``ptm-sim``'s configuration), run through ``ptm-run``'s pipeline at the defaults plus
 ``config/demo.yaml`` (no map, no report), and the filter's timeline (``ptm.json``'s
 ``inference.timeline``) is scored against the truth of the visits so far
-(:func:`ptm_ros.evaluation.timeline_masses`), beside the greedy baseline's answer (``ptm.json``'s
+(:func:`ptm_ros.scoring.evaluation.timeline_masses`), beside the greedy baseline's answer (``ptm.json``'s
 ``greedy``). The mass is *split* at a visit when the truth holds between 0.1 and 0.9 of it; a seed
 *behaves like the demo* when the mass is split at two consecutive visits or more, the truth holds more
 than 0.9 at the end and the greedy answer is wrong.
@@ -41,10 +41,10 @@ SPLIT = (0.1, 0.9)  # a visit where the truth holds a share in this range: the m
 
 def seed_row(seed: int, work: Path) -> dict[str, Any]:
     """One seed: simulate, run the pipeline, score the timeline and the greedy answer."""
-    from ptm_ros.evaluation import first_wrong_visit, timeline_masses
     from ptm_ros.io.simulator import SimConfig, simulate, write_run
     from ptm_ros.io.worlds import get_world
-    from ptm_ros.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.model.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.scoring.evaluation import first_wrong_visit, timeline_masses
     from ptm_ros.tools.bringup import load_parameters
     from ptm_ros.tools.pipeline import run_offline
 

@@ -2,7 +2,7 @@
 
 For each of ``--runs`` random small runs (the worlds of :data:`BENCH_WORLDS` in turn, a fresh noise seed
 each, 8 or 9 place visits) the script simulates a bag with ``ptm-sim`` and runs ``ptm-run`` on it twice, with
-``--method exact`` (enumeration of every topology, :func:`ptm_ros.posterior.exact_posterior`) and with
+``--method exact`` (enumeration of every topology, :func:`ptm_ros.model.posterior.exact_posterior`) and with
 ``--method rbpf --particles N``, then compares the two ``ptm.json``: total variation, and the mass each
 puts on the exact MAP topology. Only the command-line tools are used (their interface is stable), so the
 benchmark does not depend on where the pipeline's functions live.

@@ -2,10 +2,10 @@
 
 Issue #23: no knob scored on the data it was fitted on.
 
-``LaserConfig.fitness_*`` (:func:`ptm_ros.laser.fitness_log_bayes`) are Beta densities of a registration's
-fitness (symmetric inlier fraction) for two visits of one place and of different places, fitted by maximum
-likelihood on the Intel, ACES and MIT-CSAIL runs. ``OdometryConfig.registration_outlier`` (ε) is the
-fraction of the valid registrations of one-place pairs that are off the true relative pose by more than
+``LaserConfig.fitness_*`` (:func:`ptm_ros.perception.laser.fitness_log_bayes`) are Beta densities of a
+registration's fitness (symmetric inlier fraction) for two visits of one place and of different places, fitted
+by maximum likelihood on the Intel, ACES and MIT-CSAIL runs. ``OdometryConfig.registration_outlier`` (ε) is
+the fraction of the valid registrations of one-place pairs that are off the true relative pose by more than
 ``ALIAS_XY`` m or ``ALIAS_YAW`` rad (aliases), pooled over those runs and the simulated worlds
 (``run_all.SIM_WORLDS``, a fixed share not fitted on the real runs). This script
 
@@ -53,7 +53,7 @@ QUIET = ("--no-map", "--no-report", "--quiet")
 def is_alias(measured: ArrayLike, true: ArrayLike) -> bool:
     """Whether a registration ``(x, y, yaw)`` is off the true relative pose by more than ``ALIAS_XY`` m or
     ``ALIAS_YAW`` rad."""
-    from ptm_ros.geometry import wrap_angle
+    from ptm_ros.model.geometry import wrap_angle
 
     e = np.asarray(measured, dtype=float) - np.asarray(true, dtype=float)
     return bool(np.hypot(e[0], e[1]) > ALIAS_XY or abs(float(wrap_angle(e[2]))) > ALIAS_YAW)
@@ -66,10 +66,10 @@ def collect_pairs(
     distance (``flat_*`` repeats those whose optimum is flat: corridor matches), and the count of the valid
     one-place registrations and of their aliases (:func:`is_alias`)."""
     from ptm_ros.config import load_config
-    from ptm_ros.geometry import between, interpolate_poses
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.laser import FLAT_OPTIMUM, RegistrationError, register_patches
+    from ptm_ros.model.geometry import between, interpolate_poses
+    from ptm_ros.perception.laser import FLAT_OPTIMUM, RegistrationError, register_patches
     from ptm_ros.tools.pipeline import detect_visits
 
     config = load_config()
@@ -152,7 +152,7 @@ def score(
         )
     if code != 0:
         return {"error": log.getvalue()[-1000:]}
-    from ptm_ros.ptm import load_ptm
+    from ptm_ros.model.ptm import load_ptm
     from ptm_ros.tools.pipeline import score_against
 
     s = score_against(load_ptm(out / "ptm.json"), truth).as_dict(per_topology=False)
@@ -228,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def write_markdown(doc: dict[str, Any], path: Path) -> None:
     """The fits and the held-out scores as tables."""
-    from ptm_ros.laser import LaserConfig
+    from ptm_ros.perception.laser import LaserConfig
 
     d = LaserConfig()
     lines = [

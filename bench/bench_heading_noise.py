@@ -7,8 +7,8 @@ For each real run in ``../shared/datasets`` (converted once under ``--work``) an
   stretches of ``--window`` m of true travel, its mean square divided by the mean heading variance the
   default model gives the same stretches (``a_th ρ + c_th ℓ``): the scale a perfect estimator would learn;
 * **learned**: the scale the filter session learns from the run's own laser registrations, no ground truth
-  (:mod:`ptm_ros.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and the
-  outlier fraction behind it.
+  (:mod:`ptm_ros.model.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and
+  the outlier fraction behind it.
 
 Writes ``bench/heading_noise.json`` and ``bench/heading_noise.md``.
 
@@ -40,8 +40,8 @@ NOISE = ("sim", "model", "twice-model")
 def measured_ratio(stamps: np.ndarray, corrected: np.ndarray, truth: Any, window: float) -> dict[str, float]:
     """Mean square heading error of ``corrected`` (poses at ``stamps``) over ``window`` m stretches of the
     truth's travel, against the default model's mean heading variance of the same stretches."""
-    from ptm_ros.geometry import between, interpolate_poses, wrap_angle
-    from ptm_ros.odometry import OdometryConfig
+    from ptm_ros.model.geometry import between, interpolate_poses, wrap_angle
+    from ptm_ros.model.odometry import OdometryConfig
 
     inside = (truth.stamps >= stamps[0]) & (truth.stamps <= stamps[-1])
     t, g = truth.stamps[inside], truth.poses_corrected[inside]
@@ -104,7 +104,7 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         f"{doc['window_m']:.0f} m stretches of true travel, its mean square over the default model's heading "
         "variance of the same stretches (what a perfect estimator would learn). *Learned*: the scale "
         "`ptm-run` learns at the default parameters from the run's own laser registrations, no ground truth "
-        "(`ptm_ros.heading_noise`; lattice 2^(m/2), prior log k ~ N(0, 1)). Laser-surprise visits.",
+        "(`ptm_ros.model.heading_noise`; lattice 2^(m/2), prior log k ~ N(0, 1)). Laser-surprise visits.",
         "",
         "| run | noise | visits | stretches | measured ratio | learned scale | registrations | outliers "
         "| filter s (replays) |",

@@ -2,8 +2,8 @@
 
 For each run, ``ptm-run``'s pipeline at the default parameters (:func:`run_all.pipeline_row`, one
 process) scored against its ground truth: the map's quality (ptm.json's ``map_quality``:
-:mod:`ptm_ros.map_quality`), the trajectory error and the route-graph segments through the map's walls,
-the figures copied to ``bench/maps/<run>.png`` and ``bench/maps/<run>-vs-reference.png``
+:mod:`ptm_ros.maps.map_quality`), the trajectory error and the route-graph segments through the map's
+walls, the figures copied to ``bench/maps/<run>.png`` and ``bench/maps/<run>-vs-reference.png``
 (:func:`run_all.copy_map_figures`). Where ``ptm-calibrate`` chooses a laser time offset (from the bag
 alone) the run is repeated with it (``ptm-rbpf calibrated``, figures ``<run>-calibrated…``), as
 ``make bench`` does.
@@ -55,9 +55,9 @@ from ptm_ros.io.bag import RunData, read_run  # noqa: E402
 from ptm_ros.io.groundtruth import GroundTruthTrajectory, load_ground_truth  # noqa: E402
 from ptm_ros.io.simulator import SimConfig, simulate, write_run  # noqa: E402
 from ptm_ros.io.worlds import WORLDS, get_world  # noqa: E402
-from ptm_ros.map_quality import leaked_cells, map_quality  # noqa: E402
-from ptm_ros.mapping import grid_along  # noqa: E402
-from ptm_ros.occupancy import grid_traversal, save_png, scan_beams  # noqa: E402
+from ptm_ros.maps.map_quality import leaked_cells, map_quality  # noqa: E402
+from ptm_ros.maps.mapping import grid_along  # noqa: E402
+from ptm_ros.maps.occupancy import grid_traversal, save_png, scan_beams  # noqa: E402
 from ptm_ros.tools.calibrate import calibrate_run  # noqa: E402
 from ptm_ros.tools.pipeline import class_grid, reference_classes  # noqa: E402
 
@@ -89,7 +89,7 @@ def leak_passes(
 ) -> dict[str, Any]:
     """The beam passes (as the map drew them) through the map's leaked cells: distance from the sensor
     (quantiles, m), share beyond 5 and 10 m, share by no-return beams."""
-    from ptm_ros.geometry import interpolate_poses
+    from ptm_ros.model.geometry import interpolate_poses
 
     leak = leaked_cells(product, reference, theta=alignment["theta"], t=(alignment["x"], alignment["y"]))
     sc, oc = run.scans, config.occupancy

@@ -1,10 +1,10 @@
-"""Benchmark of MCMC over topologies (ptm_ros.mcmc): accuracy against enumeration and speed-ups.
+"""Benchmark of MCMC over topologies (ptm_ros.inference.mcmc): accuracy against enumeration and speed-ups.
 
 Writes ``bench/mcmc.json`` (beside this script, or ``--out``) and prints a table. Three parts:
 
 * ``accuracy``: simulated runs of N = 9 visits (a square driven twice, with and without signatures; a
-  figure-eight whose two lobes look alike) against :func:`ptm_ros.posterior.exact_posterior` (all
-  B_9 = 21 147 topologies): :func:`ptm_ros.mcmc.run_mcmc` with its defaults over seeds, TV of the
+  figure-eight whose two lobes look alike) against :func:`ptm_ros.model.posterior.exact_posterior` (all
+  B_9 = 21 147 topologies): :func:`ptm_ros.inference.mcmc.run_mcmc` with its defaults over seeds, TV of the
   visited-set and histogram estimates to the exact posterior, wall time, sweeps, convergence.
 * ``speed``: single chains side by side on the same runs, from all-singletons, each with a fresh model
   (cold posterior cache): sweeps, MH steps, posterior evaluations and wall time until the visited-set
@@ -36,8 +36,8 @@ JSON (other parts already there are kept):
   three runs have more than ``max_sampled_visits`` visits, so the batch posterior is the deterministic
   Laplace estimate and MAP differences are exact (below that, differing MAPs are re-compared over other
   importance-sampling seeds). Reported: TV between the PTMs, both MAPs'
-  log posteriors under one :class:`~ptm_ros.posterior.PosteriorModel`, whether they are equal and why not,
-  their F1 against ground truth, wall times, convergence (also on the pairs' same-place probabilities),
+  log posteriors under one :class:`~ptm_ros.model.posterior.PosteriorModel`, whether they are equal and why
+  not, their F1 against ground truth, wall times, convergence (also on the pairs' same-place probabilities),
   the SRQ deviation of each cold chain, and the
   TV between MCMC and the RBPF's topologies re-weighted by the batch posterior (which separates "the
   filter lost a topology" from "the filter weighs its topologies differently"), the visit pairs'
@@ -73,14 +73,14 @@ from typing import Any
 
 import numpy as np
 
-from ptm_ros.geometry import wrap_angle
+from ptm_ros.inference.mcmc import McmcConfig, McmcSampler, run_mcmc
 from ptm_ros.io.synthetic import odometry_visits, true_poses
-from ptm_ros.mcmc import McmcConfig, McmcSampler, run_mcmc
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.partitions import canonical, enumerate_partitions
-from ptm_ros.posterior import ModelConfig, PosteriorModel, normalize_log, total_variation
+from ptm_ros.model.geometry import wrap_angle
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.partitions import canonical, enumerate_partitions
+from ptm_ros.model.posterior import ModelConfig, PosteriorModel, normalize_log, total_variation
+from ptm_ros.model.visits import Visit
 from ptm_ros.session import compare_to_filter
-from ptm_ros.visits import Visit
 
 THRESHOLD = 0.02
 ODOMETRY = OdometryConfig(n_samples=0, tolerance=1e-3)
@@ -400,7 +400,7 @@ def topology_row(model: PosteriorModel, labels: tuple[int, ...]) -> dict[str, An
 
 def ptm_score(visits, probs: dict, gt: Path) -> dict[str, Any]:
     """MAP and posterior F1 of a PTM against the CARMEN ground truth (``ptm-eval``'s figures)."""
-    from ptm_ros.ptm import Landmark, make_ptm
+    from ptm_ros.model.ptm import Landmark, make_ptm
     from ptm_ros.tools.evaluate import score_against_ground_truth
 
     landmarks = [Landmark(v.index, v.stamp, v.pose) for v in visits]
@@ -411,10 +411,11 @@ def ptm_score(visits, probs: dict, gt: Path) -> dict[str, Any]:
 
 def truth_of_pairs(visits, gt: Path) -> np.ndarray:
     """``(n, n)`` ground truth of every visit pair: 1 one place, 0 different, NaN unscored (the grey zone,
-    or a visit outside the ground truth's span): ``ptm-eval``'s :func:`~ptm_ros.evaluation.pair_truth`."""
-    from ptm_ros.evaluation import pair_truth
+    or a visit outside the ground truth's span): ``ptm-eval``'s
+    :func:`~ptm_ros.scoring.evaluation.pair_truth`."""
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.ptm import Landmark, make_ptm
+    from ptm_ros.model.ptm import Landmark, make_ptm
+    from ptm_ros.scoring.evaluation import pair_truth
     from ptm_ros.tools.evaluate import true_positions_for
 
     n = len(visits)
@@ -435,7 +436,7 @@ def differences_vs_truth(
     zone). ``marginal_pairs``: the same for the pairs whose same-place marginals differ by more than 0.1,
     a PTM being "right" when its marginal is nearer the truth; ``abs_error_*`` sums ``|p - truth|`` over
     those scored pairs."""
-    from ptm_ros.posterior import same_place_probabilities
+    from ptm_ros.model.posterior import same_place_probabilities
 
     n = truth.shape[0]
     iu = np.triu_indices(n, 1)
@@ -464,8 +465,9 @@ def differences_vs_truth(
 
 
 def srq_deviations(res) -> list[float | None]:
-    """SRQ deviation (:func:`ptm_ros.convergence.srq_deviation`) of each cold chain at one shared atom."""
-    from ptm_ros.convergence import most_visited, srq_deviation, srq_points
+    """SRQ deviation (:func:`ptm_ros.inference.convergence.srq_deviation`) of each cold chain at one shared
+    atom."""
+    from ptm_ros.inference.convergence import most_visited, srq_deviation, srq_points
 
     if not any(res.cold_states):
         return [None] * len(res.cold_states)

@@ -1,4 +1,4 @@
-"""Benchmark of the metric likelihood :func:`ptm_ros.odometry.metric_log_likelihood`.
+"""Benchmark of the metric likelihood :func:`ptm_ros.model.odometry.metric_log_likelihood`.
 
 A synthetic loop: eight landmarks on a 16 m square (corners and side midpoints, 8 m apart) visited lap
 after lap, with odometry noise drawn from the model of the default :class:`OdometryConfig`. For
@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from ptm_ros.io.synthetic import odometry_visits
-from ptm_ros.odometry import MAX_VISITS, OdometryConfig, metric_log_likelihood
-from ptm_ros.visits import Visit
+from ptm_ros.model.odometry import MAX_VISITS, OdometryConfig, metric_log_likelihood
+from ptm_ros.model.visits import Visit
 
 SIZES = (10, 33, 100)
 N_PLACES = 8
@@ -125,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows = run(args.repeats, args.seed)
     print_table(rows)
     record = {
-        "benchmark": "ptm_ros.odometry.metric_log_likelihood on a synthetic 8-place loop",
+        "benchmark": "ptm_ros.model.odometry.metric_log_likelihood on a synthetic 8-place loop",
         "config": OdometryConfig().__dict__,
         "repeats": args.repeats,
         "seed": args.seed,

@@ -1,9 +1,9 @@
 """How wide is the odometry noise the metric model assumes, against the real errors (issue #23, cause F)?
 
 For each run, the visits are detected at the default parameters (laser surprise) and the relative odometry
-between consecutive visits (the model's odometry factors, :func:`ptm_ros.odometry.relative_odometry`) is
+between consecutive visits (the model's odometry factors, :func:`ptm_ros.model.odometry.relative_odometry`) is
 compared with the ground truth's relative motion. Each error component is whitened by the model's variance
-(:class:`ptm_ros.odometry.OdometryConfig`: translation ``a_xy·ℓ + b_xy``, heading
+(:class:`ptm_ros.model.odometry.OdometryConfig`: translation ``a_xy·ℓ + b_xy``, heading
 ``a_th·ρ + c_th·ℓ + b_th``). If the model were right, ``e²/σ²`` would have mean 1 and median 0.455 (χ²₁).
 Reported for the laser-corrected odometry the model uses and for the raw wheel odometry, on the real runs
 of ``../shared/datasets`` and on the calibration worlds (``bench_calibration.py``) at each noise level.
@@ -41,9 +41,9 @@ def whitened_errors(bag: Path, truth: Any) -> dict[str, Any]:
     """``e²/σ²`` per consecutive-visit segment, per component (x, y, heading), for the corrected and the
     wheel odometry of a bag's visits against ``truth`` (a loaded ground truth)."""
     from ptm_ros.config import load_config
-    from ptm_ros.geometry import between, interpolate_poses, wrap_angle
     from ptm_ros.io.bag import read_run
-    from ptm_ros.odometry import odometry_covariances
+    from ptm_ros.model.geometry import between, interpolate_poses, wrap_angle
+    from ptm_ros.model.odometry import odometry_covariances
     from ptm_ros.tools.pipeline import detect_visits
 
     config = load_config()

@@ -10,7 +10,7 @@ the nodes take it) and runs ``ptm-run`` on the same bag with the same parameters
 * the map publisher's work: maps drawn during the replay, the time of the last one, keyframe scans.
 
 The live map is measured as the map publisher draws it by default: ``ptm-bringup --bag`` sets the
-thinning to none (``ptm_ros.mapping.every_sample``: every odometry sample and scan, so that its files
+thinning to none (``ptm_ros.maps.mapping.every_sample``: every odometry sample and scan, so that its files
 are ``ptm-run``'s), and this benchmark gives both tools a ROS parameter file
 (:func:`default_thinning`) that puts the default ``mapping.*`` thinning back; the nodes apply it after
 the bringup's own settings, ``ptm-run`` does not draw from the stream and is unaffected.
@@ -43,9 +43,9 @@ sys.path.insert(0, str(BENCH))
 
 from run_all import prepare_runs  # noqa: E402 - a sibling benchmark script
 
-from ptm_ros.mapping import MappingConfig, every_sample  # noqa: E402
-from ptm_ros.occupancy import OCCUPIED, UNKNOWN, aligned_windows, load_map  # noqa: E402
-from ptm_ros.ptm import load_ptm  # noqa: E402
+from ptm_ros.maps.mapping import MappingConfig, every_sample  # noqa: E402
+from ptm_ros.maps.occupancy import OCCUPIED, UNKNOWN, aligned_windows, load_map  # noqa: E402
+from ptm_ros.model.ptm import load_ptm  # noqa: E402
 
 
 def ros_env() -> dict[str, str]:
@@ -59,7 +59,7 @@ def ros_env() -> dict[str, str]:
 
 
 def thinning() -> dict[str, float]:
-    """The default values of the ``mapping`` fields that :func:`ptm_ros.mapping.every_sample` (what
+    """The default values of the ``mapping`` fields that :func:`ptm_ros.maps.mapping.every_sample` (what
     ``ptm-bringup --bag`` applies) sets to no thinning."""
     default = MappingConfig()
     unthinned = every_sample(default)

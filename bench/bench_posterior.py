@@ -24,9 +24,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_odometry import N_PLACES, synthetic_loop
 
-from ptm_ros.odometry import MAX_VISITS, OdometryConfig
-from ptm_ros.posterior import ModelConfig, PosteriorModel
-from ptm_ros.visits import Visit
+from ptm_ros.model.odometry import MAX_VISITS, OdometryConfig
+from ptm_ros.model.posterior import ModelConfig, PosteriorModel
+from ptm_ros.model.visits import Visit
 
 
 def with_signatures(visits: list[Visit], rng: np.random.Generator, k: int = 8) -> list[Visit]:

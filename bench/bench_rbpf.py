@@ -1,4 +1,5 @@
-"""Benchmark of the RBPF over topologies (ptm_ros.rbpf): speed per visit and accuracy against enumeration.
+"""Benchmark of the RBPF over topologies (ptm_ros.inference.rbpf): speed per visit and accuracy against
+enumeration.
 
 Writes ``bench/rbpf.json`` (beside this script, or ``--out``) and prints a table. Three parts:
 
@@ -6,7 +7,7 @@ Writes ``bench/rbpf.json`` (beside this script, or ``--out``) and prints a table
   odometry only, with laser registrations, and with laser + appearance; per-visit update time (median,
   p95, and the median of each quarter of the run, to see the growth; minimum over 3 repeats), the
   posterior mass of the true topology.
-* ``accuracy``: N = 8 runs against :func:`ptm_ros.posterior.exact_posterior` (Laplace, all 4140
+* ``accuracy``: N = 8 runs against :func:`ptm_ros.model.posterior.exact_posterior` (Laplace, all 4140
   topologies): total variation of the filter keeping every child, and of 10–100 particles over seeds,
   for optimal (Fearnhead–Clifford) and top-N resampling.
 * ``approximations``: N = 6 cases, every child kept, against enumeration with and without the
@@ -32,12 +33,18 @@ from pathlib import Path
 import numpy as np
 from scipy.special import logsumexp
 
+from ptm_ros.inference.rbpf import RbpfConfig, TopologyFilter, run_filter
 from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.partitions import bell, canonical
-from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
-from ptm_ros.priors import PriorConfig, make_prior
-from ptm_ros.rbpf import RbpfConfig, TopologyFilter, run_filter
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.partitions import bell, canonical
+from ptm_ros.model.posterior import (
+    ModelConfig,
+    PosteriorModel,
+    exact_posterior,
+    normalize_log,
+    total_variation,
+)
+from ptm_ros.model.priors import PriorConfig, make_prior
 
 PRIOR = PriorConfig()
 

@@ -1,6 +1,6 @@
 """The laser time offset learned from a run (``laser_odometry.learn_time_offset``, issues #23/#24).
 
-:func:`ptm_ros.laser_odometry.learn_time_offset` on the first ``learn_scans`` scans of
+:func:`ptm_ros.perception.laser_odometry.learn_time_offset` on the first ``learn_scans`` scans of
 
 1. simulated runs whose laser driver stamps every scan ``--delays`` s late (the true offset is minus the
    delay), over ``--worlds``, ``--seeds`` and the odometry noise levels ``--noise`` of
@@ -42,8 +42,8 @@ def learned(bag: Path) -> dict[str, Any]:
     ``ptm-calibrate``'s choice over the same scans."""
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
-    from ptm_ros.laser_odometry import RunInput, learn_time_offset
-    from ptm_ros.mapping import scan_points
+    from ptm_ros.maps.mapping import scan_points
+    from ptm_ros.perception.laser_odometry import RunInput, learn_time_offset
     from ptm_ros.tools.calibrate import calibrate_run
 
     config = load_config()

@@ -18,12 +18,12 @@
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
-   landmark patches (:mod:`ptm_ros.baselines`); for the pipeline also the absolute trajectory errors of
-   the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``) and the
+   landmark patches (:mod:`ptm_ros.scoring.baselines`); for the pipeline also the absolute trajectory errors
+   of the smoothed MAP trajectory and of the raw odometry (``ate_smoothed_m``, ``ate_odometry_m``) and the
    route graph's edge segments through the walls of the run's own map (``route_edges_crossing_walls``,
    recorded, not asserted) and the map's quality against the same scans at the ground-truth poses
    (``map_leak``, ``map_free_area_ratio``, ``map_wall_precision``, ``map_wall_recall``:
-   :mod:`ptm_ros.map_quality`, issue #24). Every
+   :mod:`ptm_ros.maps.map_quality`, issue #24). Every
    run with scans is also calibrated for the laser's time offset (``ptm-calibrate``, no ground truth);
    where it chooses a non-zero offset the pipeline runs again with it (``ptm-rbpf calibrated``). Every
    run is also replayed with landmarks fixed in the environment (``--detector ground-truth``: a
@@ -139,7 +139,7 @@ def prepare_runs(work: Path, only: list[str] | None) -> list[tuple[str, str, Pat
 
 
 def single_topology_ptm(visits, labels, method: str):
-    from ptm_ros.ptm import Landmark, make_ptm
+    from ptm_ros.model.ptm import Landmark, make_ptm
 
     landmarks = [Landmark(v.index, v.stamp, v.pose) for v in visits]
     return make_ptm(landmarks, {tuple(labels): 1.0}, inference={"method": method})
@@ -209,7 +209,7 @@ MAP_QUALITY_KEYS = ("leak", "free_area_ratio", "wall_precision", "wall_recall")
 
 def map_quality_row(quality: Mapping | None) -> dict:
     """``map_leak``, ``map_free_area_ratio``, ``map_wall_precision``, ``map_wall_recall`` of ptm.json's
-    ``map_quality`` (:mod:`ptm_ros.map_quality`; None without a map or a ground truth)."""
+    ``map_quality`` (:mod:`ptm_ros.maps.map_quality`; None without a map or a ground truth)."""
     return {f"map_{k}": (quality or {}).get(k) for k in MAP_QUALITY_KEYS}
 
 
@@ -217,7 +217,7 @@ def copy_map_figures(name: str, result) -> dict:
     """``map.png`` and the report's side-by-side ``map_comparison.png`` of a pipeline result copied to
     ``bench/maps/<name>.png`` and ``bench/maps/<name>-vs-reference.png`` (downscaled, :func:`copy_map`);
     their paths relative to ``bench/`` (``map_png``, ``map_comparison_png``), those that exist."""
-    from ptm_ros.report import MAP_COMPARISON
+    from ptm_ros.reporting.report import MAP_COMPARISON
 
     out = {}
     if "map_png" in result.files:
@@ -230,11 +230,11 @@ def copy_map_figures(name: str, result) -> dict:
 
 def route_edges_crossing_walls(files: Mapping[str, Path]) -> int | None:
     """Edge segments of the written ``route_graph.geojson`` that cross occupied cells of the run's own
-    ``map.yaml`` (:func:`ptm_ros.routes.crossing_segments`, issue #24); None without a map. Recorded,
+    ``map.yaml`` (:func:`ptm_ros.maps.routes.crossing_segments`, issue #24); None without a map. Recorded,
     not asserted."""
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.occupancy import load_map
-    from ptm_ros.routes import crossing_segments
+    from ptm_ros.maps.map_quality import ClassGrid
+    from ptm_ros.maps.occupancy import load_map
+    from ptm_ros.maps.routes import crossing_segments
 
     if "map_yaml" not in files or "route_graph" not in files:
         return None
@@ -244,9 +244,14 @@ def route_edges_crossing_walls(files: Mapping[str, Path]) -> int | None:
 
 
 def bench_run(name: str, kind: str, bag: Path, gt: Path, work: Path) -> dict:
-    from ptm_ros.baselines import GreedyConfig, LoopClosureConfig, greedy_association, robust_loop_closure
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
+    from ptm_ros.scoring.baselines import (
+        GreedyConfig,
+        LoopClosureConfig,
+        greedy_association,
+        robust_loop_closure,
+    )
     from ptm_ros.tools.calibrate import calibrate_run
     from ptm_ros.tools.evaluate import score_against_ground_truth
     from ptm_ros.tools.pipeline import detect_visits, make_registrar
@@ -382,7 +387,7 @@ def write_results(components: list[dict], runs: list[dict]) -> None:
         lines += [
             "RMS of the laser odometry's per-scan heading corrections (mrad) with the scans taken `offset` s "
             "from their stamps; the chosen offset has the smallest RMS, if it is at least 5 % below the "
-            "RMS at 0 (`ptm_ros.laser_odometry.best_time_offset`).",
+            "RMS at 0 (`ptm_ros.perception.laser_odometry.best_time_offset`).",
             "",
         ]
         offsets = [s["offset"] for s in cals[0][1]["offsets"]]
@@ -414,7 +419,8 @@ def map_section(runs: list[dict]) -> list[str]:
     lines += [
         "The map (`ptm-run`'s `map.pgm`: scans placed along the smoothed trajectory of the most probable "
         "topology) against a reference made of the same scans at the ground-truth poses, with only the "
-        "beams that returned, carried onto it by the ATE alignment (`ptm_ros.map_quality`): `leak` = share "
+        "beams that returned, carried onto it by the ATE alignment (`ptm_ros.maps.map_quality`): "
+        "`leak` = share "
         "of the map's free cells more than 0.3 m from every cell the reference saw (issue: <= 0.02); "
         "`free_area_ratio` = the map's free area over the reference's (issue: 0.8-1.25); wall precision / "
         "recall = share of the map's occupied cells within 0.2 m of a reference wall / of the reference's "
@@ -485,7 +491,7 @@ LOO_HEADERS = {"defaults": "in-sample (defaults)", "leave-one-out": "leave-one-o
 
 def outlier_table(doc: Mapping) -> list[str]:
     """ε per fitting set of ``bench_fitness_loo.py``'s JSON, beside the default, with its counts."""
-    from ptm_ros.odometry import OdometryConfig
+    from ptm_ros.model.odometry import OdometryConfig
 
     return [
         "| fitted on | ε | aliases / valid |",

@@ -13,17 +13,17 @@ from pathlib import Path
 from typing import Any
 
 from ptm_ros.configio import from_dict, load_yaml, to_dict
-from ptm_ros.detectors import EquidistantConfig, PlacedLandmarksConfig
 from ptm_ros.errors import ConfigError
-from ptm_ros.laser import LaserConfig
-from ptm_ros.laser_odometry import LaserOdometryConfig
-from ptm_ros.mapping import MappingConfig
-from ptm_ros.mcmc import McmcConfig
-from ptm_ros.occupancy import OccupancyConfig
-from ptm_ros.posterior import ModelConfig
-from ptm_ros.refinement import RefinementConfig
-from ptm_ros.routes import RouteConfig
-from ptm_ros.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
+from ptm_ros.inference.mcmc import McmcConfig
+from ptm_ros.maps.mapping import MappingConfig
+from ptm_ros.maps.occupancy import OccupancyConfig
+from ptm_ros.maps.refinement import RefinementConfig
+from ptm_ros.maps.routes import RouteConfig
+from ptm_ros.model.posterior import ModelConfig
+from ptm_ros.perception.detectors import EquidistantConfig, PlacedLandmarksConfig
+from ptm_ros.perception.laser import LaserConfig
+from ptm_ros.perception.laser_odometry import LaserOdometryConfig
+from ptm_ros.perception.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
 
 METHODS = ("exact", "rbpf", "mcmc")
 DETECTORS = ("equidistant", "laser-surprise", "appearance-surprise", "ground-truth")
@@ -41,15 +41,16 @@ class TopicsConfig:
 @dataclass(frozen=True)
 class DetectorConfig:
     """Which landmark detector to use; None = the default for the bag's sensors. ``ground-truth`` fires where
-    the true path passes landmarks fixed in the environment (:class:`ptm_ros.detectors.PlacedLandmarksConfig`,
-    the thesis' Intel protocol), offline only: it needs the run's ground truth."""
+    the true path passes landmarks fixed in the environment
+    (:class:`ptm_ros.perception.detectors.PlacedLandmarksConfig`, the thesis' Intel protocol), offline only:
+    it needs the run's ground truth."""
 
     kind: str | None = None
     equidistant: EquidistantConfig = field(default_factory=EquidistantConfig)
     ground_truth: PlacedLandmarksConfig = field(default_factory=PlacedLandmarksConfig)
     laser_surprise: LaserSurpriseConfig = field(default_factory=LaserSurpriseConfig)
     appearance_surprise: AppearanceSurpriseConfig = field(default_factory=AppearanceSurpriseConfig)
-    vocabulary: str | None = None  # .npz of a SIFT vocabulary (ptm_ros.vocabulary) for words models
+    vocabulary: str | None = None  # .npz of a SIFT vocabulary (ptm_ros.model.vocabulary) for words models
     image_max_dt: float = 1.0  # s: a visit takes the signature of the panorama nearest in time, within this
 
     def __post_init__(self) -> None:

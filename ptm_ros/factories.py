@@ -12,12 +12,12 @@ from collections.abc import Callable, MutableMapping, Sequence
 from dataclasses import replace
 
 from ptm_ros.config import PtmConfig
-from ptm_ros.detectors import Detector, EquidistantDetector, ScheduledDetector
 from ptm_ros.errors import ConfigError
-from ptm_ros.geometry import NoMatch, RelativePose
-from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
-from ptm_ros.laser import PatchRegistrar, WorkerPool, patch_registrar
-from ptm_ros.visits import Visit
+from ptm_ros.model.geometry import NoMatch, RelativePose
+from ptm_ros.model.visits import Visit
+from ptm_ros.perception.detectors import Detector, EquidistantDetector, ScheduledDetector
+from ptm_ros.perception.landmarks import ExtractorConfig, VisitExtractor
+from ptm_ros.perception.laser import PatchRegistrar, WorkerPool, patch_registrar
 
 #: What a laser registration of a visit pair gives (None: no information).
 Registration = RelativePose | NoMatch | None
@@ -44,8 +44,9 @@ def with_detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) 
 
 
 def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Detector:
-    """The streaming detector object of a kind (:mod:`ptm_ros.detectors`, :mod:`ptm_ros.surprise`);
-    ``ground-truth`` fires at the ``schedule`` stamps (landmarks fixed along the true path) and needs them.
+    """The streaming detector object of a kind (:mod:`ptm_ros.perception.detectors`,
+    :mod:`ptm_ros.perception.surprise`); ``ground-truth`` fires at the ``schedule`` stamps (landmarks fixed
+    along the true path) and needs them.
 
     Raises:
         ConfigError: ``ground-truth`` without a schedule, or ``words`` appearance without a vocabulary.
@@ -60,12 +61,12 @@ def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None
             raise ConfigError(msg)
         return ScheduledDetector(schedule)
     if kind == "laser-surprise":
-        from ptm_ros.surprise import LaserSurpriseDetector
+        from ptm_ros.perception.surprise import LaserSurpriseDetector
 
         return LaserSurpriseDetector(det.laser_surprise)
     if kind == "appearance-surprise":
-        from ptm_ros.surprise import AppearanceSurpriseDetector
-        from ptm_ros.vocabulary import Vocabulary
+        from ptm_ros.model.vocabulary import Vocabulary
+        from ptm_ros.perception.surprise import AppearanceSurpriseDetector
 
         vocabulary = Vocabulary.load(det.vocabulary) if det.vocabulary else None
         if det.appearance_surprise.model == "words" and vocabulary is None:

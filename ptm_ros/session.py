@@ -4,14 +4,14 @@
 code here, as kiss-icp's ``OdometryPipeline`` and its ROS wrapper drive one ``KissICP``:
 
 * :class:`FilterSession` — the Rao-Blackwellized particle filter over topologies (thesis Algorithm 8,
-  :mod:`ptm_ros.rbpf`) fed one visit at a time, with its laser registrations cached per pair and one
+  :mod:`ptm_ros.inference.rbpf`) fed one visit at a time, with its laser registrations cached per pair and one
   checkpoint schema (:data:`SESSION_STATE_SCHEMA`) that both drivers save and resume;
 * :func:`infer` — the batch estimators over a whole visit sequence: exact enumeration (Ch. 2.1), MCMC /
   MC³ (Ch. 3.1–3.6, started from the filter's topologies on long runs) and the filter itself;
 * :func:`build_ptm` — the ptm.json content (CONTRACT.md schema) of an :class:`Inference`.
 
 Appearance priors. The appearance model's priors are fitted to the visits by empirical Bayes
-(:func:`ptm_ros.appearance.fit_appearance_model`). Offline the whole run is known, and the priors are
+(:func:`ptm_ros.model.appearance.fit_appearance_model`). Offline the whole run is known, and the priors are
 fitted once to all of its visits (``fitted_to``), as the batch posterior is. A live stream only knows the
 visits so far: the session re-fits the priors after every visit and, when they change, replays the
 (deterministic, seeded) filter over the visits so far, so that after every visit the ensemble is exactly
@@ -19,7 +19,7 @@ the offline one on those visits. Beyond ``refit_max_visits`` visits the priors a
 and the filter only moves forward (a replay costs one filter update per visit so far).
 
 Heading noise. With ``model.odometry.learn_heading``, the scale of the odometry's heading noise is learned
-from the laser registrations the filter has made (:mod:`ptm_ros.heading_noise`). After every visit the
+from the laser registrations the filter has made (:mod:`ptm_ros.model.heading_noise`). After every visit the
 session re-estimates it and, when the estimate has moved :data:`HEADING_HYSTERESIS` lattice steps from the
 scale in use, replays the filter over the visits so far with the new one (the registrations are cached,
 so a replay registers only pairs it has not seen). The rule depends on the visits alone, so a stream
@@ -29,8 +29,8 @@ stream freezes the scale with the priors beyond ``refit_max_visits`` visits, an 
 
 Checkpoints. :meth:`FilterSession.state_dict` holds the visits with their measurements, the registration
 cache and its counters, the appearance priors in use, and the particle filter's own
-:meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`. A session restored from it continues exactly where it
-stopped. A session whose priors are fitted to the whole run (``fitted_to``) that restores a state made
+:meth:`~ptm_ros.inference.rbpf.TopologyFilter.state_dict`. A session restored from it continues exactly where
+it stopped. A session whose priors are fitted to the whole run (``fitted_to``) that restores a state made
 with other priors (a live node's) replays the restored visits with its own priors: the result is then
 exactly that of an uninterrupted offline run.
 """
@@ -46,18 +46,10 @@ from typing import Any
 
 import numpy as np
 
-from ptm_ros.appearance import AppearanceModel
-from ptm_ros.baselines import GreedyAssociation, GreedyConfig, greedy_association
 from ptm_ros.config import PtmConfig
-from ptm_ros.doubts import doubts_dict, find_doubts
 from ptm_ros.errors import ConfigError, DataError, ModelError, PtmError
 from ptm_ros.factories import Registration, cached, make_registrar
-from ptm_ros.geometry import Registrar, RelativePose
-from ptm_ros.heading_noise import HeadingScale, heading_residuals, heading_scale, scaled_heading_noise
-from ptm_ros.laser import PatchRegistrar, WorkerPool
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.partitions import Labels
-from ptm_ros.persistence import (
+from ptm_ros.inference.persistence import (
     appearance_from_state,
     appearance_to_state,
     registrations_from_state,
@@ -65,7 +57,13 @@ from ptm_ros.persistence import (
     visit_from_state,
     visit_to_state,
 )
-from ptm_ros.posterior import (
+from ptm_ros.inference.rbpf import FilterState, Prefetch, RbpfConfig, TopologyFilter
+from ptm_ros.model.appearance import AppearanceModel
+from ptm_ros.model.geometry import Registrar, RelativePose
+from ptm_ros.model.heading_noise import HeadingScale, heading_residuals, heading_scale, scaled_heading_noise
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.partitions import Labels
+from ptm_ros.model.posterior import (
     PosteriorModel,
     exact_posterior,
     normalize_log,
@@ -73,8 +71,8 @@ from ptm_ros.posterior import (
     top_k,
     total_variation,
 )
-from ptm_ros.priors import make_prior
-from ptm_ros.ptm import (
+from ptm_ros.model.priors import make_prior
+from ptm_ros.model.ptm import (
     GREEDY_KEY,
     TIMELINE_KEY,
     Landmark,
@@ -84,8 +82,10 @@ from ptm_ros.ptm import (
     make_ptm,
     timeline_list,
 )
-from ptm_ros.rbpf import FilterState, Prefetch, RbpfConfig, TopologyFilter
-from ptm_ros.visits import Visit
+from ptm_ros.model.visits import Visit
+from ptm_ros.perception.laser import PatchRegistrar, WorkerPool
+from ptm_ros.reporting.doubts import doubts_dict, find_doubts
+from ptm_ros.scoring.baselines import GreedyAssociation, GreedyConfig, greedy_association
 
 #: A progress wrapper: ``progress(items, total)`` yields the items (e.g. a tqdm bar); None: none.
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
@@ -93,9 +93,10 @@ Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 SESSION_STATE_SCHEMA = "ptm_ros.filter_session/2"
 #: ``ptm.inference`` key of MCMC's comparison with the particle filter it started from.
 VERSUS_KEY = "versus_rbpf"
-#: ``ptm.extra`` key of the visits the map is unsure of (:func:`ptm_ros.doubts.doubts_dict`).
+#: ``ptm.extra`` key of the visits the map is unsure of (:func:`ptm_ros.reporting.doubts.doubts_dict`).
 DOUBTS_KEY = "doubts"
-#: ``ptm.inference`` key of the learned heading-noise scale (:class:`ptm_ros.heading_noise.HeadingScale`).
+#: ``ptm.inference`` key of the learned heading-noise scale
+# (:class:`ptm_ros.model.heading_noise.HeadingScale`).
 HEADING_KEY = "heading_noise"
 #: The learned heading-noise scale moves (and the filter replays) only when the estimate is this many
 #: lattice steps (factors √2) away from the one in use, so that it does not flip between neighbours.
@@ -107,7 +108,8 @@ UNLEARNED = HeadingScale(1.0, 0, 0.0, 0)
 @dataclass(frozen=True)
 class Inference:
     """A PTM's topologies with probabilities, and method-specific details; ``greedy`` the single answer
-    of the greedy baseline on the same visits (:func:`ptm_ros.baselines.greedy_association`), if known."""
+    of the greedy baseline on the same visits (:func:`ptm_ros.scoring.baselines.greedy_association`), if
+    known."""
 
     probabilities: dict[Labels, float]
     positions: dict[Labels, np.ndarray]
@@ -160,10 +162,11 @@ class FilterSession:
             model of MCMC); default: one over the session's own visits, counting into
             :attr:`registrations`. Either way the session caches its outcomes per pair.
         workers: where the session's own registrar registers the pairs a visit needs, in parallel
-            (:meth:`ptm_ros.laser.PatchRegistrar.many`; the same outcomes); default: one by one, here.
+            (:meth:`ptm_ros.perception.laser.PatchRegistrar.many`; the same outcomes); default: one by one,
+            here.
 
     With ``inference.greedy``, beside the filter the session runs the greedy baseline
-    (:class:`ptm_ros.baselines.GreedyAssociation`, odometry only, decisions final) on the same visits,
+    (:class:`ptm_ros.scoring.baselines.GreedyAssociation`, odometry only, decisions final) on the same visits,
     one decision per visit; a restored session
     decides the restored visits again (the same answer: it depends on the visits alone).
 
@@ -372,7 +375,7 @@ class FilterSession:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the session (plain values and arrays, for
-        :func:`ptm_ros.persistence.save_filter_state`); schema :data:`SESSION_STATE_SCHEMA`."""
+        :func:`ptm_ros.inference.persistence.save_filter_state`); schema :data:`SESSION_STATE_SCHEMA`."""
         flt = self._filter
         return {
             "schema": SESSION_STATE_SCHEMA,
@@ -517,8 +520,8 @@ def rbpf_config(config: PtmConfig) -> RbpfConfig:
 
 
 def filter_timeline(history: Sequence[FilterState]) -> tuple[TimelineStep, ...]:
-    """The PTM after each visit, as the filter recorded it (:attr:`ptm_ros.rbpf.FilterState.top`): the
-    posterior of thesis Algorithm 8 over the topologies of the visits so far; empty when none recorded."""
+    """The PTM after each visit, as the filter recorded it (:attr:`ptm_ros.inference.rbpf.FilterState.top`):
+    the posterior of thesis Algorithm 8 over the topologies of the visits so far; empty when none recorded."""
     if not any(h.top for h in history):
         return ()
     return tuple(TimelineStep(h.n_visits, h.top) for h in history)
@@ -528,7 +531,7 @@ def rbpf_inference(
     flt: TopologyFilter, config: PtmConfig, *, greedy: Labels | None = None, **details: Any
 ) -> Inference:
     """A particle filter's current ensemble as an :class:`Inference`, with its timeline
-    (:func:`filter_timeline`, under :data:`~ptm_ros.ptm.TIMELINE_KEY` when recorded) and ``greedy``."""
+    (:func:`filter_timeline`, under :data:`~ptm_ros.model.ptm.TIMELINE_KEY` when recorded) and ``greedy``."""
     inf = config.inference
     probs = flt.ptm_weights()
     logw = flt.log_weights()
@@ -563,8 +566,8 @@ def build_ptm(
     **extra: Any,
 ) -> Ptm:
     """The ptm.json content of an inference result, with the visits the map is unsure of
-    (``extra["doubts"]``, :func:`ptm_ros.doubts.find_doubts`) and the greedy baseline's answer
-    (``extra["greedy"]``, :func:`ptm_ros.ptm.greedy_dict`) when the inference has one."""
+    (``extra["doubts"]``, :func:`ptm_ros.reporting.doubts.find_doubts`) and the greedy baseline's answer
+    (``extra["greedy"]``, :func:`ptm_ros.model.ptm.greedy_dict`) when the inference has one."""
     landmarks = [Landmark.from_visit(v) for v in visits]
     inf = config.inference
     if inference.greedy is not None:
@@ -600,7 +603,7 @@ def infer(
     ``registrar`` or, without one and with ``model.use_laser``, its own; a restored one continues) the
     visits it has not seen; ``exact`` and ``mcmc`` score topologies with the batch model, laser pairs
     from ``registrar`` (none without one). ``progress`` wraps the filter's visits and the enumeration's
-    topologies; ``sweeps`` hears of MCMC's sweeps (:func:`ptm_ros.mcmc.run_mcmc`'s ``progress``).
+    topologies; ``sweeps`` hears of MCMC's sweeps (:func:`ptm_ros.inference.mcmc.run_mcmc`'s ``progress``).
 
     Raises:
         DataError: no visits.
@@ -640,7 +643,7 @@ def _infer_batch(
     """:func:`infer` for the batch estimators, ``exact`` and ``mcmc``: the batch model with the heading
     noise the particle filter learns on the same visits (:func:`_filter_pass`, when MCMC starts from the
     filter's ensemble or ``model.odometry.learn_heading`` is on)."""
-    from ptm_ros.mcmc import starts_from_filter
+    from ptm_ros.inference.mcmc import starts_from_filter
 
     inf = config.inference
     if inf.method == "exact" and len(visits) > inf.max_exact_visits:
@@ -711,7 +714,7 @@ def _infer_mcmc(
     """Batch MCMC over set partitions (thesis Ch. 2.1, 3.1-3.6), stopping when converged; with the
     particle filter's ``ensemble`` (``initial: rbpf``, or ``auto`` on a long run), chain c starts from
     its c-th topology and the details compare the two PTMs (:func:`compare_to_filter`)."""
-    from ptm_ros.mcmc import initial_kind, run_mcmc
+    from ptm_ros.inference.mcmc import initial_kind, run_mcmc
 
     inf = config.inference
     starts = None if ensemble is None else list(ensemble)[: inf.mcmc.chains]
@@ -784,10 +787,10 @@ def _json_state(state: Any) -> Any:
 
 
 def cold_chain_details(res: Any) -> dict[str, Any]:
-    """The cold-chain states of an MCMC result for the report's SRQ plot (``ptm_ros.report.SRQ_KEY``),
-    one list per chain, their thinning stride and the topology of each state id (when known); nothing
-    when the result holds none. ``ptm-run`` keeps only their summary in ptm.json
-    (:func:`ptm_ros.report.split_chain_trace`)."""
+    """The cold-chain states of an MCMC result for the report's SRQ plot
+    (``ptm_ros.reporting.report.SRQ_KEY``), one list per chain, their thinning stride and the topology of each
+    state id (when known); nothing when the result holds none. ``ptm-run`` keeps only their summary in
+    ptm.json (:func:`ptm_ros.reporting.report.split_chain_trace`)."""
     chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
     if not chains:
         return {}

@@ -10,7 +10,8 @@ import pytest
 from scipy import integrate, optimize, stats
 from scipy.special import beta as beta_fn
 
-from ptm_ros.appearance import (
+from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.model.appearance import (
     MAX_WITHIN_FRACTION,
     AppearanceConfig,
     AppearanceModel,
@@ -30,9 +31,8 @@ from ptm_ros.appearance import (
     nig_prior_from_data,
     panorama_signature,
 )
-from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.partitions import blocks, enumerate_partitions
-from ptm_ros.visits import Visit
+from ptm_ros.model.partitions import blocks, enumerate_partitions
+from ptm_ros.model.visits import Visit
 
 PRIOR_1D = NigPrior(mu=np.array([0.3]), kappa=0.5, alpha=2.5, beta=0.8)
 DATA_1D = np.array([0.1, 0.9, 0.5])
@@ -556,7 +556,7 @@ def test_missing_measurements_are_left_out():
     predictives equal those of the visits that have one; the prior is fitted on those."""
     from dataclasses import replace
 
-    from ptm_ros.appearance import (
+    from ptm_ros.model.appearance import (
         AppearanceConfig,
         appearance_log_predictive,
         block_log_likelihood,

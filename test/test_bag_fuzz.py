@@ -32,7 +32,7 @@ from ros_helpers import BRINGUP, Inbox, ProcessLogs, assert_no_orphans, dds_env,
 
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
-from ptm_ros.ptm import from_json_dict
+from ptm_ros.model.ptm import from_json_dict
 from ptm_ros.tools import evaluate as eval_tool
 from ptm_ros.tools import run as run_tool
 

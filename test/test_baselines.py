@@ -1,4 +1,5 @@
-"""Tests of the baselines (ptm_ros.baselines): greedy association and robust pose-graph loop closure."""
+"""Tests of the baselines (ptm_ros.scoring.baselines): greedy association and robust pose-graph loop
+closure."""
 
 from __future__ import annotations
 
@@ -9,7 +10,14 @@ import numpy as np
 import pytest
 from scipy import optimize, stats
 
-from ptm_ros.baselines import (
+from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.io.synthetic import odometry_visits, visits_at
+from ptm_ros.model.geometry import RelativePose, between, inverse, transform_points, wrap_angle
+from ptm_ros.model.odometry import OdometryConfig, odometry_covariances
+from ptm_ros.model.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log
+from ptm_ros.model.visits import Visit
+from ptm_ros.perception.laser import LaserConfig
+from ptm_ros.scoring.baselines import (
     GreedyAssociation,
     GreedyConfig,
     LoopClosureConfig,
@@ -20,13 +28,6 @@ from ptm_ros.baselines import (
     robust_loop_closure,
     robust_pose_graph,
 )
-from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, inverse, transform_points, wrap_angle
-from ptm_ros.io.synthetic import odometry_visits, visits_at
-from ptm_ros.laser import LaserConfig
-from ptm_ros.odometry import OdometryConfig, odometry_covariances
-from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log
-from ptm_ros.visits import Visit
 
 ODOMETRY = OdometryConfig()
 LASER_COV = np.diag([0.05**2, 0.05**2, 0.02**2])

@@ -28,10 +28,10 @@ from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
-from ptm_ros.mapping import every_sample
-from ptm_ros.occupancy import OCCUPIED, UNKNOWN, load_map
-from ptm_ros.occupancy import aligned_windows as aligned
-from ptm_ros.ptm import load_ptm, ptm_schema
+from ptm_ros.maps.mapping import every_sample
+from ptm_ros.maps.occupancy import OCCUPIED, UNKNOWN, load_map
+from ptm_ros.maps.occupancy import aligned_windows as aligned
+from ptm_ros.model.ptm import load_ptm, ptm_schema
 from ptm_ros.tools import bringup
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.pipeline import detect_visits

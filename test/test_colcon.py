@@ -89,10 +89,14 @@ def test_colcon_installs_the_shared_files(workspace):
 
 
 def test_colcon_installs_the_ptm_json_schema_as_package_data(workspace):
-    """``ptm_ros.ptm.ptm_schema`` finds the schema in the installed package (setup.py ``package_data``)."""
+    """``ptm_ros.model.ptm.ptm_schema`` finds the schema in the installed package (setup.py
+    ``package_data``)."""
     site = next((workspace / "lib").glob("python3*/site-packages"))
     assert (site / "ptm_ros" / "schema" / "ptm.schema.json").is_file()
-    code = "from ptm_ros.ptm import ptm_schema; import ptm_ros; print(ptm_ros.__file__, ptm_schema()['$id'])"
+    code = (
+        "from ptm_ros.model.ptm import ptm_schema; import ptm_ros; "
+        "print(ptm_ros.__file__, ptm_schema()['$id'])"
+    )
     out = run(
         [sys.executable, "-c", code], env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}, cwd=workspace
     )

@@ -1,4 +1,4 @@
-"""Tests of ptm_ros.convergence: SRQ points against hand-computed cases and the renewal theory."""
+"""Tests of ptm_ros.inference.convergence: SRQ points against hand-computed cases and the renewal theory."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from numpy.typing import NDArray
 from scipy.stats import kstwobign
 
-from ptm_ros.convergence import most_visited, regeneration_times, srq_deviation, srq_points
 from ptm_ros.errors import DataError
+from ptm_ros.inference.convergence import most_visited, regeneration_times, srq_deviation, srq_points
 
 # P(sup |Brownian bridge| > LAMBDA) = 1e-6 (Kolmogorov distribution).
 LAMBDA = float(kstwobign.isf(1e-6))

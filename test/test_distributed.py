@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 from ros_helpers import REPO, dds_env, kill_processes_mentioning, next_domain_id
 
-from ptm_ros.ptm import load_ptm
+from ptm_ros.model.ptm import load_ptm
 
 PARAMS = REPO / "config" / "demo.yaml"
 PTM_RUN = [sys.executable, "-m", "ptm_ros.tools.run"]

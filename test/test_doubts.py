@@ -1,15 +1,16 @@
-"""Where the map is unsure (:mod:`ptm_ros.doubts`): answers per visit against brute force, plain words."""
+"""Where the map is unsure (:mod:`ptm_ros.reporting.doubts`): answers per visit against brute force, plain
+words."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ptm_ros.doubts import doubt_lines, doubts_dict, find_doubts, first_visits
 from ptm_ros.errors import ModelError
-from ptm_ros.partitions import enumerate_partitions
-from ptm_ros.posterior import same_place_probabilities
-from ptm_ros.ptm import Landmark, make_ptm
+from ptm_ros.model.partitions import enumerate_partitions
+from ptm_ros.model.posterior import same_place_probabilities
+from ptm_ros.model.ptm import Landmark, make_ptm
+from ptm_ros.reporting.doubts import doubt_lines, doubts_dict, find_doubts, first_visits
 
 
 def ptm_of(weighted, n):

@@ -1,4 +1,4 @@
-"""Tests of ptm_ros.evaluation: pairwise scoring of a PTM against true positions."""
+"""Tests of ptm_ros.scoring.evaluation: pairwise scoring of a PTM against true positions."""
 
 from __future__ import annotations
 
@@ -13,17 +13,17 @@ import pytest
 from cli_helpers import one_error_line
 from scipy.cluster.hierarchy import fcluster, linkage
 
-from ptm_ros import evaluation
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.evaluation import (
+from ptm_ros.model.partitions import canonical
+from ptm_ros.model.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
+from ptm_ros.scoring import evaluation
+from ptm_ros.scoring.evaluation import (
     EvalConfig,
     PairCounts,
     place_ids_from_positions,
     score_ptm,
     single_linkage_places,
 )
-from ptm_ros.partitions import canonical
-from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
 from ptm_ros.tools.evaluate import main as eval_main
 from ptm_ros.tools.evaluate import score_against_ground_truth
 
@@ -438,7 +438,7 @@ def square_route(side: float, laps: int = 2, speed: float = 0.5, dt: float = 0.5
 def drifting_odometry(poses: np.ndarray, heading_drift: float, scale: float) -> np.ndarray:
     """Odometry of ``poses``: their increments read ``scale`` too long and turned by ``heading_drift`` rad
     per metre, integrated from another origin (the odometry frame)."""
-    from ptm_ros.geometry import between, compose
+    from ptm_ros.model.geometry import between, compose
 
     out = [np.array([3.0, -2.0, 0.7])]
     for step in between(poses[:-1], poses[1:]):
@@ -853,8 +853,8 @@ def test_the_timeline_against_the_truth_of_the_visits_so_far():
     """Issue #25: after each visit the mass the PTM listed on the truth cut to the visits so far (or
     None, bounded by the least listed mass and the unlisted rest), and the first decision of a
     single-answer method that contradicts the truth of the visits so far."""
-    from ptm_ros.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
-    from ptm_ros.ptm import TimelineStep
+    from ptm_ros.model.ptm import TimelineStep
+    from ptm_ros.scoring.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
 
     truth = (3, 1, 3, 7)  # any ids: visits 0 and 2 are one place
     assert [cut(truth, n) for n in range(1, 5)] == [(0,), (0, 1), (0, 1, 0), (0, 1, 0, 2)]

@@ -30,7 +30,7 @@ from ros_helpers import (
     ros_context,
 )
 
-from ptm_ros.ptm import load_ptm
+from ptm_ros.model.ptm import load_ptm
 
 # the node suite over DDS, killed and restarted (15-40 s a test)
 pytestmark = [pytest.mark.dds, pytest.mark.slow]

@@ -1,5 +1,5 @@
-"""Numbers as people read them (``ptm_ros/figures.py``): three significant digits, whole numbers from 100,
-scientific notation below 0.001, the ESS as a share of the particles."""
+"""Numbers as people read them (``ptm_ros/reporting/figures.py``): three significant digits, whole numbers
+from 100, scientific notation below 0.001, the ESS as a share of the particles."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from ptm_ros.figures import ess_fraction, sig
+from ptm_ros.reporting.figures import ess_fraction, sig
 
 
 @pytest.mark.parametrize(

@@ -14,10 +14,10 @@ import pytest
 
 from ptm_ros.config import load_config
 from ptm_ros.errors import DataError, ModelError
-from ptm_ros.landmarks import visit_to_json
+from ptm_ros.inference.persistence import load_filter_state
 from ptm_ros.nodes.filter_inbox import BENIGN, COUNTERS, MAX_VISIT_GAP, FilterInbox, Reaction
 from ptm_ros.nodes.messages import END_SCHEMA, visit_message
-from ptm_ros.persistence import load_filter_state
+from ptm_ros.perception.landmarks import visit_to_json
 
 
 class Lines:

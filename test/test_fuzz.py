@@ -31,12 +31,12 @@ from ros_helpers import ros_context
 
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
-from ptm_ros.landmarks import visit_to_json
+from ptm_ros.model.partitions import enumerate_partitions
+from ptm_ros.model.ptm import Landmark, make_ptm
+from ptm_ros.model.visits import Visit
 from ptm_ros.nodes import common
 from ptm_ros.nodes.messages import END_OF_INPUT_SCHEMA, END_SCHEMA
-from ptm_ros.partitions import enumerate_partitions
-from ptm_ros.ptm import Landmark, make_ptm
-from ptm_ros.visits import Visit
+from ptm_ros.perception.landmarks import visit_to_json
 
 pytestmark = pytest.mark.dds  # the nodes run in an rclpy context on its own ROS domain
 

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.evaluation import ODOMETRY_FIT_LIMIT, path_samples
 from ptm_ros.io.groundtruth import (
     GroundTruthTrajectory,
     Passage,
@@ -21,6 +20,7 @@ from ptm_ros.io.groundtruth import (
     load_sim_gt,
     run_ground_truth_problem,
 )
+from ptm_ros.scoring.evaluation import ODOMETRY_FIT_LIMIT, path_samples
 
 GT_FILES = {
     "mit-csail/mit-csail-gt-406.txt": 406,

@@ -1,4 +1,4 @@
-"""The heading noise learned from the run's registrations (:mod:`ptm_ros.heading_noise`) and the filter
+"""The heading noise learned from the run's registrations (:mod:`ptm_ros.model.heading_noise`) and the filter
 session that learns it (:class:`ptm_ros.session.FilterSession`)."""
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ import pytest
 from scipy import stats
 
 from ptm_ros.config import PtmConfig, load_config
-from ptm_ros.geometry import RelativePose
-from ptm_ros.heading_noise import (
+from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
+from ptm_ros.model.geometry import RelativePose
+from ptm_ros.model.heading_noise import (
     OUTLIER_FRACTIONS,
     SCALE_STEPS,
     HeadingResiduals,
@@ -22,10 +23,9 @@ from ptm_ros.heading_noise import (
     path_heading_variances,
     scaled_heading_noise,
 )
-from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
-from ptm_ros.odometry import OdometryConfig
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.visits import Visit
 from ptm_ros.session import HEADING_KEY, FilterSession, filter_visits
-from ptm_ros.visits import Visit
 
 
 def _draw(rng: np.random.Generator, scale: float, n: int, outliers: float) -> HeadingResiduals:
@@ -129,7 +129,7 @@ def test_the_session_learns_the_runs_heading_noise_and_replays(factor, low, high
 
 
 def test_learning_is_the_same_streamed_offline_and_resumed(tmp_path):
-    from ptm_ros.persistence import load_filter_state, save_filter_state
+    from ptm_ros.inference.persistence import load_filter_state, save_filter_state
 
     visits, registrar = _run(0.05, seed=1)
     config = _config()
@@ -149,7 +149,7 @@ def test_learning_is_the_same_streamed_offline_and_resumed(tmp_path):
 
 
 def test_the_batch_estimators_use_the_heading_noise_the_filter_learns():
-    from ptm_ros.posterior import PosteriorModel
+    from ptm_ros.model.posterior import PosteriorModel
     from ptm_ros.session import infer
 
     places, route = grid_route(8, side=2, seed=0)

@@ -11,13 +11,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ptm_ros.appearance import AppearanceConfig, panorama_signature
-from ptm_ros.detectors import Detector, EquidistantConfig, EquidistantDetector
 from ptm_ros.errors import DataError, ModelError
-from ptm_ros.geometry import between, interpolate_poses, path_length, wrap_angle
+from ptm_ros.inference.persistence import visit_from_state, visit_to_state
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
-from ptm_ros.landmarks import (
+from ptm_ros.model.appearance import AppearanceConfig, panorama_signature
+from ptm_ros.model.geometry import between, interpolate_poses, path_length, wrap_angle
+from ptm_ros.model.visits import Visit
+from ptm_ros.perception.detectors import Detector, EquidistantConfig, EquidistantDetector
+from ptm_ros.perception.landmarks import (
     LANDMARK_DROPS,
     ExtractorConfig,
     VisitExtractor,
@@ -25,10 +27,8 @@ from ptm_ros.landmarks import (
     visit_from_json,
     visit_to_json,
 )
-from ptm_ros.laser import LaserConfig
-from ptm_ros.laser_odometry import LaserOdometryConfig
-from ptm_ros.persistence import visit_from_state, visit_to_state
-from ptm_ros.visits import Visit
+from ptm_ros.perception.laser import LaserConfig
+from ptm_ros.perception.laser_odometry import LaserOdometryConfig
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests of ptm_ros.laser: scans to points, patches, registration (thesis Ch. 3.10.4, Fig. 48).
+"""Tests of ptm_ros.perception.laser: scans to points, patches, registration (thesis Ch. 3.10.4, Fig. 48).
 
 Synthetic worlds are wall segments; scans are ray-cast against them exactly, so every patch point has a
 known wall and every registration a known answer.
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, ModelError, RegistrationError
-from ptm_ros.geometry import RelativePose, between, compose, inverse, transform_points, wrap_angle
-from ptm_ros.laser import (
+from ptm_ros.model.geometry import RelativePose, between, compose, inverse, transform_points, wrap_angle
+from ptm_ros.perception.laser import (
     FLAT_OPTIMUM,
     LaserConfig,
     PatchBuilder,
@@ -458,7 +458,7 @@ def test_corridor_match_from_a_guess_reports_its_axis_and_fixes_the_lateral_offs
 
 def brute_fit(source, target, pose, cfg):
     """Fitness of one pose by brute force over all point distances: (source fraction, target fraction,
-    source inliers, rmse), as documented for :class:`ptm_ros.laser.Registration`."""
+    source inliers, rmse), as documented for :class:`ptm_ros.perception.laser.Registration`."""
     from scipy.spatial.distance import cdist
 
     src = voxel_downsample(source, 0.5 * cfg.voxel)
@@ -532,7 +532,7 @@ def plain_gauss_newton(start, source, target, cfg, prior_std):
     from scipy.linalg import cho_factor, cho_solve
     from scipy.spatial import cKDTree
 
-    from ptm_ros.laser import _normals
+    from ptm_ros.perception.laser import _normals
 
     src, tree = voxel_downsample(source, 0.5 * cfg.voxel), cKDTree(target)
     prior = np.diag(prior_std**-2.0)
@@ -576,7 +576,7 @@ def test_point_to_plane_equals_the_plain_iteration(world, seed, spread):
     """The polish (pruned searches, cached normals, a pose that repeats ends the loop with the result the
     cycle reaches at the last iteration) is bit for bit the plain iteration, on cases that converge
     and cases that cycle until the iteration limit (junction seed 10, corridor)."""
-    from ptm_ros.laser import _Overlap, _point_to_plane, _Target
+    from ptm_ros.perception.laser import _Overlap, _point_to_plane, _Target
 
     cfg = LaserConfig()
     segments = {"junction": JUNCTION, "corridor": CORRIDOR, "room": ROOM}[world]
@@ -602,10 +602,10 @@ def test_patch_registrar_prepares_each_patch_once_and_equals_register_patches(mo
     registered elsewhere (``many``)."""
     from dataclasses import replace as dc_replace
 
-    import ptm_ros.laser as laser
-    from ptm_ros.geometry import NoMatch
-    from ptm_ros.laser import laser_outcome, patch_registrar
-    from ptm_ros.visits import Visit
+    import ptm_ros.perception.laser as laser
+    from ptm_ros.model.geometry import NoMatch
+    from ptm_ros.model.visits import Visit
+    from ptm_ros.perception.laser import laser_outcome, patch_registrar
 
     rng = np.random.default_rng(22)
     cfg = LaserConfig()
@@ -811,7 +811,7 @@ def test_fitness_densities_are_normalised_and_the_ratio_matches_them():
     from scipy.integrate import quad
     from scipy.stats import beta
 
-    from ptm_ros.laser import fitness_log_bayes
+    from ptm_ros.perception.laser import fitness_log_bayes
 
     cfg = LaserConfig()
     eps = cfg.fitness_outlier
@@ -836,8 +836,8 @@ def test_laser_outcome_kinds():
     None when the fitness model is off)."""
     from dataclasses import replace as dc_replace
 
-    from ptm_ros.geometry import NoMatch, RelativePose
-    from ptm_ros.laser import fitness_log_bayes, laser_outcome
+    from ptm_ros.model.geometry import NoMatch, RelativePose
+    from ptm_ros.perception.laser import fitness_log_bayes, laser_outcome
 
     source, target = patch_pair(JUNCTION, TRUE, np.random.default_rng(5))
     good = register_patches(source, target)

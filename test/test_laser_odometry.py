@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import (
+from ptm_ros.io.simulator import CameraConfig, OdometryNoiseConfig, SimConfig, simulate
+from ptm_ros.io.simulator import LaserConfig as SimLaserConfig
+from ptm_ros.io.worlds import get_world
+from ptm_ros.model.geometry import (
     between,
     compose,
     interpolate_poses,
@@ -17,11 +20,8 @@ from ptm_ros.geometry import (
     transform_points,
     wrap_angle,
 )
-from ptm_ros.io.simulator import CameraConfig, OdometryNoiseConfig, SimConfig, simulate
-from ptm_ros.io.simulator import LaserConfig as SimLaserConfig
-from ptm_ros.io.worlds import get_world
-from ptm_ros.laser import scan_to_points
-from ptm_ros.laser_odometry import (
+from ptm_ros.perception.laser import scan_to_points
+from ptm_ros.perception.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
     LaserOdometryCounters,
@@ -206,8 +206,8 @@ def test_bad_config(field, value, match):
 def test_apply_corrections_reproduces_the_extractor_poses():
     """Carrying the wheel odometry by the recorded corrections gives back, at every visit stamp, exactly the
     pose the extractor gave the visit (the latest scan strictly before; identity before the first)."""
-    from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
-    from ptm_ros.laser_odometry import apply_corrections
+    from ptm_ros.perception.landmarks import ExtractorConfig, VisitExtractor
+    from ptm_ros.perception.laser_odometry import apply_corrections
 
     run = simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(5), visits=3)
     cfg = run.config.laser
@@ -430,8 +430,8 @@ def corridor_travel(degenerate_ratio: float, seed: int) -> tuple[float, float]:
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_correction_keeps_the_wheel_travel_along_a_corridor(seed):
     """Issue #23: scan matching does not erase travel along a corridor (the direction its walls do not
-    constrain keeps the wheel odometry, :func:`ptm_ros.laser.keep_unobserved`), while it still corrects
-    across it."""
+    constrain keeps the wheel odometry, :func:`ptm_ros.perception.laser.keep_unobserved`), while it still
+    corrects across it."""
     wheel, corrected = corridor_travel(0.05, seed)
     assert corrected == pytest.approx(wheel, rel=0.02)
     assert corridor_travel(0.0, seed)[1] < 0.95 * wheel  # off: the travel is eroded
@@ -500,7 +500,7 @@ def test_a_corridor_alone_teaches_no_wheel_scale():
 
 
 def test_keep_unobserved_reverts_only_the_weak_directions():
-    from ptm_ros.laser import keep_unobserved
+    from ptm_ros.perception.laser import keep_unobserved
 
     guess = np.array([1.0, 2.0, 0.3])
     pose = np.array([1.5, 2.2, 0.35])
@@ -525,7 +525,7 @@ def test_the_extractor_learns_the_offset_then_processes_every_message_with_it(tm
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.simulator import write_run
-    from ptm_ros.landmarks import ODOM, SCAN
+    from ptm_ros.perception.landmarks import ODOM, SCAN
     from ptm_ros.tools.pipeline import detect_visits, merged_messages, run_extractor
 
     run = read_run(write_run(_delayed_run(0.15), tmp_path / "late"))
@@ -564,7 +564,7 @@ def test_the_extractor_learns_the_offset_then_processes_every_message_with_it(tm
 def test_a_silent_laser_does_not_hold_the_visits_back():
     """With learn_time_offset on and no scan ever received, the learning ends after stall_s of odometry
     (with nothing learned): the visits come out while the odometry streams, not at the end of the data."""
-    from ptm_ros.landmarks import ExtractorConfig, VisitExtractor
+    from ptm_ros.perception.landmarks import ExtractorConfig, VisitExtractor
 
     extractor = VisitExtractor(config=ExtractorConfig(use_images=False))
     online = []

@@ -1,9 +1,11 @@
-"""The layers of ptm_ros (``.importlinter``, checked by ``make lint``): every top-level module is core and
-listed in the core contract, and the core imports and runs without ROS installed."""
+"""The layers of ptm_ros (``.importlinter``, checked by ``make lint``): every module is in the core or in an
+adapter subpackage, the core's subpackages are ordered in layers, and the core imports and runs without
+ROS installed."""
 
 from __future__ import annotations
 
 import configparser
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -12,10 +14,25 @@ REPO = Path(__file__).resolve().parents[1]
 ADAPTERS = {"io", "nodes", "tools"}  # the subpackages above the core
 
 
-def core_modules() -> set[str]:
-    """The top-level modules of the package (everything that is not an adapter subpackage)."""
+def core_parts() -> set[str]:
+    """The core as the contracts name it: the top-level modules and every subpackage that is no adapter."""
     pkg = REPO / "ptm_ros"
-    return {f"ptm_ros.{p.stem}" for p in pkg.glob("*.py") if p.stem != "__init__"}
+    modules = {f"ptm_ros.{p.stem}" for p in pkg.glob("*.py") if p.stem != "__init__"}
+    subpackages = {f"ptm_ros.{p.name}" for p in pkg.iterdir() if (p / "__init__.py").is_file()}
+    return modules | {s for s in subpackages if s.removeprefix("ptm_ros.") not in ADAPTERS}
+
+
+def core_modules() -> set[str]:
+    """Every module of the core, subpackages' modules included."""
+    pkg = REPO / "ptm_ros"
+    out = set()
+    for part in core_parts():
+        path = pkg / part.removeprefix("ptm_ros.")
+        if path.is_dir():
+            out |= {f"{part}.{p.stem}" for p in path.glob("*.py") if p.stem != "__init__"}
+        else:
+            out.add(part)
+    return out
 
 
 def contract(name: str) -> configparser.SectionProxy:
@@ -24,14 +41,14 @@ def contract(name: str) -> configparser.SectionProxy:
     return parser[f"importlinter:contract:{name}"]
 
 
-def test_every_top_level_module_is_in_the_core_contract():
+def test_every_part_of_the_core_is_in_the_core_contract_and_its_layers():
     listed = set(contract("core")["source_modules"].split())
-    assert listed == core_modules(), (
-        f"add to / remove from .importlinter's core contract: missing {sorted(core_modules() - listed)}, "
-        f"stale {sorted(listed - core_modules())}"
+    assert listed == core_parts(), (
+        f"add to / remove from .importlinter's core contract: missing {sorted(core_parts() - listed)}, "
+        f"stale {sorted(listed - core_parts())}"
     )
-    subpackages = {p.name for p in (REPO / "ptm_ros").iterdir() if (p / "__init__.py").is_file()}
-    assert subpackages == ADAPTERS, "a new subpackage needs its place in .importlinter's layers"
+    layered = set(re.split(r"[\s|]+", contract("core-layers")["layers"].strip()))
+    assert layered == core_parts(), "a core module or subpackage needs its place in the core-layers contract"
     assert set(contract("adapters")["layers"].split()) == ADAPTERS
 
 

@@ -12,9 +12,9 @@ from dataclasses import replace
 import numpy as np
 
 from ptm_ros.config import load_config
+from ptm_ros.model.ptm import Landmark, make_ptm
 from ptm_ros.nodes.map_inbox import MapInbox
 from ptm_ros.nodes.messages import END_SCHEMA, graph_document, visit_message
-from ptm_ros.ptm import Landmark, make_ptm
 
 
 def inbox() -> MapInbox:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import DataError
-from ptm_ros.map_quality import ClassGrid, leaked_cells, map_quality
+from ptm_ros.maps.map_quality import ClassGrid, leaked_cells, map_quality
 
 RES = 0.05
 UNK, FREE, OCC = -1, 0, 100

@@ -1,4 +1,4 @@
-"""The online metric map (ptm_ros.mapping): equal to ptm-run's map from the same samples, bounded, and
+"""The online metric map (ptm_ros.maps.mapping): equal to ptm-run's map from the same samples, bounded, and
 robust to sessions restarting."""
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ import pytest
 from ptm_ros.config import load_config
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import cached, make_registrar
-from ptm_ros.mapping import KeyframeStream, MappingConfig, OnlineMap
-from ptm_ros.occupancy import aligned_windows as aligned
+from ptm_ros.maps.mapping import KeyframeStream, MappingConfig, OnlineMap
+from ptm_ros.maps.occupancy import aligned_windows as aligned
+from ptm_ros.model.visits import Visit
 from ptm_ros.tools.pipeline import (
     detect_visits,
     map_trajectory,
@@ -20,7 +21,6 @@ from ptm_ros.tools.pipeline import (
     occupancy_grid,
     run_extractor,
 )
-from ptm_ros.visits import Visit
 
 
 @pytest.fixture(scope="module")

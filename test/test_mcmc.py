@@ -29,10 +29,8 @@ from scipy.integrate import quad
 from scipy.special import comb, logsumexp
 from scipy.stats import norm
 
-from ptm_ros.appearance import AppearanceConfig
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import compose
-from ptm_ros.mcmc import (
+from ptm_ros.inference.mcmc import (
     AppearanceProposal,
     McmcConfig,
     McmcSampler,
@@ -48,11 +46,19 @@ from ptm_ros.mcmc import (
     starts_from_filter,
     thesis_ladder,
 )
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.partitions import blocks, enumerate_partitions, random_partition
-from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
-from ptm_ros.priors import PriorConfig
-from ptm_ros.visits import Visit
+from ptm_ros.model.appearance import AppearanceConfig
+from ptm_ros.model.geometry import compose
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.partitions import blocks, enumerate_partitions, random_partition
+from ptm_ros.model.posterior import (
+    ModelConfig,
+    PosteriorModel,
+    exact_posterior,
+    normalize_log,
+    total_variation,
+)
+from ptm_ros.model.priors import PriorConfig
+from ptm_ros.model.visits import Visit
 
 BOUND = 0.05
 
@@ -401,7 +407,7 @@ def test_the_time_cap_is_checked_after_every_sweep(model5, monkeypatch, processe
     wait for a whole chunk of sweeps. Counted in sweeps, so a slow machine cannot fail it."""
     import time
 
-    import ptm_ros.mcmc as mcmc_module
+    import ptm_ros.inference.mcmc as mcmc_module
 
     sweep = mcmc_module._Ladder.sweep
 

@@ -25,7 +25,9 @@ from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import make_extractor
 from ptm_ros.io.bag import BagWriter, iter_raw, read_run, yaw_to_quaternion
 from ptm_ros.io.validation import scan_payload, valid_stamp
-from ptm_ros.landmarks import ExtractorDiagnostics, diagnostics_dict, visit_to_json, with_input_skips
+from ptm_ros.maps.occupancy import load_map, to_ros_data, trinary
+from ptm_ros.model.partitions import enumerate_partitions
+from ptm_ros.model.ptm import Landmark, Topology, from_json_dict, make_ptm
 from ptm_ros.nodes import common, stream_guard
 from ptm_ros.nodes.filter_inbox import visit_line
 from ptm_ros.nodes.map_publisher import map_path
@@ -38,9 +40,12 @@ from ptm_ros.nodes.messages import (
     parse_visit_message,
 )
 from ptm_ros.nodes.topology_filter import ensemble_markers, topology_alpha
-from ptm_ros.occupancy import load_map, to_ros_data, trinary
-from ptm_ros.partitions import enumerate_partitions
-from ptm_ros.ptm import Landmark, Topology, from_json_dict, make_ptm
+from ptm_ros.perception.landmarks import (
+    ExtractorDiagnostics,
+    diagnostics_dict,
+    visit_to_json,
+    with_input_skips,
+)
 from ptm_ros.session import FilterSession
 from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
 
@@ -527,7 +532,7 @@ def test_visit_log_line_gives_the_ess_as_a_share_of_the_particles():
     """The filter node's line after a visit: ``1/Σw²`` over the particles held, with their number, and the
     mass of the most probable topology that explains an ESS near 1 (issue #25: every line said "ESS 1.0"
     although the figure is a share of 100 particles)."""
-    from ptm_ros.rbpf import FilterState
+    from ptm_ros.inference.rbpf import FilterState
 
     peaked = FilterState(n_visits=8, n_topologies=100, ess=1.45554, log_evidence_increment=0.0, update_s=0.05)
     line = visit_line(7, peaked, 0.805802, how="updated", ms=56.3)

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.occupancy import (
+from ptm_ros.maps.occupancy import (
     OccupancyConfig,
     build_grid,
     cells,
@@ -498,7 +498,7 @@ def test_intel_map_from_corrected_poses_is_sharper_than_raw(datasets_dir: Path) 
 
 
 def test_aligned_windows_pair_the_cells_of_one_place():
-    from ptm_ros.occupancy import aligned_windows
+    from ptm_ros.maps.occupancy import aligned_windows
 
     a = np.arange(4 * 5).reshape(4, 5)  # origin (0, 0): cell [r, c] at (c, r) * 0.5 m
     b = np.arange(3 * 3).reshape(3, 3) + 100  # origin (1.0, 0.5): b[0, 0] is a[1, 2]

@@ -1,4 +1,4 @@
-"""Tests of the metric likelihood P(O, S | T) (ptm_ros.odometry) against independent computations."""
+"""Tests of the metric likelihood P(O, S | T) (ptm_ros.model.odometry) against independent computations."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 from scipy import integrate, optimize, stats
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose, between, compose, wrap_angle
 from ptm_ros.io.synthetic import visits_at
-from ptm_ros.odometry import (
+from ptm_ros.model.geometry import RelativePose, between, compose, wrap_angle
+from ptm_ros.model.odometry import (
     MetricResult,
     OdometryConfig,
     SweptArea,
@@ -26,8 +26,8 @@ from ptm_ros.odometry import (
     relative_odometry,
     swept_area,
 )
-from ptm_ros.partitions import blocks
-from ptm_ros.visits import Visit
+from ptm_ros.model.partitions import blocks
+from ptm_ros.model.visits import Visit
 
 # ---------------------------------------------------------------------------------------------------------
 # helpers: an independent, loop-by-loop implementation of log f(X)
@@ -166,7 +166,7 @@ def test_jacobian_matches_finite_differences() -> None:
 def test_newton_hessian_matches_finite_differences_of_the_gradient() -> None:
     """The optimiser's full Hessian (JᵀJ plus the residuals' curvature) is ∂g/∂X of g = Jᵀr, at a point
     far from the optimum (large residuals, where JᵀJ alone is far off)."""
-    from ptm_ros.odometry import _build_problem, _newton_hessian, _normal_equations
+    from ptm_ros.model.odometry import _build_problem, _newton_hessian, _normal_equations
 
     visits, labels, loops = _mixed_problem()
     cfg = OdometryConfig()

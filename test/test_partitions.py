@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import chi2
 
 from ptm_ros.errors import ModelError
-from ptm_ros.partitions import (
+from ptm_ros.model.partitions import (
     bell,
     blocks,
     canonical,

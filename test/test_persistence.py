@@ -16,12 +16,9 @@ import zipfile
 import numpy as np
 import pytest
 
-from ptm_ros import persistence
 from ptm_ros.errors import DataError
-from ptm_ros.geometry import NoMatch, RelativePose
-from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.persistence import (
+from ptm_ros.inference import persistence
+from ptm_ros.inference.persistence import (
     STATE_FILE_SCHEMA,
     load_filter_state,
     registrations_from_state,
@@ -30,9 +27,12 @@ from ptm_ros.persistence import (
     visit_from_state,
     visit_to_state,
 )
-from ptm_ros.posterior import ModelConfig, PosteriorModel
-from ptm_ros.priors import PriorConfig, make_prior
-from ptm_ros.rbpf import RbpfConfig, TopologyFilter
+from ptm_ros.inference.rbpf import RbpfConfig, TopologyFilter
+from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
+from ptm_ros.model.geometry import NoMatch, RelativePose
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.posterior import ModelConfig, PosteriorModel
+from ptm_ros.model.priors import PriorConfig, make_prior
 
 
 def odd_arrays() -> dict[str, np.ndarray]:
@@ -178,7 +178,7 @@ def test_failed_write_leaves_the_previous_file_and_no_temporary(tmp_path, monkey
 WRITER = """
 import sys
 import numpy as np
-from ptm_ros.persistence import save_filter_state
+from ptm_ros.inference.persistence import save_filter_state
 path = sys.argv[1]
 states = [np.full(400_000, float(k)) for k in range(2)]
 k = 0

@@ -17,15 +17,16 @@ from scipy.optimize import minimize
 
 from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.errors import DataError
-from ptm_ros.geometry import between, compose
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
-from ptm_ros.map_quality import ClassGrid
-from ptm_ros.occupancy import FREE, OCCUPIED, load_map
-from ptm_ros.partitions import bell, canonical, num_places
-from ptm_ros.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
-from ptm_ros.report import (
+from ptm_ros.maps.map_quality import ClassGrid
+from ptm_ros.maps.occupancy import FREE, OCCUPIED, load_map
+from ptm_ros.maps.routes import RouteConfig, crossing_segments
+from ptm_ros.model.geometry import between, compose
+from ptm_ros.model.partitions import bell, canonical, num_places
+from ptm_ros.model.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
+from ptm_ros.reporting.report import (
     CHAINS_KEY,
     MAP_COMPARISON,
     REFERENCE_CAPTION,
@@ -36,7 +37,6 @@ from ptm_ros.report import (
     TRACE,
     find_chain_trace,
 )
-from ptm_ros.routes import RouteConfig, crossing_segments
 from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.evaluate import main as eval_main
@@ -220,7 +220,8 @@ def test_run_offline_writes_a_valid_scored_ptm(tjunction_bag, tmp_path, capsys):
     assert doc["timing"]["map_s"] > 0.0 and doc["timing"]["smoothing_s"] > 0.0
     md = (tmp_path / "report.md").read_text()
     assert "(map.png)" in md and "absolute trajectory error" in md
-    # The map against the same scans at the true poses (ptm_ros.map_quality); ptm-eval scores it again.
+    # The map against the same scans at the true poses (ptm_ros.maps.map_quality); ptm-eval scores it
+    # again.
     quality = doc["map_quality"]
     assert quality["leak"] < 0.02 and 0.8 < quality["free_area_ratio"] < 1.25, quality
     assert quality["wall_precision"] > 0.9 and quality["wall_recall"] > 0.9, quality
@@ -329,7 +330,7 @@ def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
 def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     """The three estimators over the same visits and model: MCMC's visited-set estimate and the filter
     (particles >= the number of topologies it can hold) against enumeration."""
-    from ptm_ros.posterior import total_variation
+    from ptm_ros.model.posterior import total_variation
 
     model = {"use_laser": False, "odometry": {"n_samples": 0}}
     ptms = {}
@@ -358,7 +359,7 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
 def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path, start):
     """``initial: rbpf`` (or ``auto`` on a run longer than ``auto_filter_visits``): the chains start from
     the filter's topologies and ptm.json compares the PTMs."""
-    from ptm_ros.posterior import total_variation
+    from ptm_ros.model.posterior import total_variation
 
     model = {"use_laser": False}  # importance sampling: the separation prior integrated, as the filter does
     inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {**start, "chains": 2}}
@@ -447,7 +448,7 @@ def testcold_chain_details_become_json_values():
     ],
 )
 def test_ptm_json_with_non_finite_or_misshapen_values_is_refused(edit, match):
-    """ptm.json is validated in one place (``ptm_ros.ptm.from_json_dict``, used by ptm-eval and the map
+    """ptm.json is validated in one place (``ptm_ros.model.ptm.from_json_dict``, used by ptm-eval and the map
     publisher): stamps, poses and place positions finite, one position per place."""
     landmarks = [Landmark(k, float(k), (float(k), 0.0, 0.0)) for k in range(3)]
     doc = to_json_dict(make_ptm(landmarks, {(0, 1, 0): 1.0}, positions={(0, 1, 0): [[0.0, 0.0], [1.0, 0.0]]}))
@@ -511,10 +512,10 @@ def test_the_demo_bag_splits_the_mass_until_the_robot_returns_while_greedy_commi
     when the robot returns to the first) the filter's PTM after each visit splits its mass between the
     loop closure and the truth for a stretch of visits and ends on the truth, while the greedy baseline
     commits to the wrong loop closure and never leaves it."""
-    from ptm_ros.evaluation import first_wrong_visit, timeline_masses
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.ptm import ptm_greedy, ptm_timeline
-    from ptm_ros.report import TIMELINE
+    from ptm_ros.model.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.reporting.report import TIMELINE
+    from ptm_ros.scoring.evaluation import first_wrong_visit, timeline_masses
     from ptm_ros.tools.evaluate import score_against_ground_truth
 
     params = DEMO_BAG.parents[1] / "config" / "demo.yaml"
@@ -551,7 +552,7 @@ def demo_like_ptm(n_extra: int = 0) -> tuple[Ptm, tuple[int, ...]]:
     """A PTM whose timeline splits the mass at visit 4 between the truth (a new place) and a loop closure
     onto visit 0's place, the greedy answer, and settles on the truth at visit 7; ``n_extra`` sure visits
     more."""
-    from ptm_ros.ptm import TimelineStep, greedy_dict, timeline_list
+    from ptm_ros.model.ptm import TimelineStep, greedy_dict, timeline_list
 
     truth = (0, 1, 2, 3, 4, 5, 4, 0, *range(6, 6 + n_extra))
     greedy = (0, 1, 2, 3, 0, 4, 0, 5, *range(6, 6 + n_extra))
@@ -607,7 +608,7 @@ def test_the_summary_prints_how_the_mass_moved_and_the_greedy_answer_beside_it()
 
     long, truth = demo_like_ptm(n_extra=2 * TIMELINE_ROWS)
     lines = timeline_lines(long, canonical(truth))
-    from ptm_ros.ptm import ptm_timeline
+    from ptm_ros.model.ptm import ptm_timeline
 
     assert eventful(ptm_timeline(long), 4) == [0, 4, 5, 6, 7, len(truth) - 1]
     visits = [ln.split()[0] for ln in lines[2:]]

@@ -15,13 +15,6 @@ import numpy as np
 import pytest
 
 from ptm_ros.config import load_config
-from ptm_ros.detectors import (
-    PlacedLandmarksConfig,
-    ScheduledDetector,
-    landmark_passages,
-    place_landmarks,
-    resample_path,
-)
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import make_detector
 from ptm_ros.io.groundtruth import (
@@ -35,6 +28,13 @@ from ptm_ros.io.groundtruth import (
 )
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.perception.detectors import (
+    PlacedLandmarksConfig,
+    ScheduledDetector,
+    landmark_passages,
+    place_landmarks,
+    resample_path,
+)
 from ptm_ros.tools import evaluate as eval_cli
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.pipeline import run_offline

@@ -1,12 +1,12 @@
-"""The shared pose-graph pieces (ptm_ros.posegraph): residuals, their sparse Jacobian against finite
+"""The shared pose-graph pieces (ptm_ros.maps.posegraph): residuals, their sparse Jacobian against finite
 differences, and Levenberg–Marquardt on a small graph whose optimum is known."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ptm_ros.geometry import between, compose
-from ptm_ros.posegraph import RelativeFactors, levenberg_marquardt, relative_jacobian, relative_residuals
+from ptm_ros.maps.posegraph import RelativeFactors, levenberg_marquardt, relative_jacobian, relative_residuals
+from ptm_ros.model.geometry import between, compose
 
 
 def square_graph(noise: float, seed: int = 0) -> tuple[np.ndarray, RelativeFactors]:

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from ptm_ros.appearance import AppearanceConfig, appearance_log_likelihood
 from ptm_ros.errors import ModelError
-from ptm_ros.geometry import compose
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.partitions import bell, enumerate_partitions
-from ptm_ros.posterior import (
+from ptm_ros.model.appearance import AppearanceConfig, appearance_log_likelihood
+from ptm_ros.model.geometry import compose
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.partitions import bell, enumerate_partitions
+from ptm_ros.model.posterior import (
     ModelConfig,
     PosteriorModel,
     exact_posterior,
@@ -22,8 +22,8 @@ from ptm_ros.posterior import (
     top_k,
     total_variation,
 )
-from ptm_ros.priors import DirichletProcessPrior, PriorConfig
-from ptm_ros.visits import Visit
+from ptm_ros.model.priors import DirichletProcessPrior, PriorConfig
+from ptm_ros.model.visits import Visit
 
 
 def square_loop_visits(n_laps_visits: int = 5, side: float = 6.0, noise: float = 0.02, seed: int = 0):

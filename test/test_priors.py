@@ -9,8 +9,8 @@ import pytest
 from scipy.special import logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.partitions import enumerate_partitions, num_places, stirling2
-from ptm_ros.priors import (
+from ptm_ros.model.partitions import enumerate_partitions, num_places, stirling2
+from ptm_ros.model.priors import (
     DirichletProcessPrior,
     OccupancyPrior,
     PriorConfig,

@@ -11,20 +11,8 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from ptm_ros.appearance import (
-    AppearanceConfig,
-    AppearanceModel,
-    appearance_log_predictive,
-    fit_appearance_model,
-)
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.geometry import RelativePose
-from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
-from ptm_ros.odometry import OdometryConfig, metric_log_likelihood, place_area
-from ptm_ros.partitions import bell, canonical
-from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
-from ptm_ros.priors import DirichletProcessPrior, OccupancyPrior, PriorConfig, YuleSimonPrior, make_prior
-from ptm_ros.rbpf import (
+from ptm_ros.inference.rbpf import (
     FilterState,
     RbpfConfig,
     TopologyFilter,
@@ -35,7 +23,31 @@ from ptm_ros.rbpf import (
     run_filter,
     top_resample,
 )
-from ptm_ros.visits import Visit
+from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
+from ptm_ros.model.appearance import (
+    AppearanceConfig,
+    AppearanceModel,
+    appearance_log_predictive,
+    fit_appearance_model,
+)
+from ptm_ros.model.geometry import RelativePose
+from ptm_ros.model.odometry import OdometryConfig, metric_log_likelihood, place_area
+from ptm_ros.model.partitions import bell, canonical
+from ptm_ros.model.posterior import (
+    ModelConfig,
+    PosteriorModel,
+    exact_posterior,
+    normalize_log,
+    total_variation,
+)
+from ptm_ros.model.priors import (
+    DirichletProcessPrior,
+    OccupancyPrior,
+    PriorConfig,
+    YuleSimonPrior,
+    make_prior,
+)
+from ptm_ros.model.visits import Visit
 
 SQUARE = [(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)]
 PRIOR = PriorConfig()  # Dirichlet process, alpha = 1
@@ -293,8 +305,8 @@ def test_each_update_records_the_ptm_of_the_visits_so_far(odometry_case):
 
 
 def test_a_learned_area_moves_the_weights_exactly(odometry_case):
-    """With ``area_m2`` 0 the filter's A grows with the visits (:func:`ptm_ros.odometry.mapped_area`) and
-    every particle is reweighted by (A_old / A_new)^places at each step: the full filter still equals
+    """With ``area_m2`` 0 the filter's A grows with the visits (:func:`ptm_ros.model.odometry.mapped_area`)
+    and every particle is reweighted by (A_old / A_new)^places at each step: the full filter still equals
     exact enumeration with the A of all the visits, as closely as with a fixed A."""
     visits, _, _ = odometry_case
     learned = replace(ODO, area_m2=0.0)

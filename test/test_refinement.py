@@ -1,5 +1,5 @@
-"""Keyframe scan matching along revisited passages (ptm_ros.refinement) and the robust pose-graph solver it
-shares with the smoothing (ptm_ros.smoothing.robust_optimum)."""
+"""Keyframe scan matching along revisited passages (ptm_ros.maps.refinement) and the robust pose-graph solver
+it shares with the smoothing (ptm_ros.maps.smoothing.robust_optimum)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.evaluation import absolute_trajectory_error
 from ptm_ros.factories import cached, make_registrar
-from ptm_ros.geometry import between
-from ptm_ros.mapping import scan_points
-from ptm_ros.posegraph import RelativeFactors
-from ptm_ros.refinement import RefinementConfig, keyframe_scans, refine_trajectory
-from ptm_ros.smoothing import RobustGraph, SmoothingConfig, robust_optimum, smooth_topology
+from ptm_ros.maps.mapping import scan_points
+from ptm_ros.maps.posegraph import RelativeFactors
+from ptm_ros.maps.refinement import RefinementConfig, keyframe_scans, refine_trajectory
+from ptm_ros.maps.smoothing import RobustGraph, SmoothingConfig, robust_optimum, smooth_topology
+from ptm_ros.model.geometry import between
+from ptm_ros.scoring.evaluation import absolute_trajectory_error
 from ptm_ros.tools.pipeline import map_trajectory
 
 

@@ -11,14 +11,20 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError
-from ptm_ros.geometry import RelativePose, between, compose
+from ptm_ros.inference.rbpf import RbpfConfig, run_filter
 from ptm_ros.io.synthetic import simulate_route
-from ptm_ros.odometry import OdometryConfig, registration_aliases
-from ptm_ros.partitions import bell, canonical
-from ptm_ros.posterior import ModelConfig, PosteriorModel, exact_posterior, normalize_log, total_variation
-from ptm_ros.priors import PriorConfig, make_prior
-from ptm_ros.rbpf import RbpfConfig, run_filter
-from ptm_ros.visits import Visit
+from ptm_ros.model.geometry import RelativePose, between, compose
+from ptm_ros.model.odometry import OdometryConfig, registration_aliases
+from ptm_ros.model.partitions import bell, canonical
+from ptm_ros.model.posterior import (
+    ModelConfig,
+    PosteriorModel,
+    exact_posterior,
+    normalize_log,
+    total_variation,
+)
+from ptm_ros.model.priors import PriorConfig, make_prior
+from ptm_ros.model.visits import Visit
 
 SQUARE = [(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)]
 ROUTE = [0, 1, 2, 3, 0, 1, 2]

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from ros_helpers import BRINGUP, REPO, Inbox, assert_no_orphans, dds_env, ros_context
 
+from ptm_ros.model.ptm import load_ptm
 from ptm_ros.nodes.bag_player import bag_topics
-from ptm_ros.ptm import load_ptm
 
 # the node suite over DDS at ten times real time (about 20 s)
 pytestmark = [pytest.mark.dds, pytest.mark.slow]

@@ -1,4 +1,4 @@
-"""Tests of ptm_ros.report: figures, report.md and report.html of a PTM."""
+"""Tests of ptm_ros.reporting.report: figures, report.md and report.html of a PTM."""
 
 from __future__ import annotations
 
@@ -15,11 +15,11 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
-from ptm_ros.convergence import srq_deviation, srq_points
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.evaluation import score_ptm
-from ptm_ros.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
-from ptm_ros.report import (
+from ptm_ros.inference.convergence import srq_deviation, srq_points
+from ptm_ros.model.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
+from ptm_ros.perception.surprise import LaserSurpriseConfig, LaserSurpriseDetector, SurpriseTrace
+from ptm_ros.reporting.report import (
     CHAINS_KEY,
     CONSISTENT_MASS_MEANING,
     HISTOGRAM,
@@ -59,7 +59,7 @@ from ptm_ros.report import (
     trigger_indices,
     write_report,
 )
-from ptm_ros.surprise import LaserSurpriseConfig, LaserSurpriseDetector, SurpriseTrace
+from ptm_ros.scoring.evaluation import score_ptm
 
 # A square loop driven twice: corners A B C D A B C D (odometry drifts a little).
 TRUE_XY = np.array([[0, 0], [10, 0], [10, 10], [0, 10]] * 2, dtype=float)
@@ -527,7 +527,7 @@ def test_ptm_json_keeps_a_chain_summary_and_the_trace_file_the_states(tmp_path: 
 
 
 def test_report_shows_the_occupancy_map_and_notes(tmp_path: Path) -> None:
-    from ptm_ros.occupancy import build_grid, save_png
+    from ptm_ros.maps.occupancy import build_grid, save_png
 
     # A scanner at the centre of the loop sees a circle of radius 3 m: a real grid image.
     angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
@@ -571,7 +571,7 @@ def red_pixels(path: Path) -> int:
 
 
 def test_map_comparison_shows_the_leak_in_red_next_to_the_reference(tmp_path: Path) -> None:
-    from ptm_ros.map_quality import ClassGrid, map_quality
+    from ptm_ros.maps.map_quality import ClassGrid, map_quality
 
     r = 0.08  # m: 0.3 m falls between 3 cells (0.24 m) and 4 (0.32 m)
     room = walled_room(80)  # the room and 25 columns of unknown east of it
@@ -609,8 +609,8 @@ def test_map_comparison_shows_the_leak_in_red_next_to_the_reference(tmp_path: Pa
 
 
 def test_map_comparison_without_reference_draws_the_route_graph(tmp_path: Path) -> None:
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.routes import route_graph
+    from ptm_ros.maps.map_quality import ClassGrid
+    from ptm_ros.maps.routes import route_graph
 
     ptm = loop_ptm()
     doc = route_graph(ptm)
@@ -629,7 +629,7 @@ def test_map_comparison_without_reference_draws_the_route_graph(tmp_path: Path) 
 def timeline_ptm() -> Ptm:
     """:func:`loop_ptm` with the timeline the filter would have written, and a greedy answer that joins
     visit 3 to visit 1's place."""
-    from ptm_ros.ptm import TimelineStep, greedy_dict, timeline_list
+    from ptm_ros.model.ptm import TimelineStep, greedy_dict, timeline_list
 
     ptm = loop_ptm()
     steps = [TimelineStep(n, ((TRUTH[:n], 0.9), ((0, 1, 2, 3, 4, 5, 6, 7)[:n], 0.1))) for n in range(4, 9)]
@@ -642,8 +642,8 @@ def timeline_ptm() -> Ptm:
 def test_timeline_figure_draws_the_mass_of_the_truth_and_of_the_greedy_answer(tmp_path: Path) -> None:
     """Issue #25: per visit the most probable topology's mass (bars), the truth's and the greedy answer's
     (cut to the visits so far; an unlisted one at the most it can hold), and where greedy went wrong."""
-    from ptm_ros.ptm import ptm_timeline
-    from ptm_ros.report import TIMELINE, timeline_figure
+    from ptm_ros.model.ptm import ptm_timeline
+    from ptm_ros.reporting.report import TIMELINE, timeline_figure
 
     ptm = timeline_ptm()
     steps = ptm_timeline(ptm)

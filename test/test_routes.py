@@ -12,11 +12,9 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, DataError
-from ptm_ros.map_quality import ClassGrid
-from ptm_ros.occupancy import FREE, OCCUPIED
-from ptm_ros.partitions import canonical
-from ptm_ros.ptm import Landmark, Ptm, Topology, make_ptm
-from ptm_ros.routes import (
+from ptm_ros.maps.map_quality import ClassGrid
+from ptm_ros.maps.occupancy import FREE, OCCUPIED
+from ptm_ros.maps.routes import (
     NO_ROUTE,
     PLACE_IN_WALL,
     PLACE_OFF_MAP,
@@ -32,6 +30,8 @@ from ptm_ros.routes import (
     save_route_graph,
     straight_edge_ids,
 )
+from ptm_ros.model.partitions import canonical
+from ptm_ros.model.ptm import Landmark, Ptm, Topology, make_ptm
 
 POSES = [(0.0, 0.0, 0.0), (4.0, 0.0, 0.1), (4.0, 3.0, 1.0), (4.2, 0.2, 2.0), (0.2, -0.2, 3.0)]
 # MAP (0,1,2,1,0); (0,1,1,2,0) puts visit 2 into place 1; (0,0,1,2,1) puts visit 1 into place 0.

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from cli_helpers import call, one_error_line
 
-from ptm_ros.evaluation import ODOMETRY_FIT_LIMIT
 from ptm_ros.io.simulator import CameraConfig, SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.scoring.evaluation import ODOMETRY_FIT_LIMIT
 from ptm_ros.tools import pipeline
 from ptm_ros.tools import run as run_cli
 

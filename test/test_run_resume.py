@@ -18,10 +18,15 @@ import pytest
 
 from ptm_ros.config import load_config
 from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.inference.persistence import (
+    first_different_visit,
+    load_filter_state,
+    save_filter_state,
+    visit_from_state,
+)
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
-from ptm_ros.persistence import first_different_visit, load_filter_state, save_filter_state, visit_from_state
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.pipeline import (
     OUTPUT_FILES,

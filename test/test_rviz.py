@@ -76,8 +76,8 @@ def test_every_displayed_topic_is_published_with_its_type(rviz: dict[str, Any]) 
 
 def test_fixed_frame_is_the_nodes_frame(rviz: dict[str, Any]) -> None:
     pytest.importorskip("rclpy")
+    from ptm_ros.model.ptm import Ptm
     from ptm_ros.nodes.topology_filter import FRAME_ID
-    from ptm_ros.ptm import Ptm
 
     assert rviz["Visualization Manager"]["Global Options"]["Fixed Frame"] == FRAME_ID
     assert Ptm(landmarks=(), topologies=()).frame_id == FRAME_ID  # the map publisher's frame: the ensemble's

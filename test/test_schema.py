@@ -11,7 +11,7 @@ from typing import Any
 import jsonschema
 import pytest
 
-from ptm_ros.ptm import SCHEMA, Landmark, make_ptm, ptm_schema, to_json_dict
+from ptm_ros.model.ptm import SCHEMA, Landmark, make_ptm, ptm_schema, to_json_dict
 from ptm_ros.tools import run as run_cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,7 +118,7 @@ def test_the_graph_document_ptm_bringup_saves_validates(validator):
     """ptm-bringup's ptm.json is the map publisher's last ``ptm_graph`` document: ptm.json plus
     ``graph_schema``, ``edges`` and ``stream``."""
     topology_filter = pytest.importorskip("ptm_ros.nodes.topology_filter", reason="rclpy not installed")
-    from ptm_ros.ptm import from_json_dict
+    from ptm_ros.model.ptm import from_json_dict
 
     doc = copy.deepcopy(MINIMAL)
     doc["topologies"].append({"labels": [0, 1, 2, 3], "probability": 0.09})
@@ -199,7 +199,7 @@ def test_the_timeline_and_the_greedy_answer_round_trip_and_bad_ones_are_refused(
     """Issue #25: ``inference.timeline`` (the filter's PTM after each visit) and ``greedy`` (the greedy
     baseline's labels) validate, read back as written, and malformed ones fail with the field named."""
     from ptm_ros.errors import DataError
-    from ptm_ros.ptm import (
+    from ptm_ros.model.ptm import (
         TimelineStep,
         from_json_dict,
         greedy_dict,

@@ -11,7 +11,7 @@ import pytest
 from ptm_ros.config import PtmConfig, load_config
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import cached, make_registrar
-from ptm_ros.persistence import load_filter_state, save_filter_state
+from ptm_ros.inference.persistence import load_filter_state, save_filter_state
 from ptm_ros.session import FilterSession, infer
 
 
@@ -51,7 +51,7 @@ def test_session_rejects_out_of_order_visits_and_resets(sim_visits):
 
 
 def test_frozen_appearance_priors_stop_replays(sim_visits):
-    from ptm_ros.appearance import fit_appearance_model
+    from ptm_ros.model.appearance import fit_appearance_model
 
     # with every visit carrying a signature: replays only while at most 3 visits, then the fit is frozen
     signed = [replace(v, index=i) for i, v in enumerate(v for v in sim_visits if v.signature is not None)]
@@ -171,7 +171,7 @@ def test_a_live_session_resumes_an_offline_state_and_refits_as_it_goes(sim_visit
 
 def test_an_offline_session_fits_its_priors_once(sim_visits):
     """``fitted_to``: the priors of the whole run from the first visit on, never a replay."""
-    from ptm_ros.appearance import fit_appearance_model
+    from ptm_ros.model.appearance import fit_appearance_model
 
     config = no_laser()
     session = FilterSession(config, fitted_to=sim_visits)
@@ -185,8 +185,8 @@ def test_an_offline_session_fits_its_priors_once(sim_visits):
 
 def test_the_ptm_says_which_visits_the_map_is_unsure_of(sim_visits):
     """``build_ptm`` (ptm-run's ptm.json and the node's ptm_graph) carries ``extra["doubts"]``: the
-    visits whose place the ensemble is unsure of, with their answers (:mod:`ptm_ros.doubts`)."""
-    from ptm_ros.ptm import to_json_dict
+    visits whose place the ensemble is unsure of, with their answers (:mod:`ptm_ros.reporting.doubts`)."""
+    from ptm_ros.model.ptm import to_json_dict
 
     config = no_laser()
     session = FilterSession(config, fitted_to=sim_visits)
@@ -216,8 +216,8 @@ def test_the_ptm_carries_the_filters_timeline_and_the_greedy_answer(sim_visits, 
     and ``greedy`` the greedy baseline's answer on the same visits; a live session's timeline at the end is
     the offline one (its last replay ran with the priors of the whole run), and a restored session, having
     decided the restored visits again, ends with the same greedy answer and timeline."""
-    from ptm_ros.baselines import GreedyConfig, greedy_association
-    from ptm_ros.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.model.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.scoring.baselines import GreedyConfig, greedy_association
 
     config = load_config(
         None, {"model": {"use_laser": False}, "inference": {"particles": 30, "timeline": 2, "greedy": True}}

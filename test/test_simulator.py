@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import BagError, ConfigError
-from ptm_ros.geometry import between, compose
 from ptm_ros.io.groundtruth import SIM_SCHEMA
 from ptm_ros.io.simulator import (
     CameraConfig,
@@ -27,9 +26,10 @@ from ptm_ros.io.simulator import (
     write_run,
 )
 from ptm_ros.io.worlds import get_world
+from ptm_ros.model.geometry import between, compose
 
 try:
-    from ptm_ros.appearance import fourier_signature as _fourier_signature
+    from ptm_ros.model.appearance import fourier_signature as _fourier_signature
 
     def signature(image: np.ndarray) -> np.ndarray:
         return _fourier_signature(image, 16)

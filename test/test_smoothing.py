@@ -7,17 +7,17 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.evaluation import absolute_trajectory_error
-from ptm_ros.geometry import RelativePose, between, compose
-from ptm_ros.odometry import OdometryConfig, optimize_poses
-from ptm_ros.smoothing import (
+from ptm_ros.maps.smoothing import (
     SmoothingConfig,
     place_pairs,
     robust_visit_poses,
     smooth_topology,
     smoothed_trajectory,
 )
-from ptm_ros.visits import Visit
+from ptm_ros.model.geometry import RelativePose, between, compose
+from ptm_ros.model.odometry import OdometryConfig, optimize_poses
+from ptm_ros.model.visits import Visit
+from ptm_ros.scoring.evaluation import absolute_trajectory_error
 
 
 def square(n_per_side=20, noise_yaw=0.0):
@@ -97,7 +97,7 @@ def test_place_pairs_are_the_pairwise_form_of_the_coincidence_term():
     pairs, scales = place_pairs((0, 1, 0, 2, 0), 0.5)
     assert pairs.tolist() == [[0, 2], [0, 4], [2, 4]]
     assert np.allclose(scales, 0.5 * np.sqrt(3))
-    # Σ pairs |d|² / (|s| σ²) equals Σ visits |x - mean|² / σ²: the Gaussian term of ptm_ros.odometry
+    # Σ pairs |d|² / (|s| σ²) equals Σ visits |x - mean|² / σ²: the Gaussian term of ptm_ros.model.odometry
     x = np.array([[0.0, 0.0], [9.0, 9.0], [1.0, 0.0], [9.0, 9.0], [0.0, 2.0]])
     pair_sum = np.sum(np.sum((x[pairs[:, 0]] - x[pairs[:, 1]]) ** 2, axis=1) / scales**2)
     centre = x[[0, 2, 4]].mean(axis=0)
@@ -129,7 +129,7 @@ def test_a_wrong_merge_is_let_go_instead_of_bending_the_map(drifting_laps):
     cfg = OdometryConfig()
     t = np.arange(len(odom), dtype=float)
     stamps = [v.stamp for v in visits]
-    # before: Gaussian visit poses (ptm_ros.odometry) deformed along the odometry
+    # before: Gaussian visit poses (ptm_ros.model.odometry) deformed along the odometry
     x_gauss, _, _ = optimize_poses(labels, visits, cfg)
     before = smoothed_trajectory(t, odom, stamps, x_gauss)
     after = smooth_topology(t, odom, labels, visits, cfg)

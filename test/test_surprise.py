@@ -14,7 +14,7 @@ from scipy import integrate, optimize, stats
 from scipy.special import digamma, gammaln
 
 from ptm_ros.errors import ConfigError, DataError, ModelError
-from ptm_ros.surprise import (
+from ptm_ros.perception.surprise import (
     AppearanceSurpriseConfig,
     AppearanceSurpriseDetector,
     BandTrigger,
@@ -340,7 +340,7 @@ def test_fit_edcm_without_prior_weight_solves_printed_eq64_65() -> None:
 
 
 def test_polya_urn_draws_have_the_polya_word_presence() -> None:
-    from ptm_ros.surprise import _polya_presence
+    from ptm_ros.perception.surprise import _polya_presence
 
     alpha = np.array([0.05, 0.3, 1.0, 0.02, 0.6])
     n, m = 12, 40_000
@@ -543,7 +543,7 @@ def test_a_change_of_word_distribution_fires_once(seed: int) -> None:
 
 def test_appearance_detector_on_panoramas() -> None:
     pytest.importorskip("cv2")
-    from ptm_ros.vocabulary import Vocabulary, sift_descriptors
+    from ptm_ros.model.vocabulary import Vocabulary, sift_descriptors
 
     rng = np.random.default_rng(13)
 
@@ -730,7 +730,7 @@ def test_limit_trace_keeps_the_latest_rows_and_detects_the_same():
 def test_a_trace_crosses_json_exactly_and_bad_documents_are_refused():
     """The detector node's ``~/surprise_trace`` answer: the trace of a surprise detector through JSON, bit for
     bit; other detectors have none (and nothing to bound)."""
-    from ptm_ros.detectors import EquidistantDetector
+    from ptm_ros.perception.detectors import EquidistantDetector
 
     rng = np.random.default_rng(3)
     det = LaserSurpriseDetector(LaserSurpriseConfig(localize_distance=0.0))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ptm_ros.errors import DataError, ModelError
-from ptm_ros.vocabulary import DESCRIPTOR_SIZE, Vocabulary, sift_descriptors
+from ptm_ros.model.vocabulary import DESCRIPTOR_SIZE, Vocabulary, sift_descriptors
 
 
 def _panorama(rng: np.random.Generator, h: int = 64, w: int = 512) -> np.ndarray:

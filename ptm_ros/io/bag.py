@@ -38,14 +38,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import BagError, ConfigError
-from ptm_ros.geometry import FloatArray
+from ptm_ros.model.geometry import FloatArray
 
 if TYPE_CHECKING:
     from rosbags.interfaces import Connection
     from rosbags.rosbag2 import Writer
     from rosbags.typesys.store import Typestore
 
-    from ptm_ros.appearance import AppearanceConfig
+    from ptm_ros.model.appearance import AppearanceConfig
 
 IntArray = NDArray[np.int64]
 

@@ -1,7 +1,7 @@
 """Reliability diagrams of the MAP probability (issue #23): a PNG drawn through matplotlib's Agg canvas.
 
 Top panel: the fraction of runs whose MAP topology is the true one against the mean stated MAP
-probability, per equal-width bin (:class:`ptm_ros.evaluation.CalibrationSummary`), one curve per group
+probability, per equal-width bin (:class:`ptm_ros.scoring.evaluation.CalibrationSummary`), one curve per group
 (e.g. per world family), marker area proportional to the bin's runs; the diagonal is perfect calibration.
 Bottom panel: the number of runs per bin.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptm_ros.evaluation import CalibrationSummary
+from ptm_ros.scoring.evaluation import CalibrationSummary
 
 
 def write_reliability_diagram(

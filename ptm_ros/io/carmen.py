@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ptm_ros.errors import DataError
-from ptm_ros.geometry import FloatArray
+from ptm_ros.model.geometry import FloatArray
 
 Pose = tuple[float, float, float]
 

@@ -26,15 +26,15 @@ landmarks' odometry against it).
 Is it this run's ground truth? (issue #25). :func:`within_span`, :func:`odometry_fit_at`,
 :func:`coverage_problem` and :func:`odometry_fit_problem` are the rule ``ptm-eval`` applies to a PTM's
 landmarks (most of them outside the ground truth's time span, or their odometry not moving as the ground
-truth does: :func:`ptm_ros.evaluation.odometry_fit`); :func:`run_ground_truth_problem` applies the same
-rule, with the same thresholds, to a bag's whole odometry before any landmark is known (``ptm-run``, right
-after reading the bag), at points :data:`RUN_FIT_SPACING_M` of travel apart. Each returns the one-line
+truth does: :func:`ptm_ros.scoring.evaluation.odometry_fit`); :func:`run_ground_truth_problem` applies the
+same rule, with the same thresholds, to a bag's whole odometry before any landmark is known (``ptm-run``,
+right after reading the bag), at points :data:`RUN_FIT_SPACING_M` of travel apart. Each returns the one-line
 problem (None: none); the tools add how to override it (``--force``).
 
 :func:`with_placed_landmarks` adds landmarks fixed along the path and their visits (the
-``ground-truth`` detector's) to a trajectory that has none (:mod:`ptm_ros.detectors`); :func:`save_sim_gt`
-writes any ground truth in the simulator's schema (what ``ptm-run --detector ground-truth`` leaves beside
-its ``ptm.json``).
+``ground-truth`` detector's) to a trajectory that has none (:mod:`ptm_ros.perception.detectors`);
+:func:`save_sim_gt` writes any ground truth in the simulator's schema (what ``ptm-run --detector
+ground-truth`` leaves beside its ``ptm.json``).
 """
 
 from __future__ import annotations
@@ -49,10 +49,15 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptm_ros.detectors import PlacedLandmarksConfig, landmark_passages, place_landmarks, resample_path
 from ptm_ros.errors import DataError
-from ptm_ros.evaluation import OdometryFit, odometry_fit, path_samples
-from ptm_ros.geometry import FloatArray, interpolate_poses
+from ptm_ros.model.geometry import FloatArray, interpolate_poses
+from ptm_ros.perception.detectors import (
+    PlacedLandmarksConfig,
+    landmark_passages,
+    place_landmarks,
+    resample_path,
+)
+from ptm_ros.scoring.evaluation import OdometryFit, odometry_fit, path_samples
 
 SIM_SCHEMA = "ptm_ros.ground_truth/1"
 SIM_FILENAME = "ground_truth.json"
@@ -295,9 +300,10 @@ def load_ground_truth(path: str | Path) -> GroundTruthTrajectory:
 def with_placed_landmarks(
     truth: GroundTruthTrajectory, config: PlacedLandmarksConfig | None = None
 ) -> GroundTruthTrajectory:
-    """``truth`` with the places and passages of the ``ground-truth`` detector (:mod:`ptm_ros.detectors`):
-    unchanged when it has passages already (a simulated run: its world's places), else landmarks placed
-    along the corrected trajectory every ``config.spacing`` m (places ``0 … K−1`` of kind ``"placed"``)
+    """``truth`` with the places and passages of the ``ground-truth`` detector
+    (:mod:`ptm_ros.perception.detectors`): unchanged when it has passages already (a simulated run: its
+    world's places), else landmarks placed along the corrected trajectory every ``config.spacing`` m (places
+    ``0 … K−1`` of kind ``"placed"``)
     and their visits."""
     if truth.passages:
         return truth
@@ -409,8 +415,8 @@ def odometry_fit_at(
     max_extrapolation: float = MAX_EXTRAPOLATION_S,
 ) -> OdometryFit:
     """How well odometry positions ``odom_xy (n, 2)`` at ``stamps (n,)`` (in order) fit the ground truth at
-    the same stamps (:func:`ptm_ros.evaluation.odometry_fit`): against its raw odometry when it has one
-    (CARMEN: the same odometry), else its true poses; stamps outside :func:`within_span` are left out."""
+    the same stamps (:func:`ptm_ros.scoring.evaluation.odometry_fit`): against its raw odometry when it has
+    one (CARMEN: the same odometry), else its true poses; stamps outside :func:`within_span` are left out."""
     q = np.asarray(stamps, dtype=float).reshape(-1)
     odom = np.asarray(odom_xy, dtype=float).reshape(-1, 2)
     inside = within_span(truth, q, max_extrapolation)
@@ -459,8 +465,8 @@ def run_ground_truth_problem(
     """Whether ``truth`` is the ground truth of the run whose odometry is ``poses (n, 3)`` at ``stamps
     (n,)`` (a bag's, in stamp order), judged before any landmark is known: ``ptm-eval``'s rule
     (:func:`coverage_problem`, then :func:`odometry_fit_problem`) at the odometry's points ``spacing`` m
-    of travel apart (:func:`ptm_ros.evaluation.path_samples`) instead of the landmarks. Returns the fit
-    and the problem (None: none)."""
+    of travel apart (:func:`ptm_ros.scoring.evaluation.path_samples`) instead of the landmarks. Returns the
+    fit and the problem (None: none)."""
     q = np.asarray(stamps, dtype=float).reshape(-1)
     xy = np.asarray(poses, dtype=float).reshape(len(q), -1)[:, :2]
     k = path_samples(xy, spacing)

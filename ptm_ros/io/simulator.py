@@ -44,11 +44,11 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from ptm_ros.detectors import landmark_passages
 from ptm_ros.errors import BagError, ConfigError
-from ptm_ros.geometry import FloatArray, between, wrap_angle
 from ptm_ros.io.groundtruth import SIM_FILENAME, GroundTruthTrajectory, Passage, Place, sim_gt_document
 from ptm_ros.io.worlds import World
+from ptm_ros.model.geometry import FloatArray, between, wrap_angle
+from ptm_ros.perception.detectors import landmark_passages
 
 #: Turns sharper than this (rad) are made on the spot instead of along an arc.
 MAX_ARC_TURN = 0.75 * math.pi
@@ -661,7 +661,7 @@ def detect_passages(
     """Every time the position comes within ``radius`` of a place: the stamp of the closest approach.
 
     One passage per contiguous stretch within ``radius`` (a turn on the spot is one passage), sorted in
-    time (:func:`ptm_ros.detectors.landmark_passages`).
+    time (:func:`ptm_ros.perception.detectors.landmark_passages`).
     """
     found = landmark_passages(stamps, poses[:, :2], world.place_xy, radius)
     return tuple(Passage(stamp, world.places[j].id) for stamp, j in found)

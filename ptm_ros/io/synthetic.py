@@ -2,7 +2,7 @@
 
 For tests and benchmarks that need visits with a known truth but no sensors: the robot stands at each place
 of ``route`` facing the next one; the odometry of each step is the true relative pose plus N(0, Σ_k), Σ_k
-the covariance of :class:`~ptm_ros.odometry.OdometryConfig` for that step's travel and rotation (times
+the covariance of :class:`~ptm_ros.model.odometry.OdometryConfig` for that step's travel and rotation (times
 ``noise``). Visits may carry signatures: a per-place appearance plus N(0, ``sig_noise``²) per component.
 """
 
@@ -15,9 +15,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ptm_ros.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose
-from ptm_ros.odometry import OdometryConfig
-from ptm_ros.visits import Visit, pose_field
+from ptm_ros.model.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose
+from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.visits import Visit, pose_field
 
 #: Heading at the last visit: towards the previous place (``back``) or straight on, away from it (``ahead``).
 EndHeading = Literal["back", "ahead"]
@@ -140,7 +140,8 @@ def truth_registrar(
 ) -> Registrar:
     """Laser measurements between visits of the same true place (the true relative pose plus N(0, sd²),
     seeded per pair), None for other pairs. With ``fitness``, matches carry a fitness evidence of 2.5 and
-    other pairs are :class:`~ptm_ros.geometry.NoMatch` outcomes with a negative one (varying by pair)."""
+    other pairs are :class:`~ptm_ros.model.geometry.NoMatch` outcomes with a negative one (varying by
+    pair)."""
 
     def registrar(i: int, j: int) -> RelativePose | NoMatch | None:
         if route[i] != route[j]:

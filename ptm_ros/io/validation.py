@@ -29,7 +29,7 @@ from ptm_ros.errors import PtmError
 from ptm_ros.io.bag import NS_PER_S, decode_image, ns_to_stamp, quaternion_to_yaw
 
 if TYPE_CHECKING:
-    from ptm_ros.appearance import AppearanceConfig
+    from ptm_ros.model.appearance import AppearanceConfig
 
 Rejection = tuple[str, str]  # (reason, detail)
 ScanPayload = tuple[NDArray[np.float32], float, float, float, float]

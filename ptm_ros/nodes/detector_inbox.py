@@ -4,7 +4,7 @@
 read by the checks of :mod:`ptm_ros.io.validation`, as ``ptm-run``'s bag reader reads them) and the bag
 player's ``end_of_input``; it guards each stream (:class:`~ptm_ros.nodes.stream_guard.StreamGuard`),
 keeps scans and panoramas on the odometry's clock, starts a new session when the odometry goes back in
-time or teleports, feeds the :class:`~ptm_ros.landmarks.VisitExtractor` and queues what the node
+time or teleports, feeds the :class:`~ptm_ros.perception.landmarks.VisitExtractor` and queues what the node
 publishes in :attr:`DetectorInbox.outbox`: visits (with their session id), the map's odometry samples
 and keyframe scans, and the end marker. :mod:`ptm_ros.nodes.landmark_detector` documents the rules and
 counters; the node declares the parameters, converts the queue into messages and publishes them. Nothing
@@ -36,8 +36,8 @@ from ptm_ros.io.validation import (
     scan_payload,
     valid_stamp,
 )
-from ptm_ros.landmarks import VisitExtractor, diagnostics_dict
-from ptm_ros.mapping import KeyframeStream
+from ptm_ros.maps.mapping import KeyframeStream
+from ptm_ros.model.visits import Visit
 from ptm_ros.nodes.logs import Logger, OnceLogger
 from ptm_ros.nodes.messages import END_OF_INPUT_SCHEMA, END_SCHEMA
 from ptm_ros.nodes.stream_guard import (
@@ -49,8 +49,8 @@ from ptm_ros.nodes.stream_guard import (
     StreamGuard,
     sum_counters,
 )
-from ptm_ros.surprise import limit_surprise_trace
-from ptm_ros.visits import Visit
+from ptm_ros.perception.landmarks import VisitExtractor, diagnostics_dict
+from ptm_ros.perception.surprise import limit_surprise_trace
 
 STREAMS = ("odometry", "scan", "image")  # the extractor's names of the three inputs
 SUBSCRIPTIONS = {"odom": "odometry", "scan": "scan", "panorama": "image"}
@@ -444,7 +444,7 @@ class DetectorInbox:
 
     def _stream_for_map(self) -> None:
         """Queue for the map publisher the decimated odometry and the keyframe scans processed since the
-        last call (:class:`ptm_ros.mapping.KeyframeStream`)."""
+        last call (:class:`ptm_ros.maps.mapping.KeyframeStream`)."""
         for stamp, pose, scan in self._keyframes.select(
             self.extractor.take_poses(), self.extractor.take_scans()
         ):

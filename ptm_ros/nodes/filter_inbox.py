@@ -4,10 +4,10 @@
 the detector's stream in order (sessions, gaps, duplicates, redelivered visits, end markers; see
 :mod:`ptm_ros.nodes.topology_filter` for the rules and counters), feeds the accepted visits to a
 :class:`~ptm_ros.session.FilterSession` (the code ``ptm-run`` runs) and saves and restores its state
-(:mod:`ptm_ros.persistence`). It logs through any object with ``debug``/``info``/``warning``/``error``
-(a node's logger, or :mod:`logging`'s), and tells its caller what to publish; the node only wires
-topics, services, parameters and timers around it. Nothing here imports rclpy (a contract of
-``.importlinter``), so the behaviour is tested without a ROS context.
+(:mod:`ptm_ros.inference.persistence`). It logs through any object with
+``debug``/``info``/``warning``/``error`` (a node's logger, or :mod:`logging`'s), and tells its caller what to
+publish; the node only wires topics, services, parameters and timers around it. Nothing here imports rclpy (a
+contract of ``.importlinter``), so the behaviour is tested without a ROS context.
 """
 
 from __future__ import annotations
@@ -21,14 +21,14 @@ from typing import Any
 from ptm_ros.config import PtmConfig
 from ptm_ros.configio import to_dict
 from ptm_ros.errors import ConfigError, DataError, PtmError
-from ptm_ros.figures import ess_fraction
+from ptm_ros.inference.persistence import differences, load_filter_state, save_filter_state
+from ptm_ros.inference.rbpf import FilterState
+from ptm_ros.model.ptm import Ptm
+from ptm_ros.model.visits import Visit, pose_field
 from ptm_ros.nodes.logs import Logger, OnceLogger
 from ptm_ros.nodes.messages import parse_visit_envelope
-from ptm_ros.persistence import differences, load_filter_state, save_filter_state
-from ptm_ros.ptm import Ptm
-from ptm_ros.rbpf import FilterState
+from ptm_ros.reporting.figures import ess_fraction
 from ptm_ros.session import FilterSession
-from ptm_ros.visits import Visit, pose_field
 
 NODE_NAME = "topology_filter"
 #: Schema tag of the node's state file content (its ``session`` is a :class:`FilterSession` state).

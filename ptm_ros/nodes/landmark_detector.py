@@ -1,20 +1,21 @@
 """``landmark_detector``: landmark visits from odometry, laser scans and panoramas.
 
 Subscribes ``odom`` (nav_msgs/Odometry), ``scan`` (sensor_msgs/LaserScan) and ``panorama``
-(sensor_msgs/Image, optional) and feeds them to :class:`ptm_ros.landmarks.VisitExtractor`, the object
-``ptm-run`` uses, which re-sequences the three topics by stamp: the visits do not depend on how DDS
+(sensor_msgs/Image, optional) and feeds them to :class:`ptm_ros.perception.landmarks.VisitExtractor`, the
+object ``ptm-run`` uses, which re-sequences the three topics by stamp: the visits do not depend on how DDS
 interleaves them. Publishes every completed visit on
 
-* ``landmark_visits`` (std_msgs/String, JSON ``ptm_ros.visit/1`` of :func:`ptm_ros.landmarks.visit_to_json`,
+* ``landmark_visits`` (std_msgs/String, JSON ``ptm_ros.visit/1`` of
+:func:`ptm_ros.perception.landmarks.visit_to_json`,
   lossless, plus ``"session"``: the id of the detector session the visit belongs to; reliable, keep all,
   transient local so a late or restarted filter gets every visit);
 * ``landmark_poses`` (geometry_msgs/PoseStamped, the visit's odometry pose) for display;
 * ``landmark_odom`` (nav_msgs/Odometry, pose only) and ``landmark_scans`` (sensor_msgs/LaserScan; both
-  reliable, keep all): for the map publisher's metric map (:mod:`ptm_ros.mapping`), the odometry the
+  reliable, keep all): for the map publisher's metric map (:mod:`ptm_ros.maps.mapping`), the odometry the
   visits' poses are measured in (corrected by the laser odometry when it is on) every
   ``mapping.pose_xy`` / ``pose_yaw`` of motion or ``pose_interval`` s, and the keyframe scans (every
   ``mapping.keyframe_xy`` / ``keyframe_yaw``), each with an odometry sample at its stamp
-  (:class:`ptm_ros.mapping.KeyframeStream`); the end marker (below) counts the keyframes sent;
+  (:class:`ptm_ros.maps.mapping.KeyframeStream`); the end marker (below) counts the keyframes sent;
 * ``/diagnostics`` every second and when the input finishes (the final counts): messages received per
   topic, the counters below and the extractor's (``extractor.*``); :func:`input_counts` turns them into
   ``ptm-run``'s ptm.json ``diagnostics`` (``ptm-bringup`` writes them into its ptm.json).
@@ -37,8 +38,8 @@ session; K: the keyframe scans sent on ``landmark_scans`` since the node started
 ``~/flush`` (std_srvs/Trigger) does the same on request.
 
 Service ``~/surprise_trace`` (std_srvs/Trigger): the surprise detector's trace of the current session
-(thesis Fig. 62, the report's surprise figure) as JSON (:func:`ptm_ros.surprise.trace_to_dict`, plus
-``session``); ``success: false`` for a detector without one. The node keeps the latest ``trace_rows``
+(thesis Fig. 62, the report's surprise figure) as JSON (:func:`ptm_ros.perception.surprise.trace_to_dict`,
+plus ``session``); ``success: false`` for a detector without one. The node keeps the latest ``trace_rows``
 (default 1000) measurements, so its memory stays bounded on a robot; 0 keeps all (``ptm-bringup``
 sets it on a bag replay, whose report then shows ``ptm-run``'s figure).
 
@@ -122,12 +123,6 @@ from std_srvs.srv import Trigger
 from ptm_ros.config import PtmConfig
 from ptm_ros.factories import detector_kind
 from ptm_ros.io.validation import ScanPayload
-from ptm_ros.landmarks import (
-    ExtractorConfig,
-    ExtractorDiagnostics,
-    diagnostics_dict,
-    with_input_skips,
-)
 from ptm_ros.nodes.common import (
     DISPLAY_QOS,
     LATCHED_QOS,
@@ -155,7 +150,13 @@ from ptm_ros.nodes.detector_inbox import (
 from ptm_ros.nodes.logs import OnceLogger
 from ptm_ros.nodes.messages import visit_message
 from ptm_ros.nodes.stream_guard import GuardConfig
-from ptm_ros.surprise import surprise_trace, trace_to_dict
+from ptm_ros.perception.landmarks import (
+    ExtractorConfig,
+    ExtractorDiagnostics,
+    diagnostics_dict,
+    with_input_skips,
+)
+from ptm_ros.perception.surprise import surprise_trace, trace_to_dict
 
 NODE_NAME = "landmark_detector"
 # ------------------------------------------------------------------------------------------ validation
@@ -393,8 +394,8 @@ def input_counts(values: Mapping[str, str]) -> dict[str, Any]:
     """ptm.json's ``diagnostics`` of the input from the values of the detector's ``/diagnostics`` status
     (:meth:`LandmarkDetectorNode.diagnostics`, flattened into dotted keys by
     :func:`ptm_ros.nodes.common.key_values`), under ``ptm-run``'s keys
-    (:func:`ptm_ros.landmarks.with_input_skips`): the extractor's counters (``extractor.*``, summed over the
-    detector's sessions) with the messages the node's input checks skipped (:data:`SKIP_REASONS`, the
+    (:func:`ptm_ros.perception.landmarks.with_input_skips`): the extractor's counters (``extractor.*``, summed
+    over the detector's sessions) with the messages the node's input checks skipped (:data:`SKIP_REASONS`, the
     names of ``ptm-run``'s bag reader) added to ``skipped`` and kept apart under ``read_skipped``. A value
     that is not an integer count is left out (the extractor's defaults stand)."""
 

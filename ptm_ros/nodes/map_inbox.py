@@ -4,7 +4,7 @@
 the detector's ``landmark_visits`` (:meth:`MapInbox.visit`) and the odometry samples and keyframe scans
 of the map, already converted from their messages (:meth:`MapInbox.odometry`, :meth:`MapInbox.scan`). It
 keeps the latest valid ensemble, the current detector session's visits with a registrar of their laser
-patches, and an :class:`~ptm_ros.mapping.OnlineMap`, counts and logs (once per kind) what it drops, and
+patches, and an :class:`~ptm_ros.maps.mapping.OnlineMap`, counts and logs (once per kind) what it drops, and
 hands out what the map of the MAP topology is drawn from (:meth:`MapInbox.snapshot`). The node
 (:mod:`ptm_ros.nodes.map_publisher`) converts the messages, draws in its thread and publishes. Nothing here
 imports rclpy (a contract of ``.importlinter``).
@@ -19,14 +19,14 @@ from typing import Any
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import DataError
 from ptm_ros.factories import cached
-from ptm_ros.geometry import Registrar
 from ptm_ros.io.validation import Rejection, ScanPayload
-from ptm_ros.laser import patch_registrar
-from ptm_ros.mapping import MapInputs, OnlineMap
+from ptm_ros.maps.mapping import MapInputs, OnlineMap
+from ptm_ros.model.geometry import Registrar
+from ptm_ros.model.ptm import Ptm
+from ptm_ros.model.visits import Visit
 from ptm_ros.nodes.logs import Logger, OnceLogger
 from ptm_ros.nodes.messages import parse_graph, parse_visit_envelope
-from ptm_ros.ptm import Ptm
-from ptm_ros.visits import Visit
+from ptm_ros.perception.laser import patch_registrar
 
 PREPARED_PATCHES = 16  # patches kept prepared for registration (each MAP pair is registered once, cached)
 COUNTERS = (

@@ -1,16 +1,16 @@
 """``map_publisher``: the most probable topology as a path, and the ensemble written to ptm.json on request.
 
 Subscribes ``ptm_graph`` (std_msgs/String, the topology filter's JSON document, reliable + transient
-local), validates each document (:func:`ptm_ros.ptm.from_json_dict`) and keeps the latest. Publishes
+local), validates each document (:func:`ptm_ros.model.ptm.from_json_dict`) and keeps the latest. Publishes
 ``ptm_path`` (nav_msgs/Path, reliable + transient local) of the MAP topology: **one pose per visit, in
 visit order**, at the estimated position of the place the MAP topology assigns the visit to (the
 odometry position of the visit when the document carries no place positions), with the visit's odometry
 heading and header stamp; so revisits of a place coincide and the path draws the topological map.
 
-The metric map (issue #8, :mod:`ptm_ros.mapping`). The node also subscribes the detector's
+The metric map (issue #8, :mod:`ptm_ros.maps.mapping`). The node also subscribes the detector's
 ``landmark_visits`` (the visits, with their laser patches), ``landmark_odom`` (the odometry the visits are
 measured in, every ``mapping.pose_xy`` / ``pose_yaw`` of motion) and ``landmark_scans`` (the keyframe
-scans, every ``mapping.keyframe_xy`` / ``keyframe_yaw``) and keeps an :class:`ptm_ros.mapping.OnlineMap`
+scans, every ``mapping.keyframe_xy`` / ``keyframe_yaw``) and keeps an :class:`ptm_ros.maps.mapping.OnlineMap`
 of them. Whenever the MAP topology or the keyframes changed — at most every ``mapping.period``
 seconds, and never for more than a fifth of the time — it smooths, in a background thread while the
 callbacks keep taking samples, the odometry for the MAP topology
@@ -21,7 +21,7 @@ publishes
 * ``map`` (nav_msgs/OccupancyGrid, reliable + transient local; ``occupancy.*`` parameters): the scans
   drawn along the smoothed trajectory, in the frame of the ensemble (the odometry's), with the values
   map_server publishes for the saved map in ``occupancy.mode`` (trinary: 100 / 0 / -1; scale: also
-  1..99, :func:`ptm_ros.occupancy.to_ros_data`);
+  1..99, :func:`ptm_ros.maps.occupancy.to_ros_data`);
 * ``ptm_trajectory`` (nav_msgs/Path, reliable + transient local): the smoothed trajectory the scans were
   drawn along, one pose per odometry sample the map was drawn from (``ptm-bringup`` reads it for the
   trajectory errors and the route graph).
@@ -80,9 +80,11 @@ from std_srvs.srv import Trigger
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
-from ptm_ros.geometry import Registrar
 from ptm_ros.io.validation import scan_payload, valid_stamp
-from ptm_ros.mapping import MapInputs, MapResult, draw_map
+from ptm_ros.maps.mapping import MapInputs, MapResult, draw_map
+from ptm_ros.maps.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
+from ptm_ros.model.geometry import Registrar
+from ptm_ros.model.ptm import Ptm
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
     MAP_STREAM_QOS,
@@ -101,8 +103,6 @@ from ptm_ros.nodes.common import (
 )
 from ptm_ros.nodes.logs import OnceLogger
 from ptm_ros.nodes.map_inbox import MapInbox
-from ptm_ros.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
-from ptm_ros.ptm import Ptm
 
 NODE_NAME = "map_publisher"
 CLOSE_WAIT_S = 3.0  # s the node waits for a drawing in progress when it is destroyed
@@ -118,7 +118,7 @@ PUBLISHES: Publishes = {
 
 def grid_msg(grid: OccupancyGrid, frame_id: str, stamp: float, config: OccupancyConfig) -> GridMsg:
     """The ``nav_msgs/OccupancyGrid`` of a grid as map_server would publish its saved ``map.yaml``
-    (:func:`ptm_ros.occupancy.to_ros_data`: ``config``'s mode and thresholds)."""
+    (:func:`ptm_ros.maps.occupancy.to_ros_data`: ``config``'s mode and thresholds)."""
     msg = GridMsg()
     msg.header.frame_id = frame_id
     msg.header.stamp = time_msg(stamp)

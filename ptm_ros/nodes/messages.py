@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from ptm_ros.errors import DataError, PtmError
-from ptm_ros.landmarks import VISIT_SCHEMA, visit_from_json, visit_to_json
-from ptm_ros.ptm import Ptm, Topology, from_json_dict, to_json_dict
-from ptm_ros.visits import Visit
+from ptm_ros.model.ptm import Ptm, Topology, from_json_dict, to_json_dict
+from ptm_ros.model.visits import Visit
+from ptm_ros.perception.landmarks import VISIT_SCHEMA, visit_from_json, visit_to_json
 
 #: The detector's in-band end marker after its last visit on ``landmark_visits``:
 #: ``{"schema": END_SCHEMA, "visits": N}``, the number of visits it published.
@@ -78,7 +78,7 @@ def check_visit(visit: Visit) -> None:
 
 
 def visit_message(visit: Visit, session: str) -> str:
-    """The ``landmark_visits`` JSON of a visit: :func:`~ptm_ros.landmarks.visit_to_json` plus its
+    """The ``landmark_visits`` JSON of a visit: :func:`~ptm_ros.perception.landmarks.visit_to_json` plus its
     ``session`` id (what :func:`parse_visit_envelope` reads)."""
     doc = json.loads(visit_to_json(visit))
     doc["session"] = session
@@ -145,7 +145,7 @@ def edge_probabilities(topologies: Sequence[Topology]) -> list[dict[str, Any]]:
 
 
 def graph_document(ptm: Ptm, *, complete: bool) -> dict[str, Any]:
-    """The ``ptm_graph`` message: ptm.json (:func:`ptm_ros.ptm.to_json_dict`) plus
+    """The ``ptm_graph`` message: ptm.json (:func:`ptm_ros.model.ptm.to_json_dict`) plus
 
     * ``graph_schema``: ``"ptm_ros.ptm_graph/1"``;
     * ``edges``: ``[{"places": [a, b], "probability": p}]`` (:func:`edge_probabilities`; places are
@@ -161,7 +161,7 @@ def graph_document(ptm: Ptm, *, complete: bool) -> dict[str, Any]:
 
 
 def check_graph(doc: dict[str, Any]) -> None:
-    """What a ``ptm_graph`` document adds to ptm.json (which :func:`ptm_ros.ptm.from_json_dict`
+    """What a ``ptm_graph`` document adds to ptm.json (which :func:`ptm_ros.model.ptm.from_json_dict`
     validates): its ``stream`` section.
 
     Raises:

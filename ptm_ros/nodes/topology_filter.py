@@ -45,9 +45,9 @@ mapped or ``rejected``), ``ends`` (end markers taken) or one of the drop counter
 Persistence (issues #8, #9). Parameters ``state_file`` (path, ``''`` = off), ``autosave_every`` (visits,
 0 = off) and ``resume`` (bool, default false). The node's state — the filter session (visits with their
 measurements, the registration cache, the particle filter's
-:meth:`~ptm_ros.rbpf.TopologyFilter.state_dict`) and its place in the detector's stream (session id, next
-visit index, end marker, counters, sessions that ended) — is written atomically to ``state_file``
-(:func:`ptm_ros.persistence.save_filter_state`, with the configuration as meta data) every
+:meth:`~ptm_ros.inference.rbpf.TopologyFilter.state_dict`) and its place in the detector's stream (session id,
+next visit index, end marker, counters, sessions that ended) — is written atomically to ``state_file``
+(:func:`ptm_ros.inference.persistence.save_filter_state`, with the configuration as meta data) every
 ``autosave_every`` visits, at the detector's end marker, on ``~/save_state`` and at a clean shutdown.
 With ``resume: true``, a starting node continues from ``state_file`` when it exists, and publishes the
 restored ensemble. The visits since the last save come back from the detector: ``landmark_visits`` is
@@ -62,7 +62,7 @@ diagnostics say WARN: ``persistence.resume_rejected``). A failed save is logged 
 (``persistence.save_failures``, WARN); the previous file stays intact.
 
 Streaming equals offline. The appearance model's priors are fitted to *all* visits of a run (empirical
-Bayes, :func:`ptm_ros.appearance.fit_appearance_model`), which a stream only knows at its end. So
+Bayes, :func:`ptm_ros.model.appearance.fit_appearance_model`), which a stream only knows at its end. So
 :class:`FilterSession` re-fits them after every visit and, when they change, replays the (deterministic,
 seeded) filter over the visits so far; otherwise it updates the filter with the new visit. Laser
 registrations are cached per pair, so a replay costs only filter updates. After every visit the
@@ -92,9 +92,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ptm_ros.config import PtmConfig, save_config
-from ptm_ros.doubts import doubt_lines, find_doubts
 from ptm_ros.errors import DataError, PtmError
-from ptm_ros.figures import ess_fraction
+from ptm_ros.model.ptm import Ptm
 from ptm_ros.nodes.common import (
     LATCHED_QOS,
     STREAM_QOS,
@@ -111,7 +110,8 @@ from ptm_ros.nodes.common import (
 from ptm_ros.nodes.filter_inbox import NODE_NAME, FilterInbox, Reaction
 from ptm_ros.nodes.logs import OnceLogger
 from ptm_ros.nodes.messages import graph_document
-from ptm_ros.ptm import Ptm
+from ptm_ros.reporting.doubts import doubt_lines, find_doubts
+from ptm_ros.reporting.figures import ess_fraction
 
 FRAME_ID = "odom"  # default of the frame_id parameter: the frame of the visits, the graph and the markers
 #: What the node publishes (topic: message type, QoS), the table its publishers are made from.
@@ -198,7 +198,8 @@ def ensemble_markers(ptm: Ptm, count: int, stamp: float) -> MarkerArray:
 
 
 def newest_doubt(ptm: Ptm | None) -> str | None:
-    """A log line when the map is unsure where its newest visit is (:mod:`ptm_ros.doubts`), else None."""
+    """A log line when the map is unsure where its newest visit is (:mod:`ptm_ros.reporting.doubts`), else
+    None."""
     if ptm is None or not ptm.topologies:
         return None
     doubts = find_doubts(ptm)

@@ -5,7 +5,7 @@ over DDS (each in its own process group, logs streamed with a ``[node]`` prefix)
 services are discovered, then — with ``--bag`` — starts ``ptm-bag-player`` (``use_sim_time`` on every
 node). Every node gets the same parameters: ``DIR/params.yaml``, the full configuration (defaults, then
 ``--params``; with a bag, the detector ``ptm-run`` would pick and the map drawn from every odometry
-sample and scan, :func:`ptm_ros.mapping.every_sample`) in ROS parameter-file form, saved as
+sample and scan, :func:`ptm_ros.maps.mapping.every_sample`) in ROS parameter-file form, saved as
 ``DIR/config.yaml`` too; then the bringup's settings for an exact replay (the detector's ``stall_s: 0``
 and ``trace_rows: 0``, the filter's ``refit_max_visits: 0``, ``use_sim_time`` with a bag); then
 ``--params`` itself when it is a ROS parameter file, so its per-node sections apply and may override
@@ -334,7 +334,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     from ptm_ros.factories import with_detector_kind
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.mapping import every_sample
+    from ptm_ros.maps.mapping import every_sample
     from ptm_ros.nodes.bag_player import bag_topics
     from ptm_ros.tools.paths import output_dir
     from ptm_ros.tools.pipeline import check_ground_truth_of_run, find_ground_truth, run_odometry
@@ -686,7 +686,7 @@ class Bringup:
     def surprise_trace(self) -> Any | None:
         """The detector's surprise trace (``~/surprise_trace``), None (logged) for a detector without one."""
         from ptm_ros.errors import DataError
-        from ptm_ros.surprise import trace_from_dict
+        from ptm_ros.perception.surprise import trace_from_dict
 
         result = self.call(self.trace_client, timeout=REPLY_TIMEOUT_S)
         if result is None or not result.success:
@@ -730,7 +730,7 @@ def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
     summary lines."""
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.ptm import load_ptm
+    from ptm_ros.model.ptm import load_ptm
     from ptm_ros.tools.pipeline import OUTPUT_FILES, provenance, saved_map, write_outputs
     from ptm_ros.tools.run import format_summary, skipped_warning
 

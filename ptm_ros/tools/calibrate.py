@@ -3,9 +3,9 @@
 Some laser drivers stamp a scan when it has been read out, not when it was taken: the scans then lag
 the odometry, and during every turn the scan-to-map matching of the laser odometry must undo the
 heading the odometry already turned. ``ptm-calibrate`` runs the laser odometry over the bag once per
-candidate offset (:func:`ptm_ros.laser_odometry.time_offset_scores`) and picks the one whose heading
-corrections are smallest (:func:`ptm_ros.laser_odometry.best_time_offset`: it must beat offset 0 by
-``--min-gain``). Prints JSON (schema ``ptm_ros.calibration/1``: ``offsets`` with each candidate's
+candidate offset (:func:`ptm_ros.perception.laser_odometry.time_offset_scores`) and picks the one whose
+heading corrections are smallest (:func:`ptm_ros.perception.laser_odometry.best_time_offset`: it must beat
+offset 0 by ``--min-gain``). Prints JSON (schema ``ptm_ros.calibration/1``: ``offsets`` with each candidate's
 ``median_yaw_correction`` / ``rms_yaw_correction`` in rad and the matched / rejected scan counts,
 ``time_offset`` the choice); ``--out FILE`` writes the parameters (``--params`` or the defaults) with
 ``laser_odometry.time_offset`` set, ready for ``ptm-run --params`` and ``ptm-bringup --params``.
@@ -29,7 +29,7 @@ from ptm_ros.tools.paths import add_params_option
 if TYPE_CHECKING:
     from ptm_ros.config import PtmConfig
     from ptm_ros.io.bag import RunData
-    from ptm_ros.laser_odometry import OffsetScore
+    from ptm_ros.perception.laser_odometry import OffsetScore
 
 PROG = "ptm-calibrate"
 DEFAULT_OFFSETS = (0.0, -0.05, -0.1, -0.15, -0.2, -0.25, -0.3)
@@ -100,8 +100,8 @@ def calibrate_run(
         DataError: the run has no usable scan points.
         ModelError: an offset outside [-1, 0], or a bad ``min_gain``.
     """
-    from ptm_ros.laser_odometry import best_time_offset, time_offset_scores
-    from ptm_ros.mapping import scan_points
+    from ptm_ros.maps.mapping import scan_points
+    from ptm_ros.perception.laser_odometry import best_time_offset, time_offset_scores
 
     if run.scans is None:
         msg = f"no scans in {run.path}"

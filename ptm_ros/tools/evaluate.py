@@ -5,7 +5,7 @@ at the landmark's stamp (:func:`true_positions_for`). A landmark stamped more th
 seconds outside the ground truth's time span has no truth: its pairs are unscored (CARMEN ground truth
 starts and ends a few seconds inside the raw log). When the ground truth lists places (the simulator's)
 and every landmark lies within ``--same-radius`` of one, the nearest place is its true place and the
-mass of the exactly-true topology is reported too. Definitions: :mod:`ptm_ros.evaluation`.
+mass of the exactly-true topology is reported too. Definitions: :mod:`ptm_ros.scoring.evaluation`.
 
 Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
 
@@ -30,7 +30,7 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
   ``consistent``;
 * ``map_quality`` — the occupancy map (``--map``, default the ``map.yaml`` beside the ``ptm.json``)
   against the bag's scans placed at the ground truth's poses (:func:`map_quality_of_run`:
-  :mod:`ptm_ros.map_quality`'s ``leak``, ``wall_precision``, ``wall_recall``, ``free_area_ratio`` and
+  :mod:`ptm_ros.maps.map_quality`'s ``leak``, ``wall_precision``, ``wall_recall``, ``free_area_ratio`` and
   their counts), ``null`` when the run has no map, no scans or no recorded alignment.
 
 ``ptm-eval --calibration RUN [RUN ...] [--plot FILE]`` scores many runs of simulated bags at once (issue
@@ -40,7 +40,7 @@ the ``ptm.json``, else the one in the bag named by the ``ptm.json`` (``bag``). I
 ``ptm_ros.calibration/1``): ``runs`` (per run: ``ptm``, ``ground_truth``, and :func:`calibration_record`'s
 keys), ``n_runs``, ``n_runs_without_true_topology`` (visits not all within ``--same-radius`` of a place:
 no exact truth, left out of the calibration figures) and ``calibration``
-(:meth:`ptm_ros.evaluation.CalibrationSummary.as_dict`: ``ece``, ``chance_ece``, ``chance_ece_p95``,
+(:meth:`ptm_ros.scoring.evaluation.CalibrationSummary.as_dict`: ``ece``, ``chance_ece``, ``chance_ece_p95``,
 ``brier``, ``map_right_rate``, ``mean_map_probability``, ``overconfident_failures``,
 ``mean_true_topology_mass``, ``bins``); ``--plot FILE`` writes the reliability diagram (PNG).
 
@@ -61,9 +61,9 @@ if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-    from ptm_ros.evaluation import CalibrationSummary, EvalConfig, OdometryFit, Score
     from ptm_ros.io.groundtruth import GroundTruthTrajectory
-    from ptm_ros.ptm import Ptm
+    from ptm_ros.model.ptm import Ptm
+    from ptm_ros.scoring.evaluation import CalibrationSummary, EvalConfig, OdometryFit, Score
 
 PROG = "ptm-eval"
 #: Schema tag of the JSON printed by ``ptm-eval --calibration``.
@@ -134,8 +134,8 @@ def score_against_ground_truth(
     """Score ``ptm`` against a ground-truth file (or a loaded one): the glue used by ``ptm-eval`` and
     ``ptm-run``. True positions by :func:`true_positions_for`; true place ids from the ground truth's
     places when every landmark lies within ``config.same_radius`` of one."""
-    from ptm_ros.evaluation import EvalConfig, score_ptm
     from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.scoring.evaluation import EvalConfig, score_ptm
 
     config = config or EvalConfig()
     truth = load_ground_truth(ground_truth) if isinstance(ground_truth, str | Path) else ground_truth
@@ -149,7 +149,7 @@ def true_place_ids(
     """Each landmark's true position (:func:`true_positions_for`) and true place id: the nearest of the
     ground truth's places within ``config.same_radius``, or None (no exact truth) when one is farther."""
     from ptm_ros.errors import ConfigError
-    from ptm_ros.evaluation import place_ids_from_positions
+    from ptm_ros.scoring.evaluation import place_ids_from_positions
 
     if not max_extrapolation >= 0.0:
         msg = f"max_extrapolation must be >= 0 s, got {max_extrapolation}"
@@ -173,11 +173,11 @@ def calibration_record(
     ``map_probability``; ``map_right`` (the MAP topology is exactly the true one, None without true place
     ids), ``map_false_merges`` / ``map_missed_merges`` (visit pairs the MAP wrongly joins / keeps apart,
     None without them); ``consistent_mass``, ``true_topology_mass``, ``overconfident_failure``
-    (consistent mass < :data:`ptm_ros.evaluation.OVERCONFIDENT_MASS`); ``n_visits``, ``n_true_places``,
-    ``map_num_places``, ``listed_mass``, ``posterior_f1``.
+    (consistent mass < :data:`ptm_ros.scoring.evaluation.OVERCONFIDENT_MASS`); ``n_visits``,
+    ``n_true_places``, ``map_num_places``, ``listed_mass``, ``posterior_f1``.
     """
-    from ptm_ros.evaluation import OVERCONFIDENT_MASS, EvalConfig, map_errors_against_truth, score_ptm
     from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.scoring.evaluation import OVERCONFIDENT_MASS, EvalConfig, map_errors_against_truth, score_ptm
 
     config = config or EvalConfig()
     truth = load_ground_truth(ground_truth) if isinstance(ground_truth, str | Path) else ground_truth
@@ -203,9 +203,9 @@ def calibration_record(
 def summarize_records(
     records: Sequence[dict[str, Any]], rng: np.random.Generator, *, n_bins: int = 10, redraws: int = 2000
 ) -> CalibrationSummary | None:
-    """:func:`ptm_ros.evaluation.calibration_summary` of the records with an exact truth (``map_right`` not
-    None); None when there is none."""
-    from ptm_ros.evaluation import calibration_summary
+    """:func:`ptm_ros.scoring.evaluation.calibration_summary` of the records with an exact truth
+    (``map_right`` not None); None when there is none."""
+    from ptm_ros.scoring.evaluation import calibration_summary
 
     scored = [r for r in records if r["map_right"] is not None]
     if not scored:
@@ -249,8 +249,8 @@ def map_quality_of_run(
     None when the map, the bag, its scans or the alignment is missing."""
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.occupancy import load_map
+    from ptm_ros.maps.map_quality import ClassGrid
+    from ptm_ros.maps.occupancy import load_map
     from ptm_ros.tools.pipeline import TRAJECTORY_ERROR_KEY, map_quality_against
 
     yml = map_yaml if map_yaml is not None else ptm_path.parent / "map.yaml"
@@ -288,7 +288,7 @@ def ground_truth_of(ptm_path: Path) -> Path:
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``ptm-eval``."""
-    from ptm_ros.evaluation import CALIBRATION_BINS, EvalConfig
+    from ptm_ros.scoring.evaluation import CALIBRATION_BINS, EvalConfig
 
     d = EvalConfig()
     p = argparse.ArgumentParser(prog=PROG, description="Score a PTM (ptm.json) against a ground truth.")
@@ -370,8 +370,8 @@ def calibration_main(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ptm_ros.errors import ConfigError, PtmError
-    from ptm_ros.evaluation import EvalConfig
-    from ptm_ros.ptm import load_ptm
+    from ptm_ros.model.ptm import load_ptm
+    from ptm_ros.scoring.evaluation import EvalConfig
 
     try:
         if args.bins < 1:
@@ -420,9 +420,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.ptm = args.ptm[0]
 
     from ptm_ros.errors import DataError, PtmError
-    from ptm_ros.evaluation import EvalConfig
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.ptm import load_ptm
+    from ptm_ros.model.ptm import load_ptm
+    from ptm_ros.scoring.evaluation import EvalConfig
 
     try:
         config = EvalConfig(args.same_radius, args.different_radius)
@@ -436,7 +436,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise DataError(f"{problem} (--force scores it anyway)")
         quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
-            from ptm_ros.report import find_chain_trace, write_report
+            from ptm_ros.reporting.report import find_chain_trace, write_report
             from ptm_ros.tools.pipeline import inference_notes
 
             write_report(

@@ -11,16 +11,16 @@ state through :func:`write_outputs`, which ``ptm-bringup`` calls on what the nod
 tools write one set of outputs, issue #24):
 
 * ``ptm.json`` (CONTRACT.md schema) and ``config.yaml`` (the parameters used);
-* ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.routes`), always; with a map,
+* ``route_graph.geojson`` — the PTM as a nav2 route graph (:mod:`ptm_ros.maps.routes`), always; with a map,
   its nodes on the map's trajectory and its edges kept off the map's walls (:func:`write_route_graph`);
 * ``map.pgm`` (``map_scale.png`` with ``occupancy.mode: scale``) + ``map.yaml`` (nav2 ``map_server``) and
   ``map.png`` — the occupancy grid
-  (:mod:`ptm_ros.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
+  (:mod:`ptm_ros.maps.occupancy`, parameters ``occupancy``) of the bag's scans placed along the smoothed
   trajectory of the MAP topology (:func:`map_trajectory`, interpolated at the scan stamps); only when the
   bag has scans and maps are wanted (``ptm-run --no-map`` skips them);
 * ``report.{md,html}`` with figures (the map, and the detector's surprise trace for a surprise detector);
 * ``mcmc_trace.json`` — with ``write_trace`` (``ptm-run --trace``) and MCMC: the cold chains' full
-  states (:func:`ptm_ros.report.split_chain_trace`; ``ptm.json`` keeps their summary);
+  states (:func:`ptm_ros.reporting.report.split_chain_trace`; ``ptm.json`` keeps their summary);
 * ``filter_state.npz`` — the RBPF's state, with a :class:`RunCheckpoint` that saves (``ptm-run
   --autosave N``; its ``path`` may lie elsewhere); a checkpoint that resumes continues from it
   (:func:`run_offline`);
@@ -31,12 +31,12 @@ tools write one set of outputs, issue #24):
 
 With a ground truth, ``ptm.json`` carries ``extra["trajectory_error"]`` (:func:`trajectory_errors`):
 ``ate_smoothed_m`` and ``ate_odometry_m``, the absolute trajectory errors
-(:func:`ptm_ros.evaluation.absolute_trajectory_error`, RMSE after the best rigid 2-D alignment) of the
+(:func:`ptm_ros.scoring.evaluation.absolute_trajectory_error`, RMSE after the best rigid 2-D alignment) of the
 smoothed MAP trajectory and of the bag's raw odometry, both at the odometry stamps inside the ground
 truth's time span (``poses`` of them), the rigid alignment of the former onto the ground truth
 (``alignment``: ``theta``, ``x``, ``y``) and the ground-truth file; with a map, ``extra["map_quality"]``
 (:func:`map_quality_against`): the map against the same scans placed at the true poses
-(:mod:`ptm_ros.map_quality`: free-space leak, wall precision and recall, free-area ratio). ``timing``
+(:mod:`ptm_ros.maps.map_quality`: free-space leak, wall precision and recall, free-area ratio). ``timing``
 adds ``smoothing_s`` and ``map_s`` to ``wall_s`` (bag reading, detection and inference).
 """
 
@@ -60,7 +60,6 @@ import numpy as np
 
 from ptm_ros.config import PtmConfig, save_config
 from ptm_ros.configio import to_dict
-from ptm_ros.doubts import doubt_lines, find_doubts
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.factories import cached, detector_kind, make_extractor, make_registrar, with_detector_kind
 from ptm_ros.io.bag import OdometryData, RunData, read_run
@@ -73,13 +72,16 @@ from ptm_ros.io.groundtruth import (
     save_sim_gt,
     with_placed_landmarks,
 )
-from ptm_ros.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
-from ptm_ros.laser import Registration, WorkerPool
-from ptm_ros.occupancy import MAP_STEM
-from ptm_ros.partitions import Labels
-from ptm_ros.ptm import Ptm, save_ptm
-from ptm_ros.refinement import Mapper, RegistrationJob
-from ptm_ros.report import save_chain_trace, split_chain_trace
+from ptm_ros.maps.occupancy import MAP_STEM
+from ptm_ros.maps.refinement import Mapper, RegistrationJob
+from ptm_ros.model.partitions import Labels
+from ptm_ros.model.ptm import Ptm, save_ptm
+from ptm_ros.model.visits import Visit
+from ptm_ros.perception.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
+from ptm_ros.perception.laser import Registration, WorkerPool
+from ptm_ros.perception.surprise import surprise_trace
+from ptm_ros.reporting.doubts import doubt_lines, find_doubts
+from ptm_ros.reporting.report import save_chain_trace, split_chain_trace
 from ptm_ros.session import (
     SESSION_STATE_SCHEMA,
     VERSUS_KEY,
@@ -90,15 +92,13 @@ from ptm_ros.session import (
     infer,
     require_rbpf,
 )
-from ptm_ros.surprise import surprise_trace
 from ptm_ros.tools.progress import Phases
-from ptm_ros.visits import Visit
 
 if TYPE_CHECKING:
-    from ptm_ros.geometry import Registrar
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.routes import RouteConfig
-    from ptm_ros.surprise import SurpriseTrace
+    from ptm_ros.maps.map_quality import ClassGrid
+    from ptm_ros.maps.routes import RouteConfig
+    from ptm_ros.model.geometry import Registrar
+    from ptm_ros.perception.surprise import SurpriseTrace
 
 _T = TypeVar("_T")
 
@@ -190,8 +190,9 @@ def ground_truth_landmarks(
 
 def corrected_odometry(run: RunData, extractor: VisitExtractor) -> np.ndarray:
     """The run's odometry as the visits saw it: wheel odometry carried by the extractor's laser-odometry
-    corrections (:func:`ptm_ros.laser_odometry.apply_corrections`); the wheel odometry without them."""
-    from ptm_ros.laser_odometry import apply_corrections, scan_time_poses
+    corrections (:func:`ptm_ros.perception.laser_odometry.apply_corrections`); the wheel odometry without
+    them."""
+    from ptm_ros.perception.laser_odometry import apply_corrections, scan_time_poses
 
     odom = run_odometry(run)
     wheel = scan_time_poses(odom.stamps, odom.poses, extractor.time_offset)
@@ -220,8 +221,8 @@ def detect_visits(
 ) -> list[Visit]:
     """Landmark visits of a recorded run, with their appearance signatures and laser patches.
 
-    Feeds the run's messages in stamp order through :class:`ptm_ros.landmarks.VisitExtractor`, the same
-    object the detector node uses (``extractor``, a fresh one, else :func:`run_extractor`; pass one to
+    Feeds the run's messages in stamp order through :class:`ptm_ros.perception.landmarks.VisitExtractor`, the
+    same object the detector node uses (``extractor``, a fresh one, else :func:`run_extractor`; pass one to
     read its detector's state afterwards); ``diagnostics`` (if given) receives the extractor's counters;
     ``progress`` wraps the messages (it receives their iterator and number).
     """
@@ -292,7 +293,7 @@ class RunCheckpoint:
     """Saving and resuming :func:`run_offline`'s RBPF (``ptm-run --autosave/--resume``, issue #8).
 
     Attributes:
-        path: the state file (:func:`ptm_ros.persistence.save_filter_state`, written atomically).
+        path: the state file (:func:`ptm_ros.inference.persistence.save_filter_state`, written atomically).
         every: save after every ``every``-th visit and after the last one; 0: never save.
         resume: continue from ``path`` when it exists, once :func:`check_run_state` accepts it (else
             start afresh).
@@ -315,7 +316,7 @@ class RunCheckpoint:
 def run_state_meta(used: PtmConfig, bag: Path, visits: Sequence[Visit]) -> dict[str, Any]:
     """What :func:`run_offline`'s state file records about its run: the configuration used (as written
     to ``config.yaml``), the bag, the number of visits and their fingerprint."""
-    from ptm_ros.persistence import visits_fingerprint
+    from ptm_ros.inference.persistence import visits_fingerprint
 
     return {
         "tool": RUN_STATE_TOOL,
@@ -333,7 +334,7 @@ def check_state_config(meta: Mapping[str, Any], used: PtmConfig, path: Path) -> 
         DataError: not written by ``ptm-run``.
         ConfigError: made with another configuration (the differing parameters are named).
     """
-    from ptm_ros.persistence import differences
+    from ptm_ros.inference.persistence import differences
 
     if meta.get("tool") != RUN_STATE_TOOL:
         writer = meta.get("tool") or meta.get("node") or "an unknown program"
@@ -364,7 +365,7 @@ def check_run_state(
     Raises:
         DataError: another run's state, or a malformed one.
     """
-    from ptm_ros.persistence import first_different_visit, visit_from_state, visits_fingerprint
+    from ptm_ros.inference.persistence import first_different_visit, visit_from_state, visits_fingerprint
 
     where = f"cannot resume from {path}"
     if meta.get("n_visits") != len(visits):
@@ -396,7 +397,7 @@ def _load_run_state(
     checkpoint: RunCheckpoint, log: Callable[[str], None] | None
 ) -> tuple[dict[str, Any], dict[str, Any]] | None:
     """``(state, meta)`` of the checkpoint's file when resuming from an existing one, else None."""
-    from ptm_ros.persistence import load_filter_state
+    from ptm_ros.inference.persistence import load_filter_state
 
     if not checkpoint.resume:
         return None
@@ -456,7 +457,7 @@ def run_offline(
     sweeps), the smoothing, the scores, the map, the route graph and the report; ``progress``, when
     given, replaces its bar over the filter's visits.
 
-    MCMC's cold chains: ``ptm.json`` keeps their summary (:func:`ptm_ros.report.split_chain_trace`);
+    MCMC's cold chains: ``ptm.json`` keeps their summary (:func:`ptm_ros.reporting.report.split_chain_trace`);
     ``write_trace`` also writes their full states to ``mcmc_trace.json``, from which the report draws the
     SRQ plot.
 
@@ -662,9 +663,9 @@ def saved_map(
     """The :class:`MetricMap` of a map drawn elsewhere (the map publisher's, saved by its ``~/save_map``):
     its ``files`` (keys ``map_image``, ``map_yaml``, ``map_png``; none without a map), the classes of
     ``map.yaml`` read back (:func:`map_classes`), and the ``trajectory`` ``(stamps (K,), poses (K, 3))``
-    it was drawn along at the run's odometry stamps (:func:`ptm_ros.geometry.interpolate_poses`: exact
+    it was drawn along at the run's odometry stamps (:func:`ptm_ros.model.geometry.interpolate_poses`: exact
     where the run's stamps are among the trajectory's, as when the map was drawn from every sample)."""
-    from ptm_ros.geometry import interpolate_poses
+    from ptm_ros.model.geometry import interpolate_poses
 
     traj = None
     if trajectory is not None and len(trajectory[0]):
@@ -674,10 +675,10 @@ def saved_map(
 
 
 def map_classes(yaml_path: Path) -> ClassGrid:
-    """The classes of a saved map (``map.yaml`` + its image, :func:`ptm_ros.occupancy.load_map`): the
+    """The classes of a saved map (``map.yaml`` + its image, :func:`ptm_ros.maps.occupancy.load_map`): the
     :func:`class_grid` of the grid it was saved from, in either map_server mode."""
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.occupancy import load_map
+    from ptm_ros.maps.map_quality import ClassGrid
+    from ptm_ros.maps.occupancy import load_map
 
     saved = load_map(yaml_path)
     return ClassGrid(saved.classes(), saved.origin, saved.resolution)
@@ -711,10 +712,12 @@ def write_outputs(
       walls and trajectory when there is a map), ``ground_truth.json`` when ``save_truth`` (the
       ``ground-truth`` detector's landmarks);
     * with ``write_report``, the report: the score against ``truth``, the detector's ``surprise`` trace
-      (:func:`ptm_ros.surprise.surprise_trace`), the map image and the notes (doubts, trajectory errors,
-      map quality, inference), the trajectory drawn under the topologies (the raw odometry without one).
+      (:func:`ptm_ros.perception.surprise.surprise_trace`), the map image and the notes (doubts, trajectory
+      errors, map quality, inference), the trajectory drawn under the topologies (the raw odometry without
+      one).
 
-    * ``mcmc_trace.json``: the MCMC ``chain_trace`` (:func:`ptm_ros.report.split_chain_trace`), if given,
+    * ``mcmc_trace.json``: the MCMC ``chain_trace`` (:func:`ptm_ros.reporting.report.split_chain_trace`), if
+    given,
       from which the report draws its SRQ plot.
 
     ``phases`` shows the map quality, the route graph and the report as progress bars (none by default);
@@ -756,7 +759,7 @@ def write_outputs(
     score = score_against(ptm, truth) if truth is not None else None
     report = None
     if write_report:
-        from ptm_ros.report import write_report as _write_report
+        from ptm_ros.reporting.report import write_report as _write_report
 
         with ph.step("report"):
             report = _write_report(
@@ -799,7 +802,7 @@ def _checkpoint(
     """Restore ``session`` from a saved state (checked against this run's ``visits``); the number of
     visits restored, and the saver of the session's state (:data:`~ptm_ros.session.SESSION_STATE_SCHEMA`,
     with ``meta``) that ``checkpoint`` asks for (None: it only resumes)."""
-    from ptm_ros.persistence import save_filter_state
+    from ptm_ros.inference.persistence import save_filter_state
 
     resumed = 0
     if saved is not None:
@@ -820,7 +823,7 @@ def trajectory_errors(
     """Absolute trajectory errors (m) of ``trajectory (T, 3)`` (at the run's odometry stamps) and of the
     raw odometry against a ground truth, at the odometry stamps inside the ground truth's time span
     (its corrected poses interpolated there); None when fewer than two lie inside."""
-    from ptm_ros.evaluation import absolute_trajectory_error, rigid_alignment
+    from ptm_ros.scoring.evaluation import absolute_trajectory_error, rigid_alignment
 
     paired = _paired_with_truth(run, trajectory, truth)
     if paired is None:
@@ -852,10 +855,10 @@ def _paired_with_truth(
 
 
 def reference_grid(run: RunData, truth: GroundTruthTrajectory, config: PtmConfig) -> Any | None:
-    """The map-quality reference (:mod:`ptm_ros.map_quality`): the run's scans inside the ground truth's
-    span placed at its poses, with ``config.occupancy`` but the beams without a return left out; None
+    """The map-quality reference (:mod:`ptm_ros.maps.map_quality`): the run's scans inside the ground
+    truth's span placed at its poses, with ``config.occupancy`` but the beams without a return left out; None
     without a scan there."""
-    from ptm_ros.mapping import grid_along
+    from ptm_ros.maps.mapping import grid_along
 
     sc = run.scans
     if sc is None or len(sc.stamps) == 0:
@@ -884,11 +887,11 @@ def map_quality_against(
     *,
     reference: ClassGrid | None = None,
 ) -> dict[str, Any] | None:
-    """:func:`ptm_ros.map_quality.map_quality` of a map (a :class:`~ptm_ros.map_quality.ClassGrid` in the
-    odometry frame) against :func:`reference_classes` (or ``reference``, made by it already), carried
-    into the ground truth's frame by ``alignment`` (``theta``, ``x``, ``y``: :func:`trajectory_errors`'
-    ATE alignment); None without a reference."""
-    from ptm_ros.map_quality import map_quality
+    """:func:`ptm_ros.maps.map_quality.map_quality` of a map (a
+    :class:`~ptm_ros.maps.map_quality.ClassGrid` in the odometry frame) against :func:`reference_classes`
+    (or ``reference``, made by it already), carried into the ground truth's frame by ``alignment`` (``theta``,
+    ``x``, ``y``: :func:`trajectory_errors`' ATE alignment); None without a reference."""
+    from ptm_ros.maps.map_quality import map_quality
 
     if reference is None:
         reference = reference_classes(run, truth, config)
@@ -905,10 +908,10 @@ def map_comparison(
     extra: Mapping[str, Any],
     route_graph: Path,
 ) -> Any | None:
-    """The report's side-by-side map figure (:class:`ptm_ros.report.MapComparison`): the map next to its
-    ``reference`` carried by the ATE ``alignment`` when there is one, else next to the route graph written
+    """The report's side-by-side map figure (:class:`ptm_ros.reporting.report.MapComparison`): the map next to
+    its ``reference`` carried by the ATE ``alignment`` when there is one, else next to the route graph written
     to ``route_graph``; None without a map."""
-    from ptm_ros.report import MapComparison
+    from ptm_ros.reporting.report import MapComparison
 
     if walls is None:
         return None
@@ -921,10 +924,10 @@ def map_comparison(
 
 def class_grid(grid: Any, config: PtmConfig) -> Any:
     """The trinary classes of an occupancy grid as its saved map reads back in ``occupancy.mode``
-    (:func:`ptm_ros.occupancy.cells`, :func:`~ptm_ros.occupancy.classes_of`: in trinary mode
-    :func:`~ptm_ros.occupancy.trinary`) as a :class:`~ptm_ros.map_quality.ClassGrid`."""
-    from ptm_ros.map_quality import ClassGrid
-    from ptm_ros.occupancy import cells, classes_of
+    (:func:`ptm_ros.maps.occupancy.cells`, :func:`~ptm_ros.maps.occupancy.classes_of`: in trinary mode
+    :func:`~ptm_ros.maps.occupancy.trinary`) as a :class:`~ptm_ros.maps.map_quality.ClassGrid`."""
+    from ptm_ros.maps.map_quality import ClassGrid
+    from ptm_ros.maps.occupancy import cells, classes_of
 
     return ClassGrid(classes_of(cells(grid, config.occupancy)), grid.origin, grid.resolution)
 
@@ -977,12 +980,12 @@ def versus_notes(versus: Mapping[str, Any] | None) -> list[str]:
 
 
 def greedy_notes(ptm: Ptm, truth: Labels | None = None) -> list[str]:
-    """A line on the greedy baseline's answer (ptm.json's ``greedy``, :func:`ptm_ros.ptm.ptm_greedy`): its
-    topology and places and, against the true topology ``truth``, whether it is right and, if not, the
+    """A line on the greedy baseline's answer (ptm.json's ``greedy``, :func:`ptm_ros.model.ptm.ptm_greedy`):
+    its topology and places and, against the true topology ``truth``, whether it is right and, if not, the
     decision where it went wrong (final: it never comes back); none without an answer."""
-    from ptm_ros.evaluation import first_wrong_visit
-    from ptm_ros.ptm import ptm_greedy
-    from ptm_ros.report import label_string
+    from ptm_ros.model.ptm import ptm_greedy
+    from ptm_ros.reporting.report import label_string
+    from ptm_ros.scoring.evaluation import first_wrong_visit
 
     greedy = ptm_greedy(ptm)
     if greedy is None:
@@ -1026,9 +1029,9 @@ def ate_notes(ate: Mapping[str, Any] | None) -> list[str]:
 
 def occupancy_grid(run: RunData, trajectory: np.ndarray, config: PtmConfig) -> Any | None:
     """The occupancy grid of the run's scans placed along ``trajectory (T, 3)`` (at the odometry stamps):
-    :func:`ptm_ros.mapping.grid_along`, as the map publisher draws it online; None without a scan within
+    :func:`ptm_ros.maps.mapping.grid_along`, as the map publisher draws it online; None without a scan within
     the odometry's span."""
-    from ptm_ros.mapping import grid_along
+    from ptm_ros.maps.mapping import grid_along
 
     sc = run.scans
     if sc is None or len(sc.stamps) == 0:
@@ -1042,7 +1045,7 @@ def write_occupancy_map(
     """The map_server image + ``map.yaml`` (nav2 map_server) and ``map.png`` (the grid with ``trajectory``
     over it) of :func:`occupancy_grid` (or of ``grid``, drawn from them already) in ``out``; nothing when the
     run has no usable scan."""
-    from ptm_ros.occupancy import save_map_files
+    from ptm_ros.maps.occupancy import save_map_files
 
     if grid is None:
         grid = occupancy_grid(run, trajectory, config)
@@ -1061,17 +1064,17 @@ def write_route_graph(
     config: RouteConfig | None = None,
     log: Callable[[str], None] | None = None,
 ) -> Path:
-    """The PTM as a nav2 route graph (:func:`ptm_ros.routes.route_graph`) at ``path``.
+    """The PTM as a nav2 route graph (:func:`ptm_ros.maps.routes.route_graph`) at ``path``.
 
     ``grid``: the classes of the run's map (:func:`class_grid` of :func:`occupancy_grid`'s grid, the cells
     of ``map.pgm``) and ``trajectory`` ``(stamps, poses)`` the smoothed MAP trajectory it was drawn along
     (:func:`map_trajectory`): the nodes are the places' visits on it, in the map's frame, and edges
     crossing the map's walls are rerouted through waypoints or dropped
-    (:class:`ptm_ros.routes.RouteConfig` ``config``); ``log`` receives :func:`route_notes`. Without
+    (:class:`ptm_ros.maps.routes.RouteConfig` ``config``); ``log`` receives :func:`route_notes`. Without
     them (``ptm-run --no-map``, a bag without scans) the nodes are the MAP topology's place positions and
     the edges the straight segments between them, walls unchecked, as before issue #24.
     """
-    from ptm_ros.routes import route_graph, save_route_graph
+    from ptm_ros.maps.routes import route_graph, save_route_graph
 
     doc = route_graph(ptm, grid=grid, trajectory=trajectory, config=config)
     if log is not None:
@@ -1108,10 +1111,10 @@ def map_trajectory(
     mapper: Mapper = map,
 ) -> np.ndarray:
     """The odometry trajectory smoothed for a topology and refined by the run's scans
-    (:func:`ptm_ros.mapping.topology_trajectory`, the function the map publisher's online map calls; the
+    (:func:`ptm_ros.maps.mapping.topology_trajectory`, the function the map publisher's online map calls; the
     ``refinement`` section of ``config``). ``odometry`` ``(T, 3)`` at the run's odometry stamps is
     the trajectory the visits' poses come from (:func:`corrected_odometry`; default: the run's)."""
-    from ptm_ros.mapping import topology_trajectory
+    from ptm_ros.maps.mapping import topology_trajectory
 
     odom = run_odometry(run)
     base = odom.poses if odometry is None else odometry
@@ -1145,11 +1148,11 @@ def _exit_with_parent() -> None:
 
 class RegistrationPool:
     """``jobs`` worker processes for a run's independent scan matching: the visits' patches and the
-    filter's registrations (:meth:`submit`, a :class:`~ptm_ros.laser.WorkerPool`) and the refinement's
-    (a :class:`~ptm_ros.refinement.Mapper`; batches of fewer than ``min_batch``, and everything when
-    ``jobs`` <= 1, run here: a pool's start-up costs more than they do). Outcomes are computed by the same
-    functions and come back in order, so the files are identical whatever ``jobs``. Workers come from a
-    fork server that has imported this module and matplotlib once (forking this process could copy a
+    filter's registrations (:meth:`submit`, a :class:`~ptm_ros.perception.laser.WorkerPool`) and the
+    refinement's (a :class:`~ptm_ros.maps.refinement.Mapper`; batches of fewer than ``min_batch``, and
+    everything when ``jobs`` <= 1, run here: a pool's start-up costs more than they do). Outcomes are computed
+    by the same functions and come back in order, so the files are identical whatever ``jobs``. Workers come
+    from a fork server that has imported this module and matplotlib once (forking this process could copy a
     held lock of its threads), started on first use; a worker ends when this process does, even killed."""
 
     def __init__(self, jobs: int, min_batch: int = 32) -> None:
@@ -1177,7 +1180,8 @@ class RegistrationPool:
 
     @property
     def workers(self) -> RegistrationPool | None:
-        """This pool as a :class:`~ptm_ros.laser.WorkerPool`; None when ``jobs`` <= 1 (all work here)."""
+        """This pool as a :class:`~ptm_ros.perception.laser.WorkerPool`; None when ``jobs`` <= 1 (all work
+        here)."""
         return self if self.jobs > 1 else None
 
     def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]:

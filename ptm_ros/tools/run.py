@@ -8,7 +8,7 @@ the occupancy map ``DIR/map.pgm`` + ``DIR/map.yaml`` (nav2 map_server) and ``DIR
 Prints the most probable topologies and, when the bag carries a ground truth (``BAG/ground_truth.json``)
 or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
 trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``), and the map's
-quality against the same scans at the true poses (``map_quality``, :mod:`ptm_ros.map_quality`).
+quality against the same scans at the true poses (``map_quality``, :mod:`ptm_ros.maps.map_quality`).
 A ground truth that looks like another run's is refused right after the bag is read, before the work,
 with exit code 2 and one line naming the figures: ``ptm-eval``'s rule and thresholds applied to the bag's
 odometry (:func:`ptm_ros.io.groundtruth.run_ground_truth_problem`); ``--force`` uses it anyway.
@@ -36,8 +36,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ptm_ros.partitions import Labels
-    from ptm_ros.ptm import Ptm, TimelineStep
+    from ptm_ros.model.partitions import Labels
+    from ptm_ros.model.ptm import Ptm, TimelineStep
     from ptm_ros.tools.pipeline import RunCheckpoint
 
 PROG = "ptm-run"
@@ -214,9 +214,9 @@ def timeline_lines(ptm: Ptm, truth: Labels | None = None) -> list[str]:
     far (``*`` the true one, ``g`` the greedy baseline's answer so far) and, with the true topology
     ``truth``, its mass and whether the greedy answer so far is right; at most :data:`TIMELINE_ROWS` rows
     (the :func:`eventful` ones when more); no lines without a timeline in ptm.json."""
-    from ptm_ros.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
-    from ptm_ros.ptm import ptm_greedy, ptm_timeline
-    from ptm_ros.report import label_string
+    from ptm_ros.model.ptm import ptm_greedy, ptm_timeline
+    from ptm_ros.reporting.report import label_string
+    from ptm_ros.scoring.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
 
     steps = ptm_timeline(ptm)
     if not steps:
@@ -261,9 +261,9 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
     """Human-readable lines: visits, the most probable topologies, the score if any, how the mass moved as
     the visits arrived (:func:`timeline_lines`), the greedy baseline's answer beside it, and
     (``total_s``) the run's whole wall time with its phases."""
-    from ptm_ros.doubts import doubt_lines, find_doubts
-    from ptm_ros.landmarks import landmark_accounting
-    from ptm_ros.report import CONSISTENT_MASS_MEANING, inference_line, label_string
+    from ptm_ros.perception.landmarks import landmark_accounting
+    from ptm_ros.reporting.doubts import doubt_lines, find_doubts
+    from ptm_ros.reporting.report import CONSISTENT_MASS_MEANING, inference_line, label_string
     from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, greedy_notes, inference_notes, map_quality_notes
 
     ptm = result.ptm
@@ -352,7 +352,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def skipped_warning(diagnostics: dict) -> str:
     """One line naming the input messages the extractor skipped, by reason (``''`` when none): bad input
     is reported, never dropped silently (the counts are also in ptm.json's ``diagnostics``)."""
-    from ptm_ros.landmarks import LANDMARK_DROPS
+    from ptm_ros.perception.landmarks import LANDMARK_DROPS
 
     items = (diagnostics.get("skipped") or {}).items()
     skipped = {k: int(v) for k, v in items if v and k not in LANDMARK_DROPS}  # landmarks: in the summary

@@ -1,0 +1,1641 @@
+r"""Batch PTMs by Markov chain Monte Carlo over set partitions (thesis Ch. 2.1, 3.1–3.6, App. C).
+
+The target is the posterior over topologies ``π(T) ∝ P(T | Z)`` of a
+:class:`~ptm_ros.model.posterior.PosteriorModel` (``ℓ(T) = log π(T)`` unnormalised, cached).
+Metropolis–Hastings (Algorithm 1, eq. 13) accepts a proposed ``T'`` with probability
+
+.. math::
+    a = \min\Big(1,\ \Big(\frac{π(T')}{π(T)}\Big)^{β}\ \frac{q(T' → T)}{q(T → T')}\Big),
+
+``β = 1`` except in the heated chains of MC³.
+
+Split–merge proposals (Algorithm 2, 3, 10)
+------------------------------------------
+Every proposal here has one skeleton. From ``T`` with ``M`` blocks, ``N_S`` of them non-singletons:
+
+* with probability ½ a *merge*: if ``M < 2`` re-propose ``T``; else pick the pair of blocks
+  ``{R, S}`` with probability ``π_M(R, S | T)`` and merge them;
+* with probability ½ a *split*: if ``N_S = 0`` re-propose ``T``; else pick a non-singleton block ``U``
+  uniformly (``1/N_S``), then one of its ``S(|U|, 2) = 2^{|U|-1} - 1`` two-block splits ``{R, S}`` with
+  probability ``π_S(R, S | U)``.
+
+A merge and a split never produce the same ``T'`` (they change ``M`` by ∓1) and different choices give
+different ``T'``, so for the merge ``T → T'`` of ``R, S`` into ``U = R ∪ S`` (``N'_S`` counted in ``T'``)
+
+.. math::
+    q(T → T') = ½\,π_M(R, S \mid T), \qquad q(T' → T) = ½\,\frac{1}{N'_S}\,π_S(R, S \mid U),
+
+and the split is the same pair read backwards. A re-proposal has ``q(T → T) = q(T → T)``: ratio 1. The
+constant ½ / ½ move choice is what makes the "impossible move → re-propose" cases harmless: the
+probability of choosing a move type does not depend on the state.
+
+* **Plain split–merge** (Algorithm 2): ``π_M = 1 / \binom{M}{2}``, ``π_S = 1 / S(|U|, 2)``, so
+  ``r_merge = \binom{M}{2} / (N'_S\, S(|U|, 2))`` — the printed ``r`` of Algorithm 2 is right.
+* **Odometry-driven** (Algorithm 3): ``π_M(R, S | T) ∝ \exp(-d_{RS}^2 / 2s^2)`` over all pairs, ``d_{RS}``
+  the distance between the two places' optimised positions under ``T``
+  (``terms(T).metric_result.place_positions``; raw odometry means when the model has no odometry term),
+  ``s`` = :attr:`McmcConfig.odometry_scale`; splits are plain. As printed, Algorithm 3 picks merges with
+  probability ``N_M/(N_M+N_S)`` but then sets ``Q(T → T'_{RS}) = \exp(-D^2/σ^2)/(N_M+N_S)``, which does
+  not sum to the merge probability, and its ``r`` drops the normaliser ``Σ_{R'S'} \exp(-D^2/σ^2)``; it is
+  only a valid kernel when the missing mass is read as "re-propose ``T``" (a thinned uniform move). Here
+  the merge distribution is normalised and the normaliser enters ``r`` (computed for ``T`` forward and
+  for ``T'`` on the reverse of a split, from ``T'``'s own optimised positions).
+* **Appearance-driven** (App. C, Algorithms 9–10): ``B_{ij}`` is the Bhattacharyya coefficient (eq. 91)
+  between the appearance distributions of visits ``i`` and ``j`` (:func:`bhattacharyya_similarity`);
+  for blocks ``R, S`` let ``inter(R, S)`` = mean ``B`` over pairs across, ``intra(R)`` = mean ``B`` over
+  pairs within (1 for a singleton) and ``sep(R, S) = ½(intra(R) + intra(S)) - inter(R, S)`` (Algorithm 9's
+  "intra minus inter"). Merges: ``π_M ∝ \exp(-λ\, sep)``; splits: ``π_S ∝ \exp(λ\, sep)`` over all splits
+  of ``U``, enumerated for ``|U| ≤`` :attr:`McmcConfig.max_split_enumeration` (uniform beyond, which is
+  again a function of ``U`` only, so the reverse stays exact); ``λ`` = :attr:`McmcConfig.appearance_strength`.
+  Algorithm 10's score also sums similarities to every *other* block of ``T``; it is dropped here (it makes
+  ``π_S`` depend on all of ``T``) and, as in Algorithm 3, the printed ``r = \exp((D'_2-D'_1)-(D_2-D_1))``
+  misses both normalisers and the ``1/N_S`` of the block choice; here they are kept.
+
+Single-visit reassignment (not in the thesis)
+---------------------------------------------
+Split–merge moves whole blocks: moving one visit between two neighbouring places takes a split and a merge,
+through an intermediate state that is often far less probable. The reassign kernel moves it in one step
+(the Gibbs move of Dirichlet-process samplers, Neal 2000, with a data-driven conditional instead of the
+posterior one). From ``T``: pick a visit ``v`` uniformly; with ``T_{-v}`` the places of the other visits,
+move ``v`` to a place ``P`` of ``T_{-v}`` or to a new one with probability
+``π_R(P \mid T, v) ∝ \exp(-d_{vP}^2 / 2s^2)``, ``d_{vP}`` the distance between ``v``'s and ``P``'s optimised
+positions under ``T`` (a new place weighs as a place at :attr:`McmcConfig.new_place_distance`), mixed with
+uniform as below. ``T' ≠ T`` differs from ``T`` only in pairs that involve ``v``; another visit ``u`` gives
+the same ``T'`` only when ``\{u, v\}`` is split from, or joined into, a two-visit place. So
+
+.. math::
+    q(T → T') = \frac{1}{N} \sum_{v ∈ V(T, T')} π_R(P'_v \mid T, v),
+
+over the one or two movers ``V(T, T')``, and ``q(T' → T)`` the same from ``T'`` with ``T'``'s own optimum.
+"auto" adds it whenever the odometry proposal is used.
+
+Data-driven distributions are mixed with the uniform one, ``(1-ε)\,π + ε\,\mathrm{uniform}``
+(ε = :attr:`McmcConfig.proposal_mix`), so no move is ever starved by a poor optimum or scale. The
+default proposal ("auto") draws each move from one of the data-driven kernels the model supports, chosen
+with equal probability; the chosen kernel is part of the move (its reverse uses the same kernel), so that
+kernel's own ratio applies — a mixture of π-reversible kernels is π-reversible.
+
+Proposal chaining and MC³
+-------------------------
+**Chaining** (Algorithm 4): draw ``C ~ U\{1..C_{max}\}`` and apply ``C`` base proposals
+``T = T_0 → … → T_C = T'``; the acceptance uses the path probabilities
+``\prod q(T_{c-1} → T_c)`` and ``\prod q(T_c → T_{c-1})`` (the ``1/C_{max}`` cancels). This is MH on the
+path, whose reversal is an involution, hence exact for ``π`` (the printed algorithm is right).
+
+**MC³** (Algorithm 5, Geyer): replicas at inverse temperatures ``1 = β_1 > β_2 > … > 0`` (thesis ladder
+``β_i = 1/(1 + (i-1)t)``, :func:`thesis_ladder`) each make one MH step per sweep on ``π^{β_i}``; then,
+hottest pair first, adjacent replicas swap states with probability
+``\min(1, \exp((β_{i-1} - β_i)(ℓ(T_i) - ℓ(T_{i-1}))))`` (the printed ratio, correct). Only the
+``β = 1`` replica is sampled.
+
+Estimates and convergence
+-------------------------
+Two PTMs are kept: (a) the **histogram** of the cold states (after a burn-in fraction), and (b) the
+**visited-set** estimate: every topology the sampler evaluated (states and proposals, at any temperature)
+with mass ``∝ \exp ℓ(T)`` renormalised over that set. (b) is the default: each mass is the exact
+posterior ratio, so its only error is the mass never evaluated (its TV to the truth is exactly
+``1 - π(\text{visited})``), while (a) carries Monte Carlo noise ``O(n^{-1/2})`` on every topology and
+needs far longer runs for the same TV when many topologies share the mass.
+
+Convergence (Ch. 3.6, sample doubling): the chains run in rounds ``n_0, 2n_0, 4n_0, …`` sweeps; after each
+round the estimate from the first half of the sweeps is compared with the estimate from all (TV), and
+independent chains (their own seeds) are compared pairwise (max TV). The sampler stops when both are
+below :attr:`McmcConfig.tolerance`, or at :attr:`McmcConfig.max_iterations` sweeps or
+:attr:`McmcConfig.max_seconds`. Independent chains may run in worker processes
+(:attr:`McmcConfig.processes`, fork start method). Results are deterministic under a seed unless the
+time cap ends the run.
+"""
+
+from __future__ import annotations
+
+import bisect
+import contextlib
+import math
+import multiprocessing as mp
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from itertools import combinations, pairwise
+from typing import Any, NamedTuple, Protocol, cast
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import logsumexp
+
+from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.model.appearance import AppearanceModel
+from ptm_ros.model.geometry import FloatArray
+from ptm_ros.model.partitions import Labels, blocks, canonical, is_canonical, random_partition, stirling2
+from ptm_ros.model.posterior import PosteriorModel, normalize_log, same_place_probabilities, total_variation
+from ptm_ros.model.visits import Visit
+
+Block = tuple[int, ...]
+
+#: Proposal kinds :class:`McmcConfig` accepts ("auto": every data-driven proposal the model supports).
+PROPOSALS = ("auto", "split-merge", "odometry", "appearance", "reassign")
+#: Estimates of the PTM :func:`run_mcmc` can return.
+ESTIMATES = ("visited", "histogram")
+#: Initial topologies of the chains.
+INITIAL_STATES = ("auto", "singletons", "one-place", "random", "rbpf")
+
+_LOG_HALF = math.log(0.5)
+#: Largest block whose splits are ever enumerated (2^19 splits).
+_MAX_SPLIT_ENUMERATION = 20
+#: Kernel tables cached per topology / block before the cache is reset.
+_CACHE_SIZE = 20_000
+#: Sweeps a chain runs before the next chain sharing its process takes a turn.
+_CHUNK = 64
+
+
+# ---------------------------------------------------------------------------------------------------
+# Configuration and results
+# ---------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class McmcConfig:
+    """Settings of the MCMC sampler (see the module docstring for the maths).
+
+    Attributes:
+        proposal: "split-merge" (Alg. 2), "odometry" (Alg. 3), "appearance" (Alg. 10), "reassign" (one
+            visit moved, not in the thesis) or "auto" = an equal mixture of the data-driven proposals the
+            model supports (odometry with reassign, appearance; plain split–merge when none).
+        odometry_scale: s (m) of the odometry merge weights ``exp(-d²/2s²)``; 1 m (about 2 σ_T) made
+            fewer wrong merges than 2–4 m on the 33-visit benchmark, so chains were trapped less often.
+        appearance_strength: λ of the appearance weights ``exp(∓λ sep)``.
+        new_place_distance: m; the reassign proposal opens a new place for a visit as readily as it joins
+            a place this far from the visit (weights ``exp(-d²/2s²)``, ``s`` = ``odometry_scale``).
+        proposal_mix: ε, weight of the uniform distribution mixed into data-driven merges and splits.
+        max_split_enumeration: largest block whose splits the appearance proposal scores (2^{k-1}-1 each).
+        max_chaining: C_max of proposal chaining (Alg. 4); 1 = no chaining.
+        betas: inverse temperatures of MC³ (Alg. 5), ``1.0`` first, strictly decreasing; ``(1.0,)`` = one
+            plain chain. On the 33-visit benchmark a single chain was sometimes trapped for thousands of
+            sweeps in a "shifted loop" mode (1 run in 10 at s = 1 m, 2 in 3 at s = 2 m); with the default,
+            one replica at β = ½, every run (7 of 7) converged in the first round, for ~2× the evaluations.
+        chains: independent chains (each an MC³ ladder) with their own seeds, compared for convergence.
+        processes: worker processes running the chains (1 = in this process, where the chains also
+            share the model's posterior cache; forking is also unwelcome inside a multi-threaded node).
+        initial: "singletons" (thesis), "one-place", "random" (uniform over topologies, per chain),
+            "rbpf": the particle filter's most probable topologies, chain ``c`` from the ``c``-th (a data-
+            driven start for long runs, where chains from singletons stay trapped; ``ptm-run`` runs the
+            filter first, :func:`ptm_ros.session.infer`; :func:`run_mcmc` needs them as
+            ``initial``), or "auto" (default): "singletons" up to ``auto_filter_visits`` visits, "rbpf"
+            beyond (:func:`starts_from_filter`): on the long real runs chains from singletons stay far
+            below the filter's best topology, chains from the filter's end at or above it
+            (``bench/mcmc.json``).
+        auto_filter_visits: most visits for which "auto" starts from singletons (the simulated 33-visit
+            world converges from there in ~3 s).
+        estimate: the PTM returned as ``probabilities``: "visited" (default) or "histogram".
+        tolerance: TV below which sample doubling and chain agreement declare convergence.
+        burn_in: fraction of each chain's sweeps left out of the histogram estimate.
+        min_iterations: sweeps of the first round (rounds then double).
+        max_iterations: cap on sweeps per chain.
+        max_seconds: cap on the sampling's wall time (s), checked after every sweep; the particle filter
+            run for the starts (``initial`` "rbpf") and the report after sampling come on top.
+        trace_samples: most cold-chain states kept per chain in :attr:`McmcResult.cold_states` (the trace
+            is thinned by a common stride to fit; for SRQ plots, thesis Ch. 3.6).
+    """
+
+    proposal: str = "auto"
+    odometry_scale: float = 1.0
+    appearance_strength: float = 10.0
+    new_place_distance: float = 2.0
+    proposal_mix: float = 0.05
+    max_split_enumeration: int = 12
+    max_chaining: int = 1
+    betas: tuple[float, ...] = (1.0, 0.5)
+    chains: int = 2
+    processes: int = 1
+    initial: str = "auto"
+    auto_filter_visits: int = 40
+    estimate: str = "visited"
+    tolerance: float = 0.02
+    burn_in: float = 0.1
+    min_iterations: int = 500
+    max_iterations: int = 200_000
+    max_seconds: float = 60.0
+    trace_samples: int = 4000
+
+    def __post_init__(self) -> None:
+        for name, value, options in (
+            ("proposal", self.proposal, PROPOSALS),
+            ("estimate", self.estimate, ESTIMATES),
+            ("initial", self.initial, INITIAL_STATES),
+        ):
+            if value not in options:
+                msg = f"McmcConfig.{name} must be one of {options}, got {value!r}"
+                raise ConfigError(msg)
+        in_range: dict[str, Callable[[float], bool]] = {
+            "odometry_scale": lambda v: v > 0.0,
+            "appearance_strength": lambda v: v >= 0.0,
+            "new_place_distance": lambda v: v > 0.0,
+            "proposal_mix": lambda v: 0.0 <= v < 1.0,
+            "tolerance": lambda v: 0.0 < v < 1.0,
+            "burn_in": lambda v: 0.0 <= v <= 0.5,
+            "max_seconds": lambda v: v > 0.0,
+        }
+        for name, check in in_range.items():
+            value = getattr(self, name)
+            number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not (number and check(value)):
+                msg = f"McmcConfig.{name} is out of range: {value!r}"
+                raise ConfigError(msg)
+        for name, count, low in (
+            ("max_split_enumeration", self.max_split_enumeration, 2),
+            ("max_chaining", self.max_chaining, 1),
+            ("chains", self.chains, 1),
+            ("processes", self.processes, 1),
+            ("min_iterations", self.min_iterations, 1),
+            ("max_iterations", self.max_iterations, 1),
+            ("trace_samples", self.trace_samples, 1),
+            ("auto_filter_visits", self.auto_filter_visits, 1),
+        ):
+            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < low:
+                msg = f"McmcConfig.{name} must be an integer >= {low}, got {count!r}"
+                raise ConfigError(msg)
+        if self.max_split_enumeration > _MAX_SPLIT_ENUMERATION:
+            msg = f"McmcConfig.max_split_enumeration must be <= {_MAX_SPLIT_ENUMERATION}"
+            raise ConfigError(msg)
+        if self.max_iterations < self.min_iterations:
+            msg = (
+                f"McmcConfig.max_iterations ({self.max_iterations}) < min_iterations ({self.min_iterations})"
+            )
+            raise ConfigError(msg)
+        try:
+            betas = tuple(float(b) for b in self.betas)
+        except (TypeError, ValueError) as err:
+            msg = f"McmcConfig.betas must be a sequence of numbers, got {self.betas!r}"
+            raise ConfigError(msg) from err
+        object.__setattr__(self, "betas", betas)
+        if (
+            not betas
+            or betas[0] != 1.0
+            or not all(math.isfinite(b) and b > 0.0 for b in betas)
+            or any(b >= a for a, b in pairwise(betas))
+        ):
+            msg = f"McmcConfig.betas must start at 1.0 and decrease strictly to > 0, got {betas}"
+            raise ConfigError(msg)
+
+
+def thesis_ladder(n: int, step: float) -> tuple[float, ...]:
+    """MC³ inverse temperatures ``β_i = 1 / (1 + (i-1) t)``, i = 1..n (Algorithm 5)."""
+    if n < 1 or not (math.isfinite(step) and step > 0.0):
+        msg = f"thesis_ladder needs n >= 1 and step > 0, got {n}, {step}"
+        raise ConfigError(msg)
+    return tuple(1.0 / (1.0 + i * step) for i in range(n))
+
+
+@dataclass(frozen=True)
+class McmcCheck:
+    """Convergence figures after one sample-doubling round (TVs of the configured estimate).
+
+    ``doubling_pair`` / ``chain_pair``: the same comparisons on the visit pairs' same-place
+    probabilities (:func:`pair_marginal_change`; never above the TV, as a pair's marginal is the
+    probability of an event). Over many visits the posterior spreads over so many near-equal topologies
+    that the TV between two finite samples can stay large while the map's answer to "are visits i and j
+    one place?" has settled; these say whether it has. They are reported, not part of
+    :meth:`converged` (the thesis' test is on the PTM, Ch. 3.6).
+    """
+
+    iterations: int
+    wall_s: float
+    doubling_tv: float
+    chain_tv: float | None
+    n_evaluated: int
+    doubling_pair: float = 0.0
+    chain_pair: float | None = None
+
+    def converged(self, tolerance: float) -> bool:
+        """Sample doubling and (with several chains) chain agreement both within ``tolerance``."""
+        return self.doubling_tv <= tolerance and (self.chain_tv is None or self.chain_tv <= tolerance)
+
+
+@dataclass(frozen=True)
+class McmcDiagnostics:
+    """How the run went.
+
+    Attributes:
+        iterations: sweeps per chain (one MH step per replica, then swaps).
+        chains: independent chains; ``betas``: their MC³ ladder.
+        doubling_tv: TV between the estimate from the first half of the sweeps and from all of them.
+        chain_tv: largest TV between two independent chains' estimates (None with one chain).
+        doubling_pair, chain_pair: the same two comparisons on the visit pairs' same-place
+            probabilities, largest absolute difference (:class:`McmcCheck`; reported only).
+        converged: both TVs at or below the tolerance after at least ``min_iterations`` sweeps;
+            ``stop_reason``: "converged", "max_iterations" or "max_seconds".
+        acceptance: accepted / proposed per move kind of the cold replicas ("merge", "split", "chain";
+            re-proposals of ``T`` are counted in ``proposals["stay"]`` only) and per swap pair
+            ("swap i-j").
+        proposals: number of proposals per kind (cold replicas) and swap attempts per pair.
+        n_evaluated: distinct topologies whose posterior was evaluated.
+        history: one :class:`McmcCheck` per round.
+    """
+
+    iterations: int
+    chains: int
+    betas: tuple[float, ...]
+    doubling_tv: float
+    chain_tv: float | None
+    converged: bool
+    stop_reason: str
+    acceptance: dict[str, float]
+    proposals: dict[str, int]
+    n_evaluated: int
+    history: tuple[McmcCheck, ...]
+    doubling_pair: float = 0.0
+    chain_pair: float | None = None
+
+
+@dataclass(frozen=True)
+class McmcResult:
+    """A PTM computed by MCMC.
+
+    Attributes:
+        probabilities: the configured estimate, most probable first.
+        histogram: the cold-chain sample histogram (burn-in removed), pooled over chains.
+        visited: every evaluated topology with mass ∝ exp(log posterior), renormalised over them.
+        log_posteriors: unnormalised log P(T | Z) of every evaluated topology.
+        samples: cold-chain samples drawn (sweeps × chains).
+        wall_s: wall time (s).
+        cold_states: per independent chain, the cold (β = 1) replica's state after every
+            ``cold_thin``-th sweep from the first (burn-in included), as ids into ``state_labels``; at most
+            :attr:`McmcConfig.trace_samples` per chain. The input of an SRQ plot
+            (:mod:`ptm_ros.inference.convergence`).
+        state_labels: the topology of each id (ids shared by all chains, numbered in order of first
+            appearance); only the states in ``cold_states``.
+        cold_thin: sweeps per kept state (the common thinning stride of all chains).
+    """
+
+    probabilities: dict[Labels, float]
+    histogram: dict[Labels, float]
+    visited: dict[Labels, float]
+    log_posteriors: dict[Labels, float]
+    samples: int
+    wall_s: float
+    diagnostics: McmcDiagnostics
+    config: McmcConfig
+    cold_states: tuple[tuple[int, ...], ...] = ()
+    state_labels: tuple[Labels, ...] = ()
+    cold_thin: int = 1
+
+
+# ---------------------------------------------------------------------------------------------------
+# Split–merge proposals
+# ---------------------------------------------------------------------------------------------------
+
+
+class RandomSource(Protocol):
+    """Uniform random numbers: :class:`numpy.random.Generator` or the faster :class:`UniformStream`."""
+
+    def random(self) -> float:
+        """A uniform number in [0, 1)."""
+        ...
+
+    def integers(self, low: int, high: int) -> int:
+        """A uniform integer in [low, high)."""
+        ...
+
+
+class UniformStream:
+    """Buffered uniforms from a :class:`numpy.random.Generator` (scalar generator calls cost µs each).
+
+    ``integers(low, high)`` is ``low + ⌊u (high - low)⌋`` for ranges up to 2^32 (each value has probability
+    ``1/(high-low)`` within 2^-53 relative) and a direct generator draw beyond.
+    """
+
+    def __init__(self, rng: np.random.Generator, size: int = 1024) -> None:
+        self.rng = rng
+        self._size = size
+        self._buf: list[float] = []
+
+    def random(self) -> float:
+        if not self._buf:
+            self._buf = self.rng.random(self._size).tolist()
+            self._buf.reverse()
+        return self._buf.pop()
+
+    def integers(self, low: int, high: int) -> int:
+        span = high - low
+        if span <= 1 << 32:
+            return low + int(self.random() * span)
+        return int(self.rng.integers(low, high))
+
+
+class Move(NamedTuple):
+    """One proposal draw: the proposed topology and log q of the forward and reverse moves."""
+
+    labels: Labels
+    log_forward: float
+    log_reverse: float
+    kind: str  # "merge" | "split" | "stay"
+
+    @property
+    def log_ratio(self) -> float:
+        """``log q(T' → T) - log q(T → T')``."""
+        return self.log_reverse - self.log_forward
+
+
+class ProposalKernel(Protocol):
+    """What the sampler needs from a proposal."""
+
+    name: str
+
+    def propose(self, labels: Labels, rng: RandomSource) -> Move:
+        """Draw ``T'`` from ``q(T → ·)`` with both log proposal probabilities."""
+        ...
+
+    def log_prob(self, src: Labels, dst: Labels) -> float:
+        """``log q(src → dst)`` in closed form (−inf when dst is not one move away)."""
+        ...
+
+    def distribution(self, labels: Labels) -> dict[Labels, float]:
+        """Every topology ``q(T → ·)`` can reach with its probability, by enumerating all moves."""
+        ...
+
+
+def _pair_index(a: int, b: int, m: int) -> int:
+    """Row-major index of the pair ``a < b`` among the ``m(m-1)/2`` pairs (``np.triu_indices(m, 1)``)."""
+    return a * (2 * m - a - 1) // 2 + (b - a - 1)
+
+
+def _split_code(block: Block, other: Sequence[int]) -> int:
+    """Code of the split of ``block`` whose half without ``block[0]`` is ``other``: bit j-1 ⇔ block[j]."""
+    members = set(other)
+    return sum(1 << (j - 1) for j in range(1, len(block)) if block[j] in members)
+
+
+def _split_halves(block: Block, code: int) -> tuple[Block, Block]:
+    """The halves ``(R, S)`` of split ``code`` of ``block``; ``R`` holds ``block[0]``."""
+    r = [block[0]]
+    s: list[int] = []
+    for j in range(1, len(block)):
+        (s if code >> (j - 1) & 1 else r).append(block[j])
+    return tuple(r), tuple(s)
+
+
+def _merge_labels(labels: Labels, parts: Sequence[Block], a: int, b: int) -> Labels:
+    out = list(labels)
+    for i in parts[b]:
+        out[i] = a
+    return canonical(out)
+
+
+def _split_labels(labels: Labels, half: Block, new_label: int) -> Labels:
+    out = list(labels)
+    for i in half:
+        out[i] = new_label
+    return canonical(out)
+
+
+def _block_position(parts: Sequence[Block], first: int) -> int:
+    """Index of the block whose first visit is ``first`` (blocks are ordered by first visit)."""
+    lo, hi = 0, len(parts)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if parts[mid][0] < first:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+def _uniform_code(k: int, rng: RandomSource) -> int:
+    """A split code of a k-block drawn uniformly from 1 .. 2^{k-1}-1."""
+    if k - 1 <= 62:
+        return int(rng.integers(1, 1 << (k - 1)))
+    while True:  # 31 bits at a time for huge blocks; all-zero codes are redrawn
+        code = 0
+        for start in range(0, k - 1, 31):
+            width = min(31, k - 1 - start)
+            code |= int(rng.integers(0, 1 << width)) << start
+        if code:
+            return code
+
+
+def _log_num_splits(k: int) -> float:
+    return math.log(stirling2(k, 2))
+
+
+#: A discrete distribution: log probabilities and cumulative probabilities (lists: fast scalar access).
+Table = tuple[list[float], list[float]]
+
+
+def _mixed_table(log_weights: FloatArray, mix: float) -> Table:
+    """``log((1-ε) softmax(w) + ε / n)`` over the finite entries and its cumulative probabilities."""
+    finite = np.isfinite(log_weights)
+    n = int(finite.sum())
+    lp = np.full(log_weights.shape, -np.inf)
+    w = log_weights[finite]
+    soft = w - logsumexp(w)
+    lp[finite] = soft if mix == 0.0 else np.logaddexp(math.log1p(-mix) + soft, math.log(mix / n))
+    cdf = np.cumsum(np.exp(lp))
+    return lp.tolist(), cdf.tolist()
+
+
+def _log_sum(values: Sequence[float]) -> float:
+    """``log Σ exp(values)`` of a few Python floats (no array overhead)."""
+    top = max(values)
+    if top == -math.inf:
+        return top
+    return top + math.log(math.fsum(math.exp(x - top) for x in values))
+
+
+def _draw(cdf: list[float], rng: RandomSource) -> int:
+    idx = bisect.bisect_right(cdf, rng.random() * cdf[-1])
+    return min(idx, len(cdf) - 1)
+
+
+class SplitMergeProposal:
+    """Algorithm 2: uniform merges of two blocks and uniform two-block splits of a non-singleton block.
+
+    Subclasses change ``π_M`` (:meth:`merge_log_weights`) and ``π_S`` (:meth:`split_log_weights`); the
+    move skeleton, the closed-form probabilities and the enumeration are shared.
+    """
+
+    name = "split-merge"
+
+    def __init__(self, mix: float = 0.0) -> None:
+        if not 0.0 <= mix < 1.0:
+            msg = f"proposal mix must be in [0, 1), got {mix}"
+            raise ConfigError(msg)
+        self.mix = float(mix)
+        self._merge_cache: dict[Labels, Table | None] = {}
+        self._split_cache: dict[Block, Table | None] = {}
+        self._triu: dict[int, tuple[list[int], list[int]]] = {}
+        self._parts: dict[Labels, tuple[list[Block], list[Block]]] = {}
+        # (labels, a, b) / (labels, first visit of the block, code) -> (new labels, log q of the reverse)
+        self._moves: dict[tuple[Labels, int, int], tuple[Labels, float]] = {}
+
+    # -- hooks --------------------------------------------------------------------------------------
+    def merge_log_weights(self, labels: Labels, parts: Sequence[Block]) -> FloatArray | None:
+        """Unnormalised log weights of merging each pair of blocks (triu order); None = uniform."""
+        return None
+
+    def split_log_weights(self, block: Block) -> FloatArray | None:
+        """Unnormalised log weights of each split code of ``block`` (entry 0 = −inf); None = uniform."""
+        return None
+
+    # -- tables -------------------------------------------------------------------------------------
+    def _merge_table(self, labels: Labels, parts: Sequence[Block]) -> Table | None:
+        if labels in self._merge_cache:
+            return self._merge_cache[labels]
+        w = self.merge_log_weights(labels, parts)
+        table = None if w is None else _mixed_table(np.asarray(w, dtype=float), self.mix)
+        if len(self._merge_cache) >= _CACHE_SIZE:
+            self._merge_cache.clear()
+        self._merge_cache[labels] = table
+        return table
+
+    def _split_table(self, block: Block) -> Table | None:
+        if block in self._split_cache:
+            return self._split_cache[block]
+        w = self.split_log_weights(block)
+        table = None if w is None else _mixed_table(np.asarray(w, dtype=float), self.mix)
+        if len(self._split_cache) >= _CACHE_SIZE:
+            self._split_cache.clear()
+        self._split_cache[block] = table
+        return table
+
+    def _blocks(self, labels: Labels) -> tuple[list[Block], list[Block]]:
+        """The blocks of ``labels`` and its non-singleton blocks (cached)."""
+        out = self._parts.get(labels)
+        if out is None:
+            parts = blocks(labels)
+            out = (parts, [p for p in parts if len(p) > 1])
+            if len(self._parts) >= _CACHE_SIZE:
+                self._parts.clear()
+            self._parts[labels] = out
+        return out
+
+    def _pairs(self, m: int) -> tuple[list[int], list[int]]:
+        """Rows and columns of the pairs ``a < b`` of m blocks, in ``np.triu_indices`` order."""
+        pairs = self._triu.get(m)
+        if pairs is None:
+            rows, cols = np.triu_indices(m, 1)
+            pairs = (rows.tolist(), cols.tolist())
+            self._triu[m] = pairs
+        return pairs
+
+    def _remember(self, key: tuple[Labels, int, int], value: tuple[Labels, float]) -> None:
+        if len(self._moves) >= _CACHE_SIZE:
+            self._moves.clear()
+        self._moves[key] = value
+
+    def log_merge(self, labels: Labels, parts: Sequence[Block], a: int, b: int) -> float:
+        """``log q`` of merging blocks ``a < b`` of ``labels`` (blocks ``parts``)."""
+        m = len(parts)
+        table = self._merge_table(labels, parts)
+        if table is None:
+            return _LOG_HALF - math.log(m * (m - 1) / 2)
+        return _LOG_HALF + table[0][_pair_index(a, b, m)]
+
+    def log_split(self, labels: Labels, block: Block, code: int) -> float:
+        """``log q`` of splitting ``block`` (a block of ``labels``) by ``code``."""
+        n_split = len(self._blocks(labels)[1])
+        table = self._split_table(block)
+        lp = -_log_num_splits(len(block)) if table is None else table[0][code]
+        return _LOG_HALF - math.log(n_split) + lp
+
+    def _log_stay(self, parts: Sequence[Block]) -> float:
+        p = 0.5 * (len(parts) < 2) + 0.5 * all(len(b) == 1 for b in parts)
+        return math.log(p) if p > 0.0 else -math.inf
+
+    # -- the kernel ---------------------------------------------------------------------------------
+    def propose(self, labels: Labels, rng: RandomSource) -> Move:
+        """Draw a merge or a split (½ each); an impossible move re-proposes ``labels``."""
+        parts, splittable = self._blocks(labels)
+        m = len(parts)
+        if rng.random() < 0.5:
+            if m < 2:
+                return Move(labels, _LOG_HALF, _LOG_HALF, "stay")
+            table = self._merge_table(labels, parts)
+            if table is None:
+                a = int(rng.integers(0, m))
+                b = int(rng.integers(0, m - 1))
+                b += b >= a
+                a, b = min(a, b), max(a, b)
+                log_f = _LOG_HALF - math.log(m * (m - 1) / 2)
+            else:
+                idx = _draw(table[1], rng)
+                rows, cols = self._pairs(m)
+                a, b = rows[idx], cols[idx]
+                log_f = _LOG_HALF + table[0][idx]
+            key = (labels, a, b)
+            known = self._moves.get(key)
+            if known is None:
+                new = _merge_labels(labels, parts, a, b)
+                union = tuple(sorted(parts[a] + parts[b]))
+                known = (new, self.log_split(new, union, _split_code(union, parts[b])))
+                self._remember(key, known)
+            return Move(known[0], log_f, known[1], "merge")
+        if not splittable:
+            return Move(labels, _LOG_HALF, _LOG_HALF, "stay")
+        block = splittable[int(rng.integers(0, len(splittable)))]
+        table = self._split_table(block)
+        if table is None:
+            code = _uniform_code(len(block), rng)
+            lp = -_log_num_splits(len(block))
+        else:
+            code = _draw(table[1], rng)
+            lp = table[0][code]
+        log_f = _LOG_HALF - math.log(len(splittable)) + lp
+        key = (labels, -1 - block[0], code)  # negative: never equal to a merge key
+        known = self._moves.get(key)
+        if known is None:
+            half_r, half_s = _split_halves(block, code)
+            new = _split_labels(labels, half_s, m)
+            new_parts = self._blocks(new)[0]
+            a = _block_position(new_parts, half_r[0])
+            b = _block_position(new_parts, half_s[0])
+            known = (new, self.log_merge(new, new_parts, a, b))
+            self._remember(key, known)
+        return Move(known[0], log_f, known[1], "split")
+
+    def log_prob(self, src: Labels, dst: Labels) -> float:
+        """``log q(src → dst)`` in closed form: identify the merge or split that turns src into dst."""
+        ps, pd = blocks(src), blocks(dst)
+        if src == dst:
+            return self._log_stay(ps)
+        set_s, set_d = set(ps), set(pd)
+        gone = [b for b in ps if b not in set_d]
+        new = [b for b in pd if b not in set_s]
+        if len(gone) == 2 and len(new) == 1 and set(gone[0]) | set(gone[1]) == set(new[0]):
+            a, b = ps.index(gone[0]), ps.index(gone[1])
+            return self.log_merge(src, ps, min(a, b), max(a, b))
+        if len(gone) == 1 and len(new) == 2 and set(new[0]) | set(new[1]) == set(gone[0]):
+            block = gone[0]
+            other = new[1] if block[0] in new[0] else new[0]
+            return self.log_split(src, block, _split_code(block, other))
+        return -math.inf
+
+    def distribution(self, labels: Labels) -> dict[Labels, float]:
+        """``q(labels → ·)`` by enumerating every merge and every split (small N only)."""
+        parts = blocks(labels)
+        m = len(parts)
+        out: dict[Labels, float] = {}
+        stay = self._log_stay(parts)
+        if stay > -math.inf:
+            out[labels] = math.exp(stay)
+        if m >= 2:
+            table = self._merge_table(labels, parts)
+            for idx, (a, b) in enumerate(combinations(range(m), 2)):
+                lp = -math.log(m * (m - 1) / 2) if table is None else table[0][idx]
+                new = _merge_labels(labels, parts, a, b)
+                out[new] = out.get(new, 0.0) + 0.5 * math.exp(lp)
+        splittable = [p for p in parts if len(p) > 1]
+        for block in splittable:
+            table = self._split_table(block)
+            for code in range(1, 1 << (len(block) - 1)):
+                lp = -_log_num_splits(len(block)) if table is None else table[0][code]
+                new = _split_labels(labels, _split_halves(block, code)[1], m)
+                out[new] = out.get(new, 0.0) + 0.5 / len(splittable) * math.exp(lp)
+        return out
+
+
+def _geometry(
+    model: PosteriorModel, labels: Labels, odometry_xy: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``(M, 2)`` place and ``(N, 2)`` visit positions of a topology: at its optimum when the model has a
+    metric term, else the raw odometry (places at their visits' mean)."""
+    result = model.terms(labels).metric_result
+    if result is not None:
+        return np.asarray(result.place_positions, dtype=float), np.asarray(result.poses, dtype=float)[:, :2]
+    lab = np.asarray(labels)
+    m = int(lab.max()) + 1
+    counts = np.bincount(lab, minlength=m)[:, None]
+    sums = np.stack([np.bincount(lab, weights=odometry_xy[:, k], minlength=m) for k in (0, 1)], 1)
+    return sums / counts, odometry_xy
+
+
+class OdometryProposal(SplitMergeProposal):
+    """Algorithm 3: merges weighted by ``exp(-d²/2s²)`` between optimised place positions; plain splits."""
+
+    name = "odometry"
+
+    def __init__(self, model: PosteriorModel, scale: float = 1.0, mix: float = 0.05) -> None:
+        super().__init__(mix)
+        if not (math.isfinite(scale) and scale > 0.0):
+            msg = f"odometry proposal scale must be finite and > 0, got {scale}"
+            raise ConfigError(msg)
+        self.model = model
+        self.scale = float(scale)
+        self._odometry_xy = np.array([v.pose[:2] for v in model.visits], dtype=float)
+
+    def place_positions(self, labels: Labels) -> FloatArray:
+        """``(M, 2)`` place positions of a topology: optimised (metric term) or raw odometry means."""
+        return _geometry(self.model, labels, self._odometry_xy)[0]
+
+    def merge_log_weights(self, labels: Labels, parts: Sequence[Block]) -> FloatArray:
+        pos = self.place_positions(labels)
+        rows, cols = self._pairs(len(parts))
+        d2 = np.sum(np.square(pos[rows] - pos[cols]), axis=1)
+        return -0.5 * d2 / self.scale**2
+
+
+def _neutral_missing(log_bc: FloatArray, have: NDArray[np.bool_]) -> FloatArray:
+    """Pairs with a visit lacking the measurement (a missing panorama) get the mean log coefficient of
+    the measured pairs: no evidence either way for the proposal."""
+    both = have[:, None] & have[None, :]
+    np.fill_diagonal(both, False)
+    fill = float(np.mean(log_bc[both])) if np.any(both) else 0.0
+    return np.where(have[:, None] & have[None, :], log_bc, fill)
+
+
+def bhattacharyya_similarity(visits: Sequence[Visit], model: AppearanceModel) -> FloatArray:
+    """``(N, N)`` Bhattacharyya coefficients (eq. 91) between the visits' appearance distributions.
+
+    * Fourier signatures: visit ``i`` is ``N(a_i, diag σ²)`` with the fitted NIG prior's expected
+      within-place variance ``σ_k² = β_k / (α_k - 1)``; per component
+      ``BC = exp(-(a_ik - a_jk)² / 8σ_k²)``, geometrically averaged over the ``K`` components (so the scale
+      does not depend on the signature length).
+    * Word histograms: ``p_i = (x_i + α) / (m_i + α_·)``, the Dirichlet posterior mean of the visit's word
+      distribution (defined for empty histograms too); ``BC = Σ_w √(p_iw p_jw)``.
+
+    With both, their geometric mean. 1 on the diagonal. Visits without a measurement (missing
+    panoramas) get the mean coefficient of the measured pairs.
+    """
+    logs = []
+    if model.nig is not None:
+        have = np.array([v.signature is not None for v in visits])
+        zero = np.zeros(model.nig.dim)
+        sig = np.array(
+            [zero if v.signature is None else np.asarray(v.signature, float).ravel() for v in visits]
+        )
+        var = model.nig.beta / (model.nig.alpha - 1.0)
+        diff = sig[:, None, :] - sig[None, :, :]
+        logs.append(_neutral_missing(-np.mean(np.square(diff) / var, axis=2) / 8.0, have))
+    if model.dcm_alpha is not None:
+        alpha = model.dcm_alpha
+        have = np.array([v.words is not None for v in visits])
+        x = np.array(
+            [np.zeros(alpha.size) if v.words is None else np.asarray(v.words, float).ravel() for v in visits]
+        )
+        p = (x + alpha) / (x.sum(axis=1, keepdims=True) + alpha.sum())
+        root = np.sqrt(p)
+        logs.append(_neutral_missing(np.log(np.clip(root @ root.T, 1e-300, 1.0)), have))
+    if not logs:
+        msg = "the appearance model has neither signatures nor word histograms"
+        raise ModelError(msg)
+    sim = np.exp(np.mean(logs, axis=0))
+    np.fill_diagonal(sim, 1.0)
+    return sim
+
+
+class AppearanceProposal(SplitMergeProposal):
+    """App. C, Algorithm 10: merges ``∝ exp(-λ sep)``, splits ``∝ exp(λ sep)`` (Bhattacharyya scores)."""
+
+    name = "appearance"
+
+    def __init__(
+        self, model: PosteriorModel, strength: float = 10.0, mix: float = 0.05, max_split_size: int = 12
+    ) -> None:
+        super().__init__(mix)
+        if model.appearance is None:
+            msg = "the appearance proposal needs a model with an appearance term (signatures or words)"
+            raise ModelError(msg)
+        if not (math.isfinite(strength) and strength >= 0.0) or not 2 <= max_split_size <= 20:
+            msg = f"appearance proposal needs strength >= 0 and 2 <= max_split_size <= 20, got {strength}"
+            raise ConfigError(msg)
+        self.strength = float(strength)
+        self.max_split_size = int(max_split_size)
+        self.similarity = bhattacharyya_similarity(model.visits, model.appearance)
+        self._codes: dict[int, NDArray[np.bool_]] = {}
+
+    def merge_log_weights(self, labels: Labels, parts: Sequence[Block]) -> FloatArray:
+        m, n = len(parts), len(labels)
+        z = np.zeros((m, n))
+        z[np.asarray(labels), np.arange(n)] = 1.0
+        c = z @ self.similarity @ z.T
+        size = z.sum(axis=1)
+        intra = np.ones(m)
+        big = size > 1
+        intra[big] = (np.diag(c)[big] - size[big]) / (size[big] * (size[big] - 1))
+        rows, cols = self._pairs(m)
+        inter = c[rows, cols] / (size[rows] * size[cols])
+        sep = 0.5 * (intra[rows] + intra[cols]) - inter
+        return -self.strength * sep
+
+    def split_log_weights(self, block: Block) -> FloatArray | None:
+        k = len(block)
+        if k > self.max_split_size:
+            return None
+        members = self._codes.get(k)
+        if members is None:  # (2^{k-1}, k): True = in the half without block[0]
+            codes = np.arange(1 << (k - 1))
+            members = np.zeros((codes.size, k), dtype=bool)
+            members[:, 1:] = (codes[:, None] >> np.arange(k - 1)) & 1
+            self._codes[k] = members
+        s = members[1:].astype(float)
+        r = 1.0 - s
+        sim = self.similarity[np.ix_(block, block)]
+        off = sim - np.eye(k)
+        n_s, n_r = s.sum(1), r.sum(1)
+        ss = np.einsum("ck,kl,cl->c", s, off, s)
+        rr = np.einsum("ck,kl,cl->c", r, off, r)
+        rs = np.einsum("ck,kl,cl->c", r, sim, s)
+        intra_s = np.where(n_s > 1, ss / np.maximum(n_s * (n_s - 1), 1.0), 1.0)
+        intra_r = np.where(n_r > 1, rr / np.maximum(n_r * (n_r - 1), 1.0), 1.0)
+        sep = 0.5 * (intra_r + intra_s) - rs / (n_r * n_s)
+        return np.concatenate([[-np.inf], self.strength * sep])
+
+
+class ReassignProposal:
+    """One visit moved to another place or to a new one, data-driven by odometry (module docstring).
+
+    Split–merge moves whole blocks; a visit joined to the wrong one of two neighbouring places needs a
+    split and a merge, the intermediate state often far less probable. This kernel moves it in one step.
+    """
+
+    name = "reassign"
+
+    def __init__(
+        self, model: PosteriorModel, scale: float = 1.0, mix: float = 0.05, new_place: float = 2.0
+    ) -> None:
+        if not (math.isfinite(scale) and scale > 0.0 and 0.0 <= mix < 1.0):
+            msg = f"reassign proposal needs scale > 0 and mix in [0, 1), got {scale}, {mix}"
+            raise ConfigError(msg)
+        if not (math.isfinite(new_place) and new_place > 0.0):
+            msg = f"reassign proposal needs new_place > 0 (m), got {new_place}"
+            raise ConfigError(msg)
+        self.model = model
+        self.n = model.n
+        self.scale = float(scale)
+        self.mix = float(mix)
+        self.new_place_log_weight = -0.5 * (new_place / self.scale) ** 2
+        self._odometry_xy = np.array([v.pose[:2] for v in model.visits], dtype=float).reshape(-1, 2)
+        self._tables: dict[tuple[Labels, int], tuple[list[int], list[float], list[float]]] = {}
+
+    def options(self, labels: Labels, v: int) -> tuple[list[int], list[float]]:
+        """The places visit ``v`` may join (labels of the other visits' places; a new place last) and
+        their log probabilities ``log π_R(P | T, v)``."""
+        rest, lp, _ = self._table(labels, v)
+        return rest, lp
+
+    def _table(self, labels: Labels, v: int) -> tuple[list[int], list[float], list[float]]:
+        key = (labels, v)
+        out = self._tables.get(key)
+        if out is None:
+            place_xy, visit_xy = _geometry(self.model, labels, self._odometry_xy)
+            rest = sorted(set(labels[:v]) | set(labels[v + 1 :]))
+            w = np.empty(len(rest) + 1)
+            diff = place_xy[rest] - visit_xy[v]
+            w[:-1] = np.sum(diff * diff, axis=1) * (-0.5 / self.scale**2)
+            w[-1] = self.new_place_log_weight
+            out = (rest, *_mixed_table(w, self.mix))
+            if len(self._tables) >= _CACHE_SIZE:
+                self._tables.clear()
+            self._tables[key] = out
+        return out
+
+    def _log_q(self, src: Labels, dst: Labels, v: int) -> float:
+        """``log q`` of moving ``v`` of ``src`` to its place in ``dst`` (the rest must agree)."""
+        rest, lp = self.options(src, v)
+        mate = next((u for u in range(self.n) if u != v and dst[u] == dst[v]), None)
+        k = len(rest) if mate is None else rest.index(src[mate])
+        return lp[k] - math.log(self.n)
+
+    def log_prob(self, src: Labels, dst: Labels) -> float:
+        """``log q(src → dst)``: summed over the visits whose move turns ``src`` into ``dst`` (two when a
+        pair of visits is split or joined, one otherwise)."""
+        if src == dst:
+            return _log_sum([self._log_q(src, src, v) for v in range(self.n)])
+        s, d = np.asarray(src), np.asarray(dst)
+        differ = (s[:, None] == s[None, :]) != (d[:, None] == d[None, :])
+        degree = differ.sum(axis=1)
+        movers = np.flatnonzero(degree == degree.sum() // 2)
+        if not len(movers):
+            return -math.inf
+        return _log_sum([self._log_q(src, dst, int(v)) for v in movers])
+
+    def propose(self, labels: Labels, rng: RandomSource) -> Move:
+        """Pick a visit uniformly and a place for it from :meth:`options`."""
+        v = int(rng.integers(0, self.n))
+        rest, _, cdf = self._table(labels, v)
+        k = _draw(cdf, rng)
+        out = list(labels)
+        out[v] = rest[k] if k < len(rest) else max(labels) + 1
+        new = canonical(out)
+        if new == labels:
+            return Move(labels, 0.0, 0.0, "stay")
+        return Move(new, self.log_prob(labels, new), self.log_prob(new, labels), "reassign")
+
+    def distribution(self, labels: Labels) -> dict[Labels, float]:
+        """``q(labels → ·)`` by enumerating every visit and every place it may join."""
+        out: dict[Labels, float] = {}
+        for v in range(self.n):
+            rest, lp = self.options(labels, v)
+            for k, target in enumerate([*rest, max(labels) + 1]):
+                new = canonical([*labels[:v], target, *labels[v + 1 :]])
+                out[new] = out.get(new, 0.0) + math.exp(lp[k]) / self.n
+        return out
+
+
+class MixtureProposal:
+    """An equal mixture of proposal kernels: each draw uses one kernel, chosen uniformly.
+
+    The chosen kernel is part of the move (the reverse uses the same kernel), so the acceptance uses that
+    kernel's own ratio; :meth:`log_prob` and :meth:`distribution` give the marginal mixture.
+    """
+
+    def __init__(self, kernels: Sequence[ProposalKernel]) -> None:
+        if not kernels:
+            msg = "a mixture proposal needs at least one kernel"
+            raise ConfigError(msg)
+        self.kernels = tuple(kernels)
+        self.name = "+".join(k.name for k in self.kernels)
+
+    def propose(self, labels: Labels, rng: RandomSource) -> Move:
+        kernel = (
+            self.kernels[int(rng.integers(0, len(self.kernels)))]
+            if len(self.kernels) > 1
+            else self.kernels[0]
+        )
+        return kernel.propose(labels, rng)
+
+    def log_prob(self, src: Labels, dst: Labels) -> float:
+        return float(logsumexp([k.log_prob(src, dst) for k in self.kernels])) - math.log(len(self.kernels))
+
+    def distribution(self, labels: Labels) -> dict[Labels, float]:
+        out: dict[Labels, float] = {}
+        for kernel in self.kernels:
+            for lab, p in kernel.distribution(labels).items():
+                out[lab] = out.get(lab, 0.0) + p / len(self.kernels)
+        return out
+
+
+def make_proposal(model: PosteriorModel, config: McmcConfig) -> ProposalKernel:
+    """The proposal kernel ``config.proposal`` describes for ``model``."""
+    odometry = config.proposal == "odometry" or (
+        config.proposal == "auto" and model.config.use_odometry and model.n > 1
+    )
+    appearance = config.proposal == "appearance" or (
+        config.proposal == "auto" and model.appearance is not None
+    )
+    reassign = config.proposal == "reassign" or (odometry and config.proposal == "auto")
+    kernels: list[ProposalKernel] = []
+    if odometry:
+        kernels.append(OdometryProposal(model, config.odometry_scale, config.proposal_mix))
+    if appearance:
+        kernels.append(
+            AppearanceProposal(
+                model, config.appearance_strength, config.proposal_mix, config.max_split_enumeration
+            )
+        )
+    if reassign and model.n > 1:
+        kernels.append(
+            ReassignProposal(model, config.odometry_scale, config.proposal_mix, config.new_place_distance)
+        )
+    if not kernels:
+        return SplitMergeProposal()
+    return kernels[0] if len(kernels) == 1 else MixtureProposal(kernels)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Chains
+# ---------------------------------------------------------------------------------------------------
+
+
+def _accept(log_a: float, rng: RandomSource) -> bool:
+    """Metropolis test ``U < a``; NaN (−inf against −inf) rejects."""
+    if log_a >= 0.0:
+        return True
+    return rng.random() < math.exp(log_a)
+
+
+def _log_target_ratio(beta: float, new: float, old: float) -> float:
+    if old == -math.inf:  # leaving a zero-probability state: any state is as good
+        return math.inf if new > -math.inf else 0.0
+    return beta * (new - old)
+
+
+@dataclass
+class _Segment:
+    """What one chain produced since its last report (sent between processes)."""
+
+    new_labels: list[Labels]
+    trace: NDArray[np.int64]
+    visited: list[tuple[Labels, float, int]]
+    proposed: dict[str, int]
+    accepted: dict[str, int]
+    iteration: int
+
+
+class _Ladder:
+    """One independent chain: an MC³ ladder of replicas (one replica = a plain Metropolis–Hastings chain)."""
+
+    def __init__(
+        self,
+        model: PosteriorModel,
+        proposal: ProposalKernel,
+        config: McmcConfig,
+        initial: Labels,
+        rng: np.random.Generator,
+    ) -> None:
+        self.model = model
+        self.proposal = proposal
+        self.betas = config.betas
+        self.max_chaining = config.max_chaining
+        self.rng = UniformStream(rng)
+        self.iteration = 0
+        self._logp: dict[Labels, float] = {}
+        self._ids: dict[Labels, int] = {}
+        self._labels: list[Labels] = []
+        self._reported_labels = 0
+        self._new_visits: list[tuple[Labels, float, int]] = []
+        self._trace: list[int] = []
+        self.proposed: dict[str, int] = {}
+        self.accepted: dict[str, int] = {}
+        lp = self._evaluate(initial)
+        self.states = [initial] * len(self.betas)
+        self.logps = [lp] * len(self.betas)
+
+    def _evaluate(self, labels: Labels) -> float:
+        lp = self._logp.get(labels)
+        if lp is None:
+            lp = self.model.log_posterior(labels)
+            self._logp[labels] = lp
+            self._new_visits.append((labels, lp, self.iteration))
+        return lp
+
+    def _id(self, labels: Labels) -> int:
+        idx = self._ids.get(labels)
+        if idx is None:
+            idx = len(self._labels)
+            self._ids[labels] = idx
+            self._labels.append(labels)
+        return idx
+
+    def _count(self, table: dict[str, int], key: str) -> None:
+        table[key] = table.get(key, 0) + 1
+
+    def _mh_step(self, r: int) -> None:
+        current = self.states[r]
+        c_max = self.max_chaining
+        links = 1 if c_max == 1 else self.rng.integers(1, c_max + 1)
+        if links == 1:
+            move = self.proposal.propose(current, self.rng)
+            new, log_ratio, kind = move.labels, move.log_ratio, move.kind
+        else:
+            new, log_ratio, kind = current, 0.0, "chain"
+            for _ in range(links):
+                move = self.proposal.propose(new, self.rng)
+                new, log_ratio = move.labels, log_ratio + move.log_ratio
+        cold = r == 0
+        if kind == "stay" or new == current:
+            if cold:
+                self._count(self.proposed, "stay")
+            return
+        lp = self._evaluate(new)
+        log_a = _log_target_ratio(self.betas[r], lp, self.logps[r]) + log_ratio
+        accepted = _accept(log_a, self.rng)
+        if cold:
+            self._count(self.proposed, kind)
+            if accepted:
+                self._count(self.accepted, kind)
+        if accepted:
+            self.states[r] = new
+            self.logps[r] = lp
+
+    def _swaps(self) -> None:
+        for i in range(len(self.betas) - 1, 0, -1):
+            key = f"swap {i - 1}-{i}"
+            self._count(self.proposed, key)
+            log_r = (self.betas[i - 1] - self.betas[i]) * (self.logps[i] - self.logps[i - 1])
+            if _accept(log_r, self.rng):
+                self._count(self.accepted, key)
+                self.states[i - 1], self.states[i] = self.states[i], self.states[i - 1]
+                self.logps[i - 1], self.logps[i] = self.logps[i], self.logps[i - 1]
+
+    def sweep(self) -> None:
+        """One MH step per replica, then swaps between adjacent temperatures; records the cold state."""
+        for r in range(len(self.betas)):
+            self._mh_step(r)
+        if len(self.betas) > 1:
+            self._swaps()
+        self._trace.append(self._id(self.states[0]))
+        self.iteration += 1
+
+    def run(self, until: int, deadline: float | None) -> None:
+        """Sweep up to ``until`` sweeps in all, or until ``deadline`` (``time.monotonic``), checked after
+        every sweep: one sweep on a long run can take a second while its registrations are computed."""
+        while self.iteration < until:
+            self.sweep()
+            if deadline is not None and time.monotonic() >= deadline:
+                return
+
+    def report(self) -> _Segment:
+        """Everything new since the last report."""
+        seg = _Segment(
+            new_labels=self._labels[self._reported_labels :],
+            trace=np.asarray(self._trace, dtype=np.int64),
+            visited=self._new_visits,
+            proposed=dict(self.proposed),
+            accepted=dict(self.accepted),
+            iteration=self.iteration,
+        )
+        self._reported_labels = len(self._labels)
+        self._trace = []
+        self._new_visits = []
+        return seg
+
+
+@dataclass
+class _Record:
+    """The main process's copy of one chain's output."""
+
+    labels: list[Labels] = field(default_factory=list)
+    traces: list[NDArray[np.int64]] = field(default_factory=list)
+    visited: dict[Labels, tuple[float, int]] = field(default_factory=dict)
+    proposed: dict[str, int] = field(default_factory=dict)
+    accepted: dict[str, int] = field(default_factory=dict)
+    iteration: int = 0
+
+    def apply(self, seg: _Segment) -> None:
+        self.labels.extend(seg.new_labels)
+        if seg.trace.size:
+            self.traces.append(seg.trace)
+        for lab, lp, it in seg.visited:
+            self.visited.setdefault(lab, (lp, it))
+        self.proposed, self.accepted, self.iteration = seg.proposed, seg.accepted, seg.iteration
+
+    def trace(self) -> NDArray[np.int64]:
+        if len(self.traces) > 1:
+            self.traces = [np.concatenate(self.traces)]
+        return self.traces[0] if self.traces else np.zeros(0, dtype=np.int64)
+
+
+class _InlineRunner:
+    """Chains advanced in this process, interleaved in chunks so a time cap treats them alike."""
+
+    def __init__(self, ladders: list[_Ladder]) -> None:
+        self.ladders = ladders
+
+    def advance(self, until: int, seconds: float) -> list[_Segment]:
+        deadline = time.monotonic() + seconds
+        while any(lad.iteration < until for lad in self.ladders) and time.monotonic() < deadline:
+            for lad in self.ladders:
+                lad.run(min(until, lad.iteration + _CHUNK), deadline)
+        return [lad.report() for lad in self.ladders]
+
+    def close(self) -> None:
+        return
+
+
+def _worker(conn: Any, ladders: list[_Ladder]) -> None:
+    """Worker process: advance its chains on request, send back their segments."""
+    runner = _InlineRunner(ladders)
+    try:
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                break
+            until, seconds = msg
+            conn.send(("ok", runner.advance(until, seconds)))
+    except EOFError:
+        pass
+    except Exception:  # reported to the parent, which raises
+        conn.send(("error", traceback.format_exc()))
+    finally:
+        conn.close()
+
+
+class _ProcessRunner:
+    """Chains spread round-robin over worker processes (fork: the model is inherited, not pickled)."""
+
+    def __init__(self, ladders: list[_Ladder], processes: int) -> None:
+        try:
+            ctx = mp.get_context("fork")
+        except ValueError as err:
+            msg = "McmcConfig.processes > 1 needs the 'fork' start method (Linux)"
+            raise ConfigError(msg) from err
+        n_workers = min(processes, len(ladders))
+        self.assign = [list(range(w, len(ladders), n_workers)) for w in range(n_workers)]
+        self.n = len(ladders)
+        self.conns = []
+        self.procs = []
+        for idx in self.assign:
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_worker, args=(child, [ladders[i] for i in idx]), daemon=True)
+            proc.start()
+            child.close()
+            self.conns.append(parent)
+            self.procs.append(proc)
+
+    def advance(self, until: int, seconds: float) -> list[_Segment]:
+        for conn in self.conns:
+            conn.send((until, seconds))
+        out: list[_Segment | None] = [None] * self.n
+        for conn, idx in zip(self.conns, self.assign, strict=True):
+            status, payload = conn.recv()
+            if status != "ok":
+                msg = f"an MCMC worker process failed:\n{payload}"
+                raise ModelError(msg)
+            for i, seg in zip(idx, payload, strict=True):
+                out[i] = seg
+        return [seg for seg in out if seg is not None]
+
+    def close(self) -> None:
+        for conn in self.conns:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                conn.send(None)
+        for proc in self.procs:
+            proc.join(timeout=5.0)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join()
+        for conn in self.conns:
+            conn.close()
+
+
+# ---------------------------------------------------------------------------------------------------
+# Estimates
+# ---------------------------------------------------------------------------------------------------
+
+
+def _histogram(records: Sequence[_Record], stop: int, burn_in: float) -> dict[Labels, float]:
+    counts: dict[Labels, float] = {}
+    for rec in records:
+        trace = rec.trace()[:stop]
+        start = int(burn_in * len(trace))
+        ids = trace[start:]
+        if ids.size == 0:
+            continue
+        c = np.bincount(ids)
+        for i in np.flatnonzero(c).tolist():
+            lab = rec.labels[i]
+            counts[lab] = counts.get(lab, 0.0) + float(c[i])
+    total = math.fsum(counts.values())
+    if total == 0.0:  # no sweep yet: the initial states
+        for rec in records:
+            counts[next(iter(rec.visited))] = 1.0  # the first evaluated topology is the initial state
+        total = float(len(counts))
+    return {lab: c / total for lab, c in counts.items()}
+
+
+def _visited(records: Sequence[_Record], stop: int) -> dict[Labels, float]:
+    logp: dict[Labels, float] = {}
+    for rec in records:
+        for lab, (lp, it) in rec.visited.items():
+            if it < stop or it == 0:
+                logp[lab] = lp
+    return normalize_log(logp)
+
+
+#: Probability mass left out of :func:`pair_marginal_change` (the least probable topologies).
+_PAIR_MASS_TAIL = 1e-6
+
+
+def pair_marginal_change(p: dict[Labels, float], q: dict[Labels, float], n: int) -> float:
+    """Largest absolute difference between two PTMs' same-place probabilities of a visit pair
+    (:func:`ptm_ros.model.posterior.same_place_probabilities`), each PTM cut to its most probable topologies
+    holding all but ``1e-6`` of its mass (the cut moves a marginal by at most that)."""
+    return _largest_pair_change(_pair_marginals(p, n), _pair_marginals(q, n))
+
+
+def _pair_marginals(probs: dict[Labels, float], n: int) -> FloatArray:
+    """Same-place probabilities ``(n, n)`` of a PTM cut to all but ``_PAIR_MASS_TAIL`` of its mass."""
+    return same_place_probabilities(_head(probs, 1.0 - _PAIR_MASS_TAIL), n)
+
+
+def _largest_pair_change(a: FloatArray, b: FloatArray) -> float:
+    n = a.shape[0]
+    return 0.0 if n < 2 else float(np.max(np.abs(a - b)[np.triu_indices(n, 1)]))
+
+
+def _head(probs: dict[Labels, float], mass: float) -> dict[Labels, float]:
+    out: dict[Labels, float] = {}
+    total = 0.0
+    for lab, pr in sorted(probs.items(), key=lambda kv: -kv[1]):
+        if total >= mass:
+            break
+        out[lab] = pr
+        total += pr
+    return out
+
+
+def _sort(probs: dict[Labels, float]) -> dict[Labels, float]:
+    return dict(sorted(probs.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def initial_kind(config: McmcConfig, n: int) -> str:
+    """The start ``config.initial`` means over ``n`` visits: "auto" resolved to "rbpf" beyond
+    ``auto_filter_visits`` visits, else to "singletons"; any other setting as it is."""
+    if config.initial != "auto":
+        return config.initial
+    return "rbpf" if n > config.auto_filter_visits else "singletons"
+
+
+def starts_from_filter(config: McmcConfig, n: int) -> bool:
+    """Whether the chains over ``n`` visits start from the particle filter's topologies."""
+    return initial_kind(config, n) == "rbpf"
+
+
+def _initial_state(kind: str, n: int, rng: np.random.Generator) -> Labels:
+    if kind == "singletons":
+        return tuple(range(n))
+    if kind == "one-place":
+        return (0,) * n
+    return random_partition(n, rng)
+
+
+def _given_starts(initial: Sequence[int] | Sequence[Sequence[int]] | None, n: int) -> list[Labels] | None:
+    """The chains' initial topologies from one label sequence or a sequence of them (None: not given)."""
+    if initial is None:
+        return None
+    items = list(initial)
+    many = bool(items) and all(isinstance(v, Sequence) and not isinstance(v, str) for v in items)
+    # many: every item is a label sequence (checked just above); else the items are the labels themselves
+    states = cast("list[Sequence[int]]", items) if many else [cast("list[int]", items)]
+    out: list[Labels] = []
+    for state in states:
+        start = tuple(int(v) for v in state)
+        if len(start) != n or not is_canonical(start):
+            msg = f"initial topology must be a canonical label sequence of {n} visits, got {start}"
+            raise ModelError(msg)
+        out.append(start)
+    return out
+
+
+def _generators(rng: np.random.Generator | int | None, n: int) -> list[np.random.Generator]:
+    if isinstance(rng, np.random.Generator):
+        return list(rng.spawn(n))
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(rng).spawn(n)]
+
+
+class McmcSampler:
+    """The MCMC driver: independent MC³ chains advanced together, with their estimates and diagnostics.
+
+    :func:`run_mcmc` is the usual entry point; use this class directly to follow a run sweep by sweep
+    (benchmarks). Close it (or use it as a context manager) to stop worker processes.
+    """
+
+    def __init__(
+        self,
+        model: PosteriorModel,
+        config: McmcConfig | None = None,
+        rng: np.random.Generator | int | None = None,
+        *,
+        initial: Sequence[int] | Sequence[Sequence[int]] | None = None,
+        proposal: ProposalKernel | None = None,
+    ) -> None:
+        self.model = model
+        self.config = config or McmcConfig()
+        self.proposal = proposal if proposal is not None else make_proposal(model, self.config)
+        gens = _generators(rng, self.config.chains)
+        starts = _given_starts(initial, model.n)
+        if starts is None and starts_from_filter(self.config, model.n):
+            msg = (
+                f"McmcConfig.initial = {self.config.initial!r} over {model.n} visits needs the filter's "
+                'topologies as the initial argument (or initial = "singletons")'
+            )
+            raise ConfigError(msg)
+        ladders = []
+        for c, gen in enumerate(gens):
+            state = (
+                _initial_state(initial_kind(self.config, model.n), model.n, gen)
+                if starts is None
+                else starts[c % len(starts)]
+            )
+            ladders.append(_Ladder(model, self.proposal, self.config, state, gen))
+        self.records = [_Record() for _ in ladders]
+        for rec, lad in zip(self.records, ladders, strict=True):
+            rec.apply(lad.report())
+        self._runner: _InlineRunner | _ProcessRunner
+        if self.config.processes > 1 and len(ladders) > 1:
+            self._runner = _ProcessRunner(ladders, self.config.processes)
+        else:
+            self._runner = _InlineRunner(ladders)
+        self._start = time.monotonic()
+
+    def __enter__(self) -> McmcSampler:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the worker processes (if any)."""
+        self._runner.close()
+
+    @property
+    def iterations(self) -> int:
+        """Sweeps completed by every chain."""
+        return min(rec.iteration for rec in self.records)
+
+    @property
+    def wall_s(self) -> float:
+        """Seconds since the sampler was built."""
+        return time.monotonic() - self._start
+
+    def advance(self, until: int, seconds: float = math.inf) -> int:
+        """Run every chain to ``until`` sweeps in all (or for ``seconds``); returns :attr:`iterations`."""
+        for rec, seg in zip(self.records, self._runner.advance(until, seconds), strict=True):
+            rec.apply(seg)
+        return self.iterations
+
+    def estimate(
+        self, kind: str | None = None, *, stop: int | None = None, chain: int | None = None
+    ) -> dict[Labels, float]:
+        """The PTM from sweeps ``[0, stop)`` (default all) of every chain, or of chain ``chain`` only."""
+        kind = kind or self.config.estimate
+        if kind not in ESTIMATES:
+            msg = f"estimate kind must be one of {ESTIMATES}, got {kind!r}"
+            raise ConfigError(msg)
+        stop = self.iterations if stop is None else stop
+        recs = self.records if chain is None else [self.records[chain]]
+        if kind == "visited":
+            return _sort(_visited(recs, stop))
+        return _sort(_histogram(recs, stop, self.config.burn_in))
+
+    def check(self, kind: str | None = None) -> McmcCheck:
+        """Sample doubling TV and chain agreement TV of the estimate now."""
+        n = self.iterations
+        full = self.estimate(kind, stop=n)
+        half = self.estimate(kind, stop=n // 2)
+        doubling = total_variation(half, full)
+        nv = self.model.n
+        pair = _largest_pair_change(_pair_marginals(half, nv), _pair_marginals(full, nv))
+        chain_tv = chain_pair = None
+        if len(self.records) > 1:
+            per = [self.estimate(kind, stop=n, chain=c) for c in range(len(self.records))]
+            chain_tv = max(total_variation(p, q) for p, q in combinations(per, 2))
+            marginals = [_pair_marginals(p, nv) for p in per]  # once per chain, not once per pair of chains
+            chain_pair = max(_largest_pair_change(a, b) for a, b in combinations(marginals, 2))
+        n_eval = len(set().union(*(rec.visited for rec in self.records)))
+        return McmcCheck(n, self.wall_s, doubling, chain_tv, n_eval, pair, chain_pair)
+
+    def cold_chain(self, max_samples: int) -> tuple[tuple[tuple[int, ...], ...], tuple[Labels, ...], int]:
+        """Every chain's cold-state trace thinned to at most ``max_samples`` states by one common stride.
+
+        Returns ``(states, labels, thin)``: per chain the ids of its state after sweeps
+        ``0, thin, 2 thin, …`` (0-based, the first sweep included), the topology of each id (shared by all
+        chains, numbered in order of first appearance, chain 0's kept states first) and the stride
+        ``thin = ⌈longest trace / max_samples⌉``.
+        """
+        if max_samples < 1:
+            msg = f"max_samples must be >= 1, got {max_samples}"
+            raise ConfigError(msg)
+        traces = [rec.trace() for rec in self.records]
+        thin = max(1, -(-max(len(t) for t in traces) // max_samples))
+        ids: dict[Labels, int] = {}
+        states = []
+        for rec, trace in zip(self.records, traces, strict=True):
+            kept = trace[::thin].tolist()  # this chain's own ids
+            remap = {i: ids.setdefault(rec.labels[i], len(ids)) for i in dict.fromkeys(kept)}
+            states.append(tuple(remap[i] for i in kept))
+        return tuple(states), tuple(ids), thin
+
+    def acceptance(self) -> tuple[dict[str, float], dict[str, int]]:
+        """Acceptance rate and proposal count per move kind, pooled over chains."""
+        proposed: dict[str, int] = {}
+        accepted: dict[str, int] = {}
+        for rec in self.records:
+            for k, v in rec.proposed.items():
+                proposed[k] = proposed.get(k, 0) + v
+            for k, v in rec.accepted.items():
+                accepted[k] = accepted.get(k, 0) + v
+        rates = {k: accepted.get(k, 0) / v for k, v in sorted(proposed.items()) if k != "stay" and v > 0}
+        return rates, dict(sorted(proposed.items()))
+
+    def result(self, history: Sequence[McmcCheck] = (), stop_reason: str = "") -> McmcResult:
+        """The estimates and diagnostics as they stand."""
+        cfg = self.config
+        last = self.check()
+        hist = tuple(history) or (last,)
+        converged = last.converged(cfg.tolerance) and last.iterations >= cfg.min_iterations
+        rates, counts = self.acceptance()
+        logp: dict[Labels, float] = {}
+        for rec in self.records:
+            logp.update({lab: lp for lab, (lp, _) in rec.visited.items()})
+        diag = McmcDiagnostics(
+            iterations=last.iterations,
+            chains=len(self.records),
+            betas=cfg.betas,
+            doubling_tv=last.doubling_tv,
+            chain_tv=last.chain_tv,
+            converged=converged,
+            stop_reason=stop_reason or ("converged" if converged else "stopped"),
+            acceptance=rates,
+            proposals=counts,
+            n_evaluated=last.n_evaluated,
+            history=hist,
+            doubling_pair=last.doubling_pair,
+            chain_pair=last.chain_pair,
+        )
+        histogram = self.estimate("histogram")
+        visited = self.estimate("visited")
+        states, labels, thin = self.cold_chain(cfg.trace_samples)
+        return McmcResult(
+            probabilities=visited if cfg.estimate == "visited" else histogram,
+            histogram=histogram,
+            visited=visited,
+            log_posteriors=logp,
+            samples=sum(rec.iteration for rec in self.records),
+            wall_s=self.wall_s,
+            diagnostics=diag,
+            config=cfg,
+            cold_states=states,
+            state_labels=labels,
+            cold_thin=thin,
+        )
+
+
+def _advance(
+    sampler: McmcSampler, target: int, max_seconds: float, progress: Callable[[int, int], None] | None
+) -> int:
+    """Every chain to ``target`` sweeps within ``max_seconds`` of the sampler's time (in tenths of the way
+    when ``progress`` hears of each); the sweeps every chain has done."""
+    if progress is None:
+        remaining = max_seconds - sampler.wall_s
+        return sampler.advance(target, remaining) if remaining > 0.0 else sampler.iterations
+    reached = sampler.iterations
+    step = max(1, -(-(target - reached) // 10))
+    while reached < target:
+        remaining = max_seconds - sampler.wall_s
+        if remaining <= 0.0:
+            break
+        goal = min(target, reached + step)
+        reached = sampler.advance(goal, remaining)
+        progress(reached, target)
+        if reached < goal:  # the time cap
+            break
+    return reached
+
+
+def run_mcmc(
+    model: PosteriorModel,
+    config: McmcConfig | None = None,
+    rng: np.random.Generator | int | None = None,
+    *,
+    initial: Sequence[int] | Sequence[Sequence[int]] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> McmcResult:
+    """The PTM of ``model`` by MCMC with sample doubling until converged or capped (module docstring).
+
+    ``rng``: a generator or an integer seed (each chain gets an independent child stream); the result
+    is a function of the seed unless ``config.max_seconds`` ends the run. ``initial`` overrides
+    ``config.initial``: one topology for every chain, or a sequence of topologies (chain ``c`` starts
+    from the ``c``-th, cycled). ``progress(sweeps, target)`` (e.g. a progress bar) hears of the sweeps
+    every chain has done and of the round's target, ten times a round: the chains then advance in
+    tenths of a round, which changes nothing in the result (each chain has its own random stream).
+    """
+    cfg = config or McmcConfig()
+    with McmcSampler(model, cfg, rng, initial=initial) as sampler:
+        history: list[McmcCheck] = []
+        target = cfg.min_iterations
+        reason = "max_iterations"
+        while True:
+            reached = _advance(sampler, target, cfg.max_seconds, progress)
+            check = sampler.check()
+            history.append(check)
+            if check.converged(cfg.tolerance) and reached >= cfg.min_iterations:
+                reason = "converged"
+                break
+            if reached < target or sampler.wall_s >= cfg.max_seconds:
+                reason = "max_seconds"
+                break
+            if target >= cfg.max_iterations:
+                break
+            target = min(2 * target, cfg.max_iterations)
+        return sampler.result(history, reason)

@@ -1,0 +1,1513 @@
+"""Laser map patches and their registration: the scan measurement of a visit (thesis Ch. 3.10.4).
+
+The RBPF weight of a topology sample integrates the landmark locations out of the joint likelihood of
+the scan and odometry measurements (eq. 47–48); given the locations, scan and odometry factor
+(eq. 49). The scan measurement ``s_n`` of visit ``n`` is a *local map patch*: the laser scans taken
+while the robot passes through the landmark's neighbourhood, concatenated in the frame of the visit
+(Fig. 48). Whether two visits are one place, and where they lie relative to each other, is then read
+off a registration of their patches (the thesis uses point-to-plane matching, Chen & Medioni). This
+module turns that into a Gaussian measurement of the relative pose of two visits,
+
+.. math::
+    z_{ij} = x_i \\ominus x_j + v, \\qquad v \\sim \\mathcal{N}(0, \\Sigma_{ij}),
+
+(:class:`~ptm_ros.model.geometry.RelativePose`) which the metric likelihood (:mod:`ptm_ros.model.odometry`)
+consumes; a registration that fails its fitness test yields *no* measurement, never a false match.
+
+Pipeline:
+
+* :func:`scan_to_points` — one ``LaserScan`` to 2-D points in the sensor frame;
+* :func:`passage_patch` (offline) or :class:`PatchBuilder` (online, same result) — the patch of a visit:
+  the scans of one passage within ``patch_radius`` (:func:`passage_slice`), thinned to
+  :func:`keyframes`, their odometry corrected by scan-to-map ICP (:func:`refine_scan_poses`; the
+  thesis concatenates by odometry, which on the Intel log bends a 6 m passage by several degrees),
+  concatenated in the visit frame and voxel-downsampled deterministically. :func:`build_patch` is the
+  plain odometry concatenation;
+* :func:`register_patches` — kiss-icp point-to-point ICP (coarse, then fine voxel map) from several
+  initial headings, a point-to-plane Gauss–Newton polish whose inverse information is the covariance,
+  and a validity test: symmetric inlier fraction, a sharp optimum, no equally good distinct solution;
+* :func:`to_relative_pose` — the measurement, or None when the registration is not valid.
+
+Direction convention: ``register_patches(source, target, …)`` estimates
+``between(x_target, x_source)``, the pose of the *source* visit in the frame of the *target* visit, so
+``transform_points(mean, source)`` lands on ``target``; ``to_relative_pose(reg, i=target, j=source)``.
+
+kiss-icp (1.3) is imported lazily inside the functions that run ICP (core modules stay numpy/scipy
+only); it is used through ``kiss_icp.mapping.VoxelHashMap`` and ``kiss_icp.registration.Registration``
+with one thread, on ``(N, 3)`` points with ``z = 0`` (no deskewing: patches are already static).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, MutableMapping, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any, NamedTuple, Protocol, TypeVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import cho_factor, cho_solve, eigh
+from scipy.spatial import cKDTree
+
+from ptm_ros.errors import ConfigError, ModelError, PtmError, RegistrationError
+from ptm_ros.model.geometry import (
+    FloatArray,
+    NoMatch,
+    RelativePose,
+    between,
+    compose,
+    inverse,
+    moved,
+    transform_points,
+    wrap_angle,
+)
+from ptm_ros.model.visits import Visit
+
+__all__ = [
+    "FLAT_OPTIMUM",
+    "LaserConfig",
+    "PatchBuilder",
+    "Registration",
+    "ScanMap",
+    "ScanPoints",
+    "align_scan_to_map",
+    "build_patch",
+    "fitness_log_bayes",
+    "keyframes",
+    "laser_outcome",
+    "passage_patch",
+    "passage_slice",
+    "refine_scan_poses",
+    "register_patches",
+    "scan_to_points",
+    "to_relative_pose",
+    "usable_points",
+    "voxel_downsample",
+]
+
+_IDENTITY = np.zeros(3)
+FLAT_OPTIMUM = "flat optimum"  # how Registration.reason starts when the match slides (a corridor)
+_MIN_SCAN_POINTS = 10  # fewer points than this: a scan keeps its odometry pose in refine_scan_poses
+_MAX_STEP_CORRECTION = (0.5, 0.2)  # (m, rad): larger ICP corrections of one odometry step are rejected
+_NORMAL_NEIGHBOURS = 16  # target points in the PCA of a normal
+_MAX_CURVATURE = 0.05  # eigenvalue ratio above which a neighbourhood has no normal (corner, clutter)
+_STEP_PRIOR_STD = np.array([0.1, 0.1, 0.05])  # m, m, rad: trust in kiss-icp along unseen directions
+_PREPARED_PATCHES = 512  # patches PatchRegistrar keeps prepared (least recently used dropped)
+_T = TypeVar("_T")
+_GN_ITERATIONS = 30  # point-to-plane Gauss–Newton iterations after kiss-icp
+_MIN_RESIDUAL_VARIANCE = 1e-12  # m², keeps the information finite on noise-free data
+
+
+# --------------------------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class LaserConfig:
+    """Parameters of patch building and patch registration (lengths in m, angles in rad).
+
+    Attributes:
+        patch_radius: scans taken within this distance of the visit pose form its patch (Fig. 48).
+        patch_voxel: resolution at which patches are stored (first point per voxel).
+        keyframe_xy: a scan joins a patch only after the robot moved this far since the last one …
+        keyframe_yaw: … or turned this much.
+        refine: correct the odometry along a passage by scan-to-map ICP before concatenating.
+        voxel: kiss-icp map voxel of the fine ICP stage (>= 0.25); the coarse stage uses twice this.
+        max_range: longest beam used; pass ``min(scan.range_max, max_range)`` to :func:`scan_to_points`;
+            patches drop points farther from their sensor.
+        correspondence_distance: maximum point distance of a correspondence in the fine ICP stage.
+        n_rotations: initial headings tried, evenly spaced over the full turn around the guess.
+        inlier_distance: a source point within this distance of the target is an inlier.
+        min_inlier_fraction: a registration is valid only if at least this fraction of the source
+            points lie near the target *and* of the target points near the source.
+        min_points: fewest points a (downsampled) patch may have to be registered, and fewest inliers
+            of a valid registration.
+        distinct_xy: translation at which two solutions count as distinct.
+        distinct_yaw: rotation at which two solutions count as distinct.
+        min_peak_drop: the match must be a sharp peak: moving the solution by ``distinct_xy`` (in any
+            of 8 directions) or turning it by ``±distinct_yaw`` must lose at least this inlier fraction
+            (rejects corridors and other sliding matches).
+        ambiguity_margin: the registration is invalid when a distinct solution from another initial
+            heading comes within this inlier fraction of the best one (symmetric rooms).
+        min_std_xy: covariance floor, translation standard deviation.
+        min_std_yaw: covariance floor, heading standard deviation.
+        max_iterations: ICP iterations per stage.
+        use_fitness: besides the relative pose of a valid match, score the fitness ``f`` (the symmetric
+            inlier fraction of the best alignment) of every registration of a chained pair as evidence
+            for or against one place (:func:`fitness_log_bayes`); a failed match is then evidence too.
+        fitness_same_a, fitness_same_b: Beta density of ``f`` for two visits of one place.
+        fitness_different_a, fitness_different_b: Beta density of ``f`` for visits of different places.
+        fitness_outlier: weight of a uniform component mixed into both densities (robustness).
+    """
+
+    patch_radius: float = 3.0
+    patch_voxel: float = 0.05
+    keyframe_xy: float = 0.05
+    keyframe_yaw: float = 0.05
+    refine: bool = True
+    voxel: float = 0.5
+    max_range: float = 30.0
+    correspondence_distance: float = 1.0
+    n_rotations: int = 8
+    inlier_distance: float = 0.15
+    min_inlier_fraction: float = 0.4
+    min_points: int = 30
+    distinct_xy: float = 1.0
+    distinct_yaw: float = 0.17
+    min_peak_drop: float = 0.2
+    ambiguity_margin: float = 0.1
+    min_std_xy: float = 0.05
+    min_std_yaw: float = 0.02
+    max_iterations: int = 100
+    use_fitness: bool = True
+    fitness_same_a: float = 1.6
+    fitness_same_b: float = 1.6
+    fitness_different_a: float = 6.5
+    fitness_different_b: float = 31.3
+    fitness_outlier: float = 0.05
+
+    def __post_init__(self) -> None:
+        positive = (
+            "fitness_same_a",
+            "fitness_same_b",
+            "fitness_different_a",
+            "fitness_different_b",
+            "patch_radius",
+            "patch_voxel",
+            "max_range",
+            "correspondence_distance",
+            "inlier_distance",
+            "distinct_xy",
+            "distinct_yaw",
+            "min_std_xy",
+            "min_std_yaw",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0.0):
+                msg = f"LaserConfig.{name} must be a finite number > 0, got {value!r}"
+                raise ConfigError(msg)
+        if not (isinstance(self.voxel, int | float) and math.isfinite(self.voxel) and self.voxel >= 0.25):
+            msg = f"LaserConfig.voxel must be >= 0.25 m (kiss-icp), got {self.voxel!r}"
+            raise ConfigError(msg)
+        if not 0.0 < self.min_inlier_fraction <= 1.0:
+            msg = f"LaserConfig.min_inlier_fraction must be in (0, 1], got {self.min_inlier_fraction!r}"
+            raise ConfigError(msg)
+        for name in ("keyframe_xy", "keyframe_yaw"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0.0):
+                msg = f"LaserConfig.{name} must be a finite number >= 0, got {value!r}"
+                raise ConfigError(msg)
+        for name in ("refine", "use_fitness"):
+            if not isinstance(getattr(self, name), bool):
+                msg = f"LaserConfig.{name} must be a bool, got {getattr(self, name)!r}"
+                raise ConfigError(msg)
+        if not 0.0 <= self.fitness_outlier < 1.0:
+            msg = f"LaserConfig.fitness_outlier must be in [0, 1), got {self.fitness_outlier!r}"
+            raise ConfigError(msg)
+        for name in ("min_peak_drop", "ambiguity_margin"):
+            value = getattr(self, name)
+            if not 0.0 <= value < 1.0:
+                msg = f"LaserConfig.{name} must be in [0, 1), got {value!r}"
+                raise ConfigError(msg)
+        for name, low in (("n_rotations", 1), ("min_points", 4), ("max_iterations", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                msg = f"LaserConfig.{name} must be an integer >= {low}, got {value!r}"
+                raise ConfigError(msg)
+
+
+# ------------------------------------------------------------------------------------------ scans
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """The usable beams of one scan: ``points`` ``(P, 2)`` in the sensor frame, ``dropped`` beams."""
+
+    points: FloatArray
+    dropped: int
+
+
+def scan_to_points(
+    ranges: ArrayLike,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+    *,
+    angle_max: float | None = None,
+) -> ScanPoints:
+    """Convert a ``LaserScan``'s ranges to points; beam ``k`` points at ``angle_min + k·angle_increment``.
+
+    Beams that are NaN, infinite, shorter than ``range_min`` or longer than ``range_max`` are dropped
+    (sensor_msgs/LaserScan: values outside ``[range_min, range_max]`` are discarded). ``angle_max``,
+    when given, must agree with the beam count to within one beam (drivers differ on the last beam).
+    Empty ``ranges`` give 0 points.
+    """
+    r = np.asarray(ranges, dtype=float)
+    if r.ndim != 1:
+        msg = f"ranges must be 1-D, got shape {r.shape}"
+        raise ModelError(msg)
+    for name, value in (("angle_min", angle_min), ("angle_increment", angle_increment)):
+        if not math.isfinite(value):
+            msg = f"{name} must be finite, got {value}"
+            raise ModelError(msg)
+    if not (math.isfinite(range_min) and range_min >= 0.0 and range_max > range_min):
+        msg = f"need 0 <= range_min < range_max, got range_min={range_min}, range_max={range_max}"
+        raise ModelError(msg)
+    n = len(r)
+    if angle_increment == 0.0 and n > 1:
+        msg = f"angle_increment is 0 but the scan has {n} beams"
+        raise ModelError(msg)
+    if angle_max is not None and n > 0:
+        if not math.isfinite(angle_max):
+            msg = f"angle_max must be finite, got {angle_max}"
+            raise ModelError(msg)
+        if angle_increment != 0.0:
+            span = (angle_max - angle_min) / angle_increment
+            if span < -1e-6:
+                msg = (
+                    f"angle_min={angle_min}, angle_max={angle_max}, angle_increment={angle_increment} "
+                    f"imply a negative beam count ({span:.3f})"
+                )
+                raise ModelError(msg)
+            if abs(span + 1.0 - n) > 1.0 + 1e-6:
+                msg = f"angle_min/angle_max/angle_increment imply {span + 1.0:.1f} beams, got {n}"
+                raise ModelError(msg)
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(r) & (r >= range_min) & (r <= range_max)
+    angles = angle_min + angle_increment * np.flatnonzero(keep)
+    rk = r[keep]
+    points = np.column_stack([rk * np.cos(angles), rk * np.sin(angles)]).reshape(-1, 2)
+    return ScanPoints(points=points, dropped=int(n - keep.sum()))
+
+
+def usable_points(  # noqa: PLR0917 - the LaserScan fields read best positionally
+    ranges: ArrayLike,
+    angle_min: float,
+    angle_increment: float,
+    range_min: float,
+    range_max: float,
+    laser: LaserConfig,
+) -> ScanPoints | None:
+    """:func:`scan_to_points` with the beams beyond ``laser.max_range`` dropped, None for a malformed
+    scan: the points the laser odometry and the patches use."""
+    try:
+        return scan_to_points(ranges, angle_min, angle_increment, range_min, min(range_max, laser.max_range))
+    except PtmError:
+        return None
+
+
+# ---------------------------------------------------------------------------------------- patches
+
+
+def voxel_downsample(points: ArrayLike, voxel: float) -> FloatArray:
+    """Keep the first point (in input order) of every ``voxel``-sized grid cell, sorted by cell.
+
+    Deterministic, and idempotent on concatenations: ``voxel_downsample(vstack([voxel_downsample(A),
+    B]))`` equals ``voxel_downsample(vstack([A, B]))``.
+    """
+    pts = _as_points(points, "points")
+    if not (math.isfinite(voxel) and voxel > 0.0):
+        msg = f"voxel must be finite and > 0, got {voxel}"
+        raise ModelError(msg)
+    if len(pts) == 0:
+        return pts
+    cells = np.floor(pts / voxel).astype(np.int64)
+    lo, hi = cells.min(axis=0), cells.max(axis=0)
+    cols, rows = int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
+    if cols * rows < 2**62:  # one integer key per cell, ordered like (cx, cy): a fast 1-D sort
+        key = (cells[:, 0] - lo[0]) * rows + (cells[:, 1] - lo[1])
+        _, first = np.unique(key, return_index=True)
+    else:  # astronomically spread points: sort the cell pairs themselves
+        _, first = np.unique(cells, axis=0, return_index=True)
+    return pts[first]
+
+
+def passage_slice(
+    scan_stamps: ArrayLike, scan_poses: ArrayLike, visit_stamp: float, visit_pose: ArrayLike, radius: float
+) -> slice:
+    """The scans of one passage through a visit: the longest run of consecutive scans within ``radius``
+    of ``visit_pose`` that contains the scan nearest in time to ``visit_stamp`` (empty if that scan is
+    outside the radius). Other passages through the same place are left out, so two visits of one
+    place never share scans.
+    """
+    stamps = np.asarray(scan_stamps, dtype=float).reshape(-1)
+    poses = _as_poses(scan_poses, "scan_poses")
+    if len(stamps) != len(poses):
+        msg = f"{len(stamps)} scan stamps but {len(poses)} scan poses"
+        raise ModelError(msg)
+    _check_positive(radius=radius)
+    if len(stamps) == 0:
+        return slice(0, 0)
+    inside = _within(poses, _as_pose(visit_pose, "visit_pose"), radius)
+    centre = int(np.argmin(np.abs(stamps - visit_stamp)))
+    if not inside[centre]:
+        return slice(centre, centre)
+    lo = centre
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    hi = centre + 1
+    while hi < len(inside) and inside[hi]:
+        hi += 1
+    return slice(lo, hi)
+
+
+def build_patch(
+    scans_points: Sequence[ArrayLike],
+    scan_poses: ArrayLike,
+    visit_pose: ArrayLike,
+    radius: float,
+    voxel: float,
+    *,
+    sensor_offset: ArrayLike | None = None,
+) -> FloatArray:
+    """The local map patch of a visit (Fig. 48) from odometry alone: points ``(P, 2)`` in the visit frame.
+
+    Scans ``scans_points[k]`` (sensor frame) taken at robot odometry poses ``scan_poses[k]`` within
+    ``radius`` of ``visit_pose`` are moved into the visit frame, ``visit_pose ⊖ (scan_pose ⊕
+    sensor_offset)``, concatenated in order and voxel-downsampled (:func:`voxel_downsample`). Pass the
+    scans of one passage (:func:`passage_slice`); :func:`passage_patch` also corrects the odometry.
+    """
+    poses = _as_poses(scan_poses, "scan_poses")
+    if len(scans_points) != len(poses):
+        msg = f"{len(scans_points)} scans but {len(poses)} scan poses"
+        raise ModelError(msg)
+    _check_positive(radius=radius, voxel=voxel)
+    visit = _as_pose(visit_pose, "visit_pose")
+    offset = _offset(sensor_offset)
+    inside = np.flatnonzero(_within(poses, visit, radius))
+    scans = [_as_points(scans_points[int(k)], f"scans_points[{k}]") for k in inside]
+    return _concatenate(scans, poses[inside], visit, offset, voxel)
+
+
+def keyframes(scan_poses: ArrayLike, min_xy: float, min_yaw: float) -> NDArray[np.intp]:
+    """Indices of the scans kept for a patch: the first, then each that moved at least ``min_xy`` or turned
+    at least ``min_yaw`` since the last kept one (bounds a patch's memory while the robot stands still)."""
+    poses = _as_poses(scan_poses, "scan_poses")
+    kept: list[int] = []
+    for k in range(len(poses)):
+        if not kept or moved(poses[kept[-1]], poses[k], min_xy, min_yaw):
+            kept.append(k)
+    return np.array(kept, dtype=np.intp)
+
+
+def refine_scan_poses(
+    scans_points: Sequence[ArrayLike],
+    scan_poses: ArrayLike,
+    config: LaserConfig | None = None,
+    *,
+    sensor_offset: ArrayLike | None = None,
+) -> FloatArray:
+    """Correct the odometry along one passage by scan-to-map ICP (kiss-icp): robot poses ``(S, 3)``.
+
+    The first scan keeps its odometry pose and seeds a voxel map; each next scan starts from the
+    previous corrected pose plus the odometry increment, is aligned to the map (kiss-icp, then
+    point-to-plane Gauss–Newton against the map points) and added to it. A
+    correction larger than 0.5 m or 0.2 rad over the odometry increment, or a scan with fewer than 10
+    points, falls back to odometry. The thesis concatenates scans by odometry (Fig. 48); on real logs
+    (Intel) the rotational odometry drift over a 6 m passage distorts patches by several degrees.
+    """
+    cfg = LaserConfig() if config is None else config
+    poses = _as_poses(scan_poses, "scan_poses")
+    if len(scans_points) != len(poses):
+        msg = f"{len(scans_points)} scans but {len(poses)} scan poses"
+        raise ModelError(msg)
+    if len(poses) == 0:
+        return poses
+    offset = _offset(sensor_offset)
+    scans = [_as_points(p, f"scans_points[{k}]") for k, p in enumerate(scans_points)]
+
+    from kiss_icp.mapping import VoxelHashMap
+    from kiss_icp.registration import Registration as KissRegistration
+
+    icp = KissRegistration(
+        max_num_iterations=cfg.max_iterations, convergence_criterion=1e-4, max_num_threads=1
+    )
+    extent = cfg.max_range + cfg.patch_radius  # only points added with update() are culled by it
+    voxel_map = VoxelHashMap(voxel_size=cfg.voxel, max_distance=extent, max_points_per_voxel=20)
+    sensor = compose(poses, offset)
+    refined = sensor.copy()
+    map_points = np.empty((0, 2))
+    for k, pts in enumerate(scans):
+        if k > 0:
+            guess = compose(refined[k - 1], between(sensor[k - 1], sensor[k]))
+            refined[k] = guess
+            aligned = _polished_alignment(
+                icp, pts, voxel_map, map_points, guess, cfg, cfg.voxel, cfg.correspondence_distance
+            )
+            if aligned is not None and not moved(guess, aligned.pose, *_MAX_STEP_CORRECTION):
+                refined[k] = aligned.pose
+        world = transform_points(refined[k], pts)
+        voxel_map.add_points(_lift(voxel_downsample(world, 0.5 * cfg.voxel)))
+        map_points = voxel_downsample(np.vstack([map_points, world]), cfg.patch_voxel)
+    return compose(refined, inverse(offset))
+
+
+class Alignment(NamedTuple):
+    """A scan's aligned world pose, and how many translation directions kept the guess there
+    (:func:`weak_directions`; 0 without the polish or with ``degenerate_ratio`` 0)."""
+
+    pose: FloatArray
+    weak: int
+
+
+class ScanMap:
+    """A local map (world-frame points) prepared once for many scan alignments: kiss-icp voxel map,
+    target points at ``patch_voxel`` with their KD-tree and normals. (Used by
+    :mod:`ptm_ros.perception.laser_odometry`, rebuilt when a keyframe joins the map.)"""
+
+    def __init__(
+        self, map_points: ArrayLike, config: LaserConfig | None = None, *, voxel: float | None = None
+    ):
+        from kiss_icp.mapping import VoxelHashMap
+        from kiss_icp.registration import Registration as KissRegistration
+
+        self.config = LaserConfig() if config is None else config
+        self.voxel = self.config.voxel if voxel is None else float(voxel)
+        pts = _as_points(map_points, "map_points")
+        self.n_points = len(voxel_downsample(pts, self.voxel))
+        self._icp = KissRegistration(
+            max_num_iterations=self.config.max_iterations, convergence_criterion=1e-4, max_num_threads=1
+        )
+        self._voxel_map = VoxelHashMap(voxel_size=self.voxel, max_distance=1e6, max_points_per_voxel=20)
+        self._voxel_map.add_points(_lift(voxel_downsample(pts, 0.5 * self.voxel)))
+        self._target = _Target(voxel_downsample(pts, self.config.patch_voxel), 0.5 * self.voxel)
+
+    def align(
+        self,
+        points: ArrayLike,
+        guess: ArrayLike,
+        *,
+        correspondence_distance: float | None = None,
+        refine: bool = True,
+        min_points: int = _MIN_SCAN_POINTS,
+        degenerate_ratio: float = 0.0,
+    ) -> Alignment | None:
+        """The world pose of a scan (``points`` in the robot frame) aligned onto the map from ``guess``:
+        kiss-icp point-to-point, then (``refine``) the point-to-plane polish of :func:`register_patches`
+        with the guess kept along the directions the scan hardly constrains (``degenerate_ratio``,
+        :func:`keep_unobserved`). None when the scan or the map has fewer than ``min_points`` points after
+        downsampling, or ICP diverged."""
+        cfg = self.config
+        if self.n_points < min_points:
+            return None
+        dist = (
+            cfg.correspondence_distance if correspondence_distance is None else float(correspondence_distance)
+        )
+        return _polished_alignment(
+            self._icp,
+            _as_points(points, "points"),
+            self._voxel_map,
+            self._target.pts,
+            _as_pose(guess, "guess"),
+            cfg,
+            self.voxel,
+            dist,
+            refine=refine,
+            min_points=min_points,
+            target=self._target,
+            degenerate_ratio=degenerate_ratio,
+        )
+
+    def inlier_fraction(self, points: ArrayLike, pose: ArrayLike) -> float:
+        """Fraction of a scan's points (robot frame, downsampled at half the voxel) within
+        ``inlier_distance`` of the map when the scan is placed at ``pose``."""
+        src = voxel_downsample(_as_points(points, "points"), 0.5 * self.voxel)
+        if len(src) == 0 or len(self._target.pts) == 0:
+            return 0.0
+        dist, _ = self._target.tree.query(transform_points(_as_pose(pose, "pose"), src))
+        return float(np.mean(dist <= self.config.inlier_distance))
+
+
+def align_scan_to_map(
+    points: ArrayLike,
+    map_points: ArrayLike,
+    guess: ArrayLike,
+    config: LaserConfig | None = None,
+    *,
+    voxel: float | None = None,
+    correspondence_distance: float | None = None,
+    refine: bool = True,
+    min_points: int = _MIN_SCAN_POINTS,
+) -> FloatArray | None:
+    """:meth:`ScanMap.align` of one scan onto a map built for it (``voxel`` >= 0.25 and
+    ``correspondence_distance`` default to the config's)."""
+    aligned = ScanMap(map_points, config, voxel=voxel).align(
+        points, guess, correspondence_distance=correspondence_distance, refine=refine, min_points=min_points
+    )
+    return None if aligned is None else aligned.pose
+
+
+def _polished_alignment(  # noqa: PLR0917 - internal helper shared by two callers
+    icp: _PointAligner,
+    pts: FloatArray,
+    voxel_map: object,
+    map_points: FloatArray,
+    guess: FloatArray,
+    cfg: LaserConfig,
+    voxel: float,
+    distance: float,
+    *,
+    refine: bool = True,
+    min_points: int = _MIN_SCAN_POINTS,
+    target: _Target | None = None,
+    degenerate_ratio: float = 0.0,
+) -> Alignment | None:
+    """kiss-icp alignment of a scan (downsampled at ``voxel``) onto ``voxel_map`` from ``guess``, then the
+    point-to-plane polish against ``map_points`` (or a prepared ``target`` of them) with the prior at the
+    odometry ``guess`` (directions the planes do not see stay at the odometry), and the guess's
+    translation kept along directions constrained less than ``degenerate_ratio`` times the best one
+    (:func:`keep_unobserved`); None with too few points or when ICP diverged."""
+    src = voxel_downsample(pts, voxel)
+    if len(src) < min_points or len(map_points) < min_points:
+        return None
+    aligned = _align(icp, src, voxel_map, guess, distance)
+    if aligned is None or not refine:
+        return None if aligned is None else Alignment(aligned, 0)
+    surface = _Target(map_points, 0.5 * voxel) if target is None else target
+    overlap = _Overlap(_Target(pts, 0.5 * voxel), surface, cfg.inlier_distance)
+    aligned, _, information = _point_to_plane(aligned, overlap, cfg, _STEP_PRIOR_STD, prior_mean=guess)
+    weak = weak_directions(information, degenerate_ratio)
+    return Alignment(_keep_guess_along(aligned, guess, weak), len(weak))
+
+
+def passage_patch(
+    scans_points: Sequence[ArrayLike],
+    scan_stamps: ArrayLike,
+    scan_poses: ArrayLike,
+    visit_stamp: float,
+    visit_pose: ArrayLike,
+    *,
+    config: LaserConfig | None = None,
+    sensor_offset: ArrayLike | None = None,
+) -> FloatArray:
+    """The patch of a visit from a whole scan sequence (offline, Fig. 48): points ``(P, 2)``, visit frame.
+
+    Takes the :func:`passage_slice` within ``config.patch_radius``, its :func:`keyframes`, corrects their
+    poses with :func:`refine_scan_poses` when ``config.refine`` and concatenates them at
+    ``config.patch_voxel``. The visit frame is the visit's odometry pose carried along with the
+    correction of the kept scan nearest in time. :class:`PatchBuilder` gives the same patch online.
+    """
+    cfg = LaserConfig() if config is None else config
+    stamps = np.asarray(scan_stamps, dtype=float).reshape(-1)
+    poses = _as_poses(scan_poses, "scan_poses")
+    if not len(scans_points) == len(stamps) == len(poses):
+        msg = f"{len(scans_points)} scans, {len(stamps)} stamps and {len(poses)} poses differ in number"
+        raise ModelError(msg)
+    sl = passage_slice(stamps, poses, visit_stamp, visit_pose, cfg.patch_radius)
+    keep = sl.start + keyframes(poses[sl], cfg.keyframe_xy, cfg.keyframe_yaw)
+    scans = [_as_points(scans_points[k], f"scans_points[{k}]") for k in keep]
+    visit = _as_pose(visit_pose, "visit_pose")
+    return _passage_patch(
+        scans, stamps[keep], poses[keep], visit_stamp, visit, cfg=cfg, offset=_offset(sensor_offset)
+    )
+
+
+@dataclass
+class _OpenPatch:
+    key: int
+    stamp: float
+    pose: FloatArray
+    scans: list[tuple[float, FloatArray, FloatArray]]  # (stamp, robot pose, sensor points) keyframes
+    entered: bool = False
+
+
+class PatchBuilder:
+    """Online patch accumulator for the filter; the patch of a visit equals :func:`passage_patch`'s.
+
+    Feed every scan with :meth:`add_scan` and declare visits with :meth:`add_visit`, possibly late: the
+    last ``max_scans`` keyframe scans (moved ``keyframe_xy`` or turned ``keyframe_yaw`` since the
+    previous buffered one) are kept for that. A visit's patch is complete once the robot leaves
+    ``config.patch_radius`` of the visit pose; :meth:`pop_ready` then returns it. Memory is bounded:
+    ``max_scans`` buffered scans, and per open visit at most ``max_scans`` keyframes. (A scan skipped
+    from the buffer for standing still right at the radius boundary can make a late visit's patch
+    start one scan later than :func:`passage_patch`'s.)
+    """
+
+    def __init__(
+        self,
+        config: LaserConfig | None = None,
+        *,
+        sensor_offset: ArrayLike | None = None,
+        max_scans: int = 2000,
+    ) -> None:
+        self.config = LaserConfig() if config is None else config
+        if isinstance(max_scans, bool) or not isinstance(max_scans, int) or max_scans < 1:
+            msg = f"max_scans must be an integer >= 1, got {max_scans!r}"
+            raise ConfigError(msg)
+        self._max_scans = max_scans
+        self._offset = _offset(sensor_offset)
+        self._scans: deque[tuple[float, FloatArray, FloatArray]] = deque(maxlen=max_scans)
+        self._open: list[_OpenPatch] = []
+        self._ready: list[tuple[int, FloatArray]] = []
+        self._keys: set[int] = set()
+
+    @property
+    def n_buffered(self) -> int:
+        """Scans currently buffered for visits declared late."""
+        return len(self._scans)
+
+    @property
+    def n_open(self) -> int:
+        """Visits whose patch is still open."""
+        return len(self._open)
+
+    def add_scan(self, stamp: float, pose: ArrayLike, points: ArrayLike) -> None:
+        """Ingest one scan: header stamp (s), robot odometry pose, points ``(P, 2)`` in the sensor frame."""
+        robot = _as_pose(pose, "pose")
+        pts = _as_points(points, "points")
+        if not math.isfinite(stamp):
+            msg = f"scan stamp must be finite, got {stamp}"
+            raise ModelError(msg)
+        if self._scans and stamp < self._scans[-1][0]:
+            msg = f"scan stamps must not decrease: {stamp} after {self._scans[-1][0]}"
+            raise ModelError(msg)
+        scan = (float(stamp), robot, pts)
+        cfg = self.config
+        if not self._scans or moved(self._scans[-1][1], robot, cfg.keyframe_xy, cfg.keyframe_yaw):
+            self._scans.append(scan)
+        still_open = []
+        for patch in self._open:
+            if _within(robot[None, :], patch.pose, cfg.patch_radius)[0]:
+                self._extend(patch, scan)
+                still_open.append(patch)
+            elif patch.entered or stamp >= patch.stamp:
+                self._close(patch)
+            else:
+                still_open.append(patch)
+        self._open = still_open
+
+    def add_visit(self, key: int, stamp: float, pose: ArrayLike) -> None:
+        """Declare visit ``key`` at header stamp ``stamp`` (s) and odometry pose ``pose``."""
+        visit = _as_pose(pose, "pose")
+        if not math.isfinite(stamp):
+            msg = f"visit stamp must be finite, got {stamp}"
+            raise ModelError(msg)
+        if key in self._keys:
+            msg = f"visit {key} was already declared"
+            raise ModelError(msg)
+        self._keys.add(key)
+        patch = _OpenPatch(key=key, stamp=float(stamp), pose=visit, scans=[])
+        if not self._scans:
+            self._open.append(patch)
+            return
+        stamps = np.array([s[0] for s in self._scans])
+        poses = np.array([s[1] for s in self._scans])
+        sl = passage_slice(stamps, poses, stamp, visit, self.config.patch_radius)
+        for k in range(sl.start, sl.stop):
+            self._extend(patch, self._scans[k])
+        still_inside = sl.stop == len(stamps) and sl.stop > sl.start
+        if still_inside or (sl.stop == sl.start and stamp >= stamps[-1]):
+            self._open.append(patch)
+        else:
+            self._close(patch)
+
+    def pop_ready(self) -> list[tuple[int, FloatArray]]:
+        """The completed ``(key, patch)`` pairs since the last call, in completion order."""
+        ready, self._ready = self._ready, []
+        return ready
+
+    def flush(self) -> list[tuple[int, FloatArray]]:
+        """Close every open patch (end of data) and return all completed ones."""
+        for patch in self._open:
+            self._close(patch)
+        self._open = []
+        return self.pop_ready()
+
+    def _extend(self, patch: _OpenPatch, scan: tuple[float, FloatArray, FloatArray]) -> None:
+        patch.entered = True
+        cfg = self.config
+        if len(patch.scans) >= self._max_scans:
+            return
+        if not patch.scans or moved(patch.scans[-1][1], scan[1], cfg.keyframe_xy, cfg.keyframe_yaw):
+            patch.scans.append(scan)
+
+    def _close(self, patch: _OpenPatch) -> None:
+        stamps = np.array([s[0] for s in patch.scans])
+        poses = np.array([s[1] for s in patch.scans]).reshape(-1, 3)
+        scans = [s[2] for s in patch.scans]
+        points = _passage_patch(
+            scans, stamps, poses, patch.stamp, patch.pose, cfg=self.config, offset=self._offset
+        )
+        self._ready.append((patch.key, points))
+
+
+def _passage_patch(
+    scans: list[FloatArray],
+    stamps: FloatArray,
+    poses: FloatArray,
+    visit_stamp: float,
+    visit: FloatArray,
+    *,
+    cfg: LaserConfig,
+    offset: FloatArray,
+) -> FloatArray:
+    """Crop to ``max_range``, refine (optionally) and concatenate the keyframes of one passage."""
+    if not scans:
+        return np.empty((0, 2))
+    scans = [pts[np.hypot(pts[:, 0], pts[:, 1]) <= cfg.max_range] for pts in scans]
+    refined = refine_scan_poses(scans, poses, cfg, sensor_offset=offset) if cfg.refine else poses
+    c = int(np.argmin(np.abs(stamps - visit_stamp)))
+    frame = compose(refined[c], between(poses[c], visit))
+    return _concatenate(scans, refined, frame, offset, cfg.patch_voxel)
+
+
+def _concatenate(
+    scans: Sequence[FloatArray], poses: FloatArray, visit: FloatArray, offset: FloatArray, voxel: float
+) -> FloatArray:
+    """Scans moved into the visit frame, stacked in order, voxel-downsampled."""
+    if not scans:
+        return np.empty((0, 2))
+    parts = [
+        transform_points(between(visit, compose(pose, offset)), pts)
+        for pose, pts in zip(poses, scans, strict=True)
+    ]
+    return voxel_downsample(np.vstack(parts), voxel)
+
+
+# ----------------------------------------------------------------------------------- registration
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of :func:`register_patches`.
+
+    Attributes:
+        mean: ``(3,)`` estimate of ``between(x_target, x_source)`` (source visit in the target frame).
+        cov: ``(3, 3)`` symmetric positive-definite covariance of ``mean`` (floored).
+        inlier_fraction: the smaller of ``source_fraction`` and ``target_fraction``.
+        source_fraction: fraction of (downsampled) source points within ``inlier_distance`` of the target.
+        target_fraction: fraction of (downsampled) target points within ``inlier_distance`` of the source.
+        rmse: root-mean-square distance of the source inliers (m); NaN without inliers.
+        n_inliers: number of source inliers.
+        n_points: number of (downsampled) source points.
+        valid: whether the registration passes the fitness, sharpness and ambiguity tests.
+        reason: why it is not valid (empty when valid).
+    """
+
+    mean: FloatArray
+    cov: FloatArray
+    inlier_fraction: float
+    source_fraction: float
+    target_fraction: float
+    rmse: float
+    n_inliers: int
+    n_points: int
+    valid: bool
+    reason: str = ""
+    candidates: tuple[tuple[float, float, float, float], ...] = field(default=(), repr=False)
+    """``(x, y, yaw, inlier_fraction)`` of the ICP solution from every initial heading, best first."""
+    slide_axis: FloatArray | None = None
+    """Asked for (``register_patches(..., slide_axis=True)``) and the registration invalid only because
+    its optimum is flat: the unit ``(2,)`` axis (target frame) it slides along when that is a
+    *corridor*, sharp across the axis and in heading, with no ambiguous solution off the axis
+    (:func:`_slide_axis`); None otherwise (valid ones included)."""
+
+
+def register_patches(
+    source: ArrayLike,
+    target: ArrayLike,
+    initial: ArrayLike = (0.0, 0.0, 0.0),
+    config: LaserConfig | None = None,
+    *,
+    slide_axis: bool = False,
+) -> Registration:
+    """Register patch ``source`` onto patch ``target`` (both in their own visit's frame).
+
+    ``initial`` is a guess of ``between(x_target, x_source)`` (e.g. ``(0, 0, 0)`` when the two visits
+    are hypothesised to be one place). ICP (kiss-icp, point-to-point, coarse then fine voxel map) starts
+    from ``initial ⊕ (0, 0, 2πk/K)``, ``K = config.n_rotations``, because two visits of one place may
+    face any heading. The solution with the largest symmetric inlier fraction is polished by
+    point-to-plane Gauss–Newton (Chen & Medioni, as in the thesis); its covariance is the inverse
+    information ``(Σ_k g_k g_kᵀ / σ² + P⁻¹)⁻¹`` (target normals from local PCA, ``σ²`` the residual
+    variance, ``P`` a weak prior of one patch radius / π), floored at
+    ``(min_std_xy, min_std_xy, min_std_yaw)``.
+
+    The result is valid when (1) at least ``min_inlier_fraction`` of the source points lie within
+    ``inlier_distance`` of the target and of the target points near the source, with at least
+    ``min_points`` inliers; (2) the optimum is sharp: shifting it by ``distinct_xy`` or turning it by
+    ``distinct_yaw`` loses at least ``min_peak_drop`` of that fraction; (3) no distinct solution from
+    another heading comes within ``ambiguity_margin`` of it. With ``slide_axis``, a registration that
+    fails only the sharpness test reports the corridor it slides along, if it is one
+    (:attr:`Registration.slide_axis`).
+
+    Raises:
+        ModelError: malformed inputs.
+        RegistrationError: a patch has fewer than ``config.min_points`` points after downsampling
+            (kiss-icp would silently return the initial guess).
+    """
+    cfg = LaserConfig() if config is None else config
+    src = _as_points(source, "source")
+    tgt = _as_points(target, "target")
+    guess = _as_pose(initial, "initial")
+    return _register(_PreparedPatch(src, cfg), _PreparedPatch(tgt, cfg), guess, cfg, slide_axis=slide_axis)
+
+
+def _register(
+    source: _PreparedPatch,
+    target: _PreparedPatch,
+    guess: FloatArray,
+    cfg: LaserConfig,
+    *,
+    slide_axis: bool = False,
+) -> Registration:
+    """:func:`register_patches` of two patches prepared with ``cfg`` (:class:`_PreparedPatch`)."""
+    n_src, n_tgt = len(source.surface.eval), len(target.surface.eval)
+    if min(n_src, n_tgt) < cfg.min_points:
+        msg = (
+            f"patches too small to register: source {n_src}, target {n_tgt} points after "
+            f"{0.5 * cfg.voxel:.3g} m downsampling (need {cfg.min_points})"
+        )
+        raise RegistrationError(msg)
+
+    from kiss_icp.registration import Registration as KissRegistration
+
+    fine_map, coarse_map = target.voxel_maps()
+    icp = KissRegistration(
+        max_num_iterations=cfg.max_iterations, convergence_criterion=1e-4, max_num_threads=1
+    )
+    coarse_distance = 3.0 * (2.0 * cfg.voxel)
+    poses = []
+    for k in range(cfg.n_rotations):
+        pose: FloatArray | None = compose(guess, np.array([0.0, 0.0, 2.0 * np.pi * k / cfg.n_rotations]))
+        pose = _align(icp, source.coarse, coarse_map, pose, coarse_distance)
+        pose = _align(icp, source.fine, fine_map, pose, cfg.correspondence_distance)
+        if pose is not None:
+            poses.append(pose)
+    if not poses:
+        msg = "ICP diverged from every initial heading"
+        raise RegistrationError(msg)
+    overlap = _Overlap(source.surface, target.surface, cfg.inlier_distance)
+    fits = overlap.fits(poses)
+    fits.sort(key=lambda f: (-f.fraction, f.rmse if f.n_inliers else math.inf))
+    prior_std = np.array([cfg.patch_radius, cfg.patch_radius, np.pi])
+    refined, cov, _ = _point_to_plane(fits[0].pose, overlap, cfg, prior_std)
+    fits[0] = best = overlap(refined)
+    reason = _invalid_reason(fits, overlap, cfg)
+    axis = _slide_axis(fits, overlap, cfg) if slide_axis and reason.startswith(FLAT_OPTIMUM) else None
+    floor = np.array([cfg.min_std_xy, cfg.min_std_xy, cfg.min_std_yaw])
+    return Registration(
+        mean=best.pose,
+        cov=_floor_cov(cov, floor),
+        inlier_fraction=best.fraction,
+        source_fraction=best.source_fraction,
+        target_fraction=best.target_fraction,
+        rmse=best.rmse,
+        n_inliers=best.n_inliers,
+        n_points=n_src,
+        valid=not reason,
+        reason=reason,
+        candidates=tuple((float(f.pose[0]), float(f.pose[1]), float(f.pose[2]), f.fraction) for f in fits),
+        slide_axis=axis,
+    )
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """Symmetric fitness of one relative pose."""
+
+    pose: FloatArray
+    source_fraction: float
+    target_fraction: float
+    n_inliers: int
+    rmse: float
+
+    @property
+    def fraction(self) -> float:
+        return min(self.source_fraction, self.target_fraction)
+
+
+class _Target:
+    """A point set with its evaluation points (downsampled at ``voxel``), KD-tree and normals, each
+    computed once on first use (reusable by every alignment onto it)."""
+
+    def __init__(self, tgt: FloatArray, voxel: float) -> None:
+        self.pts = tgt
+        self.voxel = voxel
+        self._normals = np.full((len(tgt), 2), np.nan)
+        self._flat = np.zeros(len(tgt), dtype=bool)
+
+    @cached_property
+    def eval(self) -> FloatArray:
+        """The points downsampled at ``voxel`` (where fitness is evaluated)."""
+        return voxel_downsample(self.pts, self.voxel)
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """KD-tree of all the points."""
+        return cKDTree(self.pts)
+
+    def normals_at(self, idx: np.ndarray) -> tuple[FloatArray, np.ndarray]:
+        """Normals of points ``idx`` and whether each is line-like (computed once, on demand)."""
+        missing = idx[np.isnan(self._normals[idx, 0])]
+        if len(missing):
+            todo = np.zeros(len(self.pts), dtype=bool)
+            todo[missing] = True
+            todo = np.flatnonzero(todo)  # sorted and unique
+            self._normals[todo], self._flat[todo] = _normals(self.pts, self.tree, todo)
+        return self._normals[idx], self._flat[idx]
+
+
+class _PreparedPatch:
+    """A patch prepared once for any number of registrations (:func:`_register`), as source or target:
+    its :class:`_Target` at half the fine voxel (fitness points, KD-tree, normals), its points at the
+    fine and the coarse ICP voxel, and, on first use as a target, its kiss-icp voxel maps."""
+
+    def __init__(self, points: FloatArray, cfg: LaserConfig) -> None:
+        self.surface = _Target(points, 0.5 * cfg.voxel)
+        self.fine = voxel_downsample(points, cfg.voxel)
+        self.coarse = voxel_downsample(points, 2.0 * cfg.voxel)
+        self._voxel = cfg.voxel
+        self._extent = cfg.max_range + cfg.patch_radius  # only points added with update() are culled by it
+        self._maps: tuple[object, object] | None = None
+
+    def voxel_maps(self) -> tuple[object, object]:
+        """kiss-icp voxel maps of all the patch's points at the fine and at the coarse voxel."""
+        if self._maps is None:
+            from kiss_icp.mapping import VoxelHashMap
+
+            pts = _lift(self.surface.pts)
+            fine = VoxelHashMap(voxel_size=self._voxel, max_distance=self._extent, max_points_per_voxel=20)
+            fine.add_points(pts)
+            coarse = VoxelHashMap(
+                voxel_size=2.0 * self._voxel, max_distance=self._extent, max_points_per_voxel=20
+            )
+            coarse.add_points(pts)
+            self._maps = (fine, coarse)
+        return self._maps
+
+
+class _Overlap:
+    """Inlier test of two patches under a relative pose, both ways (source → target, target → source).
+
+    Evaluation points are each side's :attr:`_Target.eval`; distances are to the other side's full
+    points. KD-tree searches are pruned just beyond ``inlier_distance`` (farther points are outliers
+    whatever their distance), which leaves every inlier's distance and neighbour unchanged.
+    """
+
+    def __init__(self, source: _Target, target: _Target, inlier_distance: float) -> None:
+        self.source = source
+        self.target = target
+        self.inlier_distance = inlier_distance
+        self._bound = inlier_distance * (1.0 + 1e-9)
+
+    @property
+    def src_eval(self) -> FloatArray:
+        return self.source.eval
+
+    @property
+    def tgt(self) -> FloatArray:
+        return self.target.pts
+
+    def normals_at(self, idx: np.ndarray) -> tuple[FloatArray, np.ndarray]:
+        """Normals of target points ``idx`` and whether each is line-like."""
+        return self.target.normals_at(idx)
+
+    def near_target(self, pts: FloatArray) -> tuple[FloatArray, np.ndarray]:
+        """Distance and index of the nearest target point of each of ``pts`` (exact within
+        ``inlier_distance``; beyond it the distance may be ``inf`` and the index ``len(target)``)."""
+        return self.target.tree.query(pts, distance_upper_bound=self._bound)
+
+    def _source_distances(self, poses: Sequence[FloatArray]) -> FloatArray:
+        """``(K, N)``: distances of the source evaluation points placed at each pose to the target."""
+        src = self.source.eval
+        d, _ = self.near_target(np.vstack([transform_points(p, src) for p in poses]))
+        return d.reshape(len(poses), len(src))
+
+    def _target_distances(self, poses: Sequence[FloatArray]) -> FloatArray:
+        """``(K, M)``: distances of the target evaluation points to the source placed at each pose."""
+        tgt = self.target.eval
+        placed = np.vstack([transform_points(inverse(p), tgt) for p in poses])
+        d, _ = self.source.tree.query(placed, distance_upper_bound=self._bound)
+        return d.reshape(len(poses), len(tgt))
+
+    def __call__(self, pose: FloatArray) -> _Fit:
+        return self.fits([pose])[0]
+
+    def fits(self, poses: Sequence[FloatArray]) -> list[_Fit]:
+        """The fit of each pose (two KD-tree queries for all of them)."""
+        d_src = self._source_distances(poses)
+        d_tgt = self._target_distances(poses)
+        out = []
+        for pose, ds, dt in zip(poses, d_src, d_tgt, strict=True):
+            inl = ds <= self.inlier_distance
+            out.append(
+                _Fit(
+                    pose=pose,
+                    source_fraction=float(inl.mean()),
+                    target_fraction=float(np.mean(dt <= self.inlier_distance)),
+                    n_inliers=int(inl.sum()),
+                    rmse=float(np.sqrt(np.mean(ds[inl] ** 2))) if inl.any() else math.nan,
+                )
+            )
+        return out
+
+    def best_fraction(self, poses: Sequence[FloatArray]) -> float:
+        """``max(self(p).fraction for p in poses)``; a pose's target side is evaluated only when its
+        source fraction (an upper bound of its symmetric fraction) exceeds the maximum so far."""
+        source = np.mean(self._source_distances(poses) <= self.inlier_distance, axis=1)
+        best = -math.inf
+        for pose, s in zip(poses, source, strict=True):
+            if s > best:
+                t = float(np.mean(self._target_distances([pose])[0] <= self.inlier_distance))
+                best = max(best, min(float(s), t))
+        return best
+
+
+def _invalid_reason(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -> str:
+    """Why the best (first) fit is no trustworthy match (empty string when it is one)."""
+    best = fits[0]
+    if best.fraction < cfg.min_inlier_fraction:
+        return (
+            f"inlier fraction {best.fraction:.3f} < {cfg.min_inlier_fraction} "
+            f"(source {best.source_fraction:.3f}, target {best.target_fraction:.3f})"
+        )
+    if best.n_inliers < cfg.min_points:
+        return f"{best.n_inliers} inliers < {cfg.min_points}"
+    angles = np.arange(8) * (np.pi / 4.0)
+    shifts = [best.pose + cfg.distinct_xy * np.array([np.cos(a), np.sin(a), 0.0]) for a in angles]
+    turns = [compose(best.pose, np.array([0.0, 0.0, s * cfg.distinct_yaw])) for s in (-1.0, 1.0)]
+    nearby = overlap.best_fraction(shifts + turns)
+    if best.fraction - nearby < cfg.min_peak_drop:
+        return (
+            f"{FLAT_OPTIMUM}: moving {cfg.distinct_xy} m or turning {cfg.distinct_yaw} rad keeps inlier "
+            f"fraction {nearby:.3f} of {best.fraction:.3f}"
+        )
+    for other in fits[1:]:
+        if other.fraction < best.fraction - cfg.ambiguity_margin:
+            break
+        if moved(best.pose, other.pose, cfg.distinct_xy, cfg.distinct_yaw):
+            return (
+                f"ambiguous: distinct solution {np.round(other.pose, 3).tolist()} has inlier fraction "
+                f"{other.fraction:.3f} vs {best.fraction:.3f}"
+            )
+    return ""
+
+
+def _slide_axis(fits: Sequence[_Fit], overlap: _Overlap, cfg: LaserConfig) -> FloatArray | None:
+    """The corridor axis of a flat best (first) fit, or None when the optimum is not a corridor.
+
+    The axis is the direction the matched surfaces do not constrain: the eigenvector of the smallest
+    eigenvalue of ``Σ n_k n_kᵀ`` over the line-like target normals ``n_k`` at the source inliers. The fit
+    is a corridor when moving it ``distinct_xy`` across that axis (both ways) or turning it
+    ``distinct_yaw`` (both ways) loses at least ``min_peak_drop`` of its inlier fraction, and no solution
+    from another initial heading within ``ambiguity_margin`` of it lies ``distinct_xy`` across the axis or
+    ``distinct_yaw`` turned.
+    """
+    best = fits[0]
+    placed = transform_points(best.pose, overlap.src_eval)
+    dist, idx = overlap.near_target(placed)
+    n, line = overlap.normals_at(idx[dist <= cfg.inlier_distance])
+    n = n[line]
+    if len(n) < cfg.min_points:
+        return None
+    _, vecs = np.linalg.eigh(n.T @ n)
+    axis = vecs[:, 0]
+    across = np.array([-axis[1], axis[0], 0.0]) * cfg.distinct_xy
+    probes = [best.pose + across, best.pose - across]
+    probes += [compose(best.pose, np.array([0.0, 0.0, s * cfg.distinct_yaw])) for s in (-1.0, 1.0)]
+    if best.fraction - overlap.best_fraction(probes) < cfg.min_peak_drop:
+        return None
+    for other in fits[1:]:
+        if other.fraction < best.fraction - cfg.ambiguity_margin:
+            break
+        off = other.pose - best.pose
+        if (
+            abs(off[0] * axis[1] - off[1] * axis[0]) >= cfg.distinct_xy
+            or abs(wrap_angle(off[2])) >= cfg.distinct_yaw
+        ):
+            return None
+    return axis
+
+
+def fitness_log_bayes(fraction: float, config: LaserConfig | None = None) -> float:
+    """log p(f | one place) − log p(f | different places) of a registration's fitness ``f`` ∈ [0, 1].
+
+    ``f`` is the symmetric inlier fraction of the best alignment (:func:`register_patches`). The thesis
+    keeps only the relative pose of a match (eq. 48–49) and treats a failed match as no information; but
+    two patches of one place overlap far better than two of different places, whether or not the
+    match passes the validity tests. Both densities are Beta mixed with a uniform of weight ``ε``:
+    ``p(f) = (1 − ε) Beta(f; a, b) + ε``. Defaults were fitted (maximum likelihood) to 182 pairs of
+    visits less than 1.5 m apart and 750 more than 4 m apart on the Intel, ACES and MIT runs
+    (``../shared/datasets``, laser-surprise visits): one place Beta(1.6, 1.6), median 0.50; different
+    places Beta(6.5, 31.3), median 0.16. The ratio is ≈ −2.0 at f = 0.15, 0 near 0.28, +3.2 at 0.5.
+    """
+    from scipy.stats import beta
+
+    cfg = LaserConfig() if config is None else config
+    f = float(np.clip(fraction, 0.0, 1.0)) if math.isfinite(fraction) else 0.0
+    eps = cfg.fitness_outlier
+    same = (1.0 - eps) * beta.pdf(f, cfg.fitness_same_a, cfg.fitness_same_b) + eps
+    diff = (1.0 - eps) * beta.pdf(f, cfg.fitness_different_a, cfg.fitness_different_b) + eps
+    return float(math.log(same) - math.log(diff))
+
+
+def to_relative_pose(registration: Registration, i: int, j: int) -> RelativePose | None:
+    """The measurement of ``between(x_i, x_j)`` from a registration of patch j (source) onto patch i
+    (target); None when the registration is not valid ("no information", never a false match)."""
+    if i == j:
+        msg = f"a relative pose needs two different visits, got i = j = {i}"
+        raise ModelError(msg)
+    if not registration.valid:
+        return None
+    return RelativePose(i=i, j=j, mean=registration.mean.copy(), cov=registration.cov.copy())
+
+
+def laser_outcome(
+    registration: Registration, i: int, j: int, config: LaserConfig
+) -> RelativePose | NoMatch | None:
+    """What the topology inference uses of a registration of patch j onto patch i: the relative pose of a
+    valid match, else a :class:`~ptm_ros.model.geometry.NoMatch`; each with the fitness evidence
+    (:func:`fitness_log_bayes`) when ``config.use_fitness`` (else a failed match is None)."""
+    lb = fitness_log_bayes(registration.inlier_fraction, config) if config.use_fitness else 0.0
+    z = to_relative_pose(registration, i, j)
+    if z is not None:
+        return RelativePose(i=z.i, j=z.j, mean=z.mean, cov=z.cov, log_bayes=lb)
+    return NoMatch(i=i, j=j, log_bayes=lb) if config.use_fitness else None
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+
+def _as_points(points: ArrayLike, name: str) -> FloatArray:
+    pts = np.asarray(points, dtype=float)
+    if pts.size == 0:
+        return np.empty((0, 2))
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        msg = f"{name} must have shape (P, 2), got {pts.shape}"
+        raise ModelError(msg)
+    if not np.all(np.isfinite(pts)):
+        msg = f"{name} holds non-finite coordinates"
+        raise ModelError(msg)
+    return pts
+
+
+def _as_pose(pose: ArrayLike, name: str) -> FloatArray:
+    p = np.asarray(pose, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        msg = f"{name} must be 3 finite numbers (x, y, yaw), got {p!r}"
+        raise ModelError(msg)
+    return p
+
+
+def _as_poses(poses: ArrayLike, name: str) -> FloatArray:
+    p = np.asarray(poses, dtype=float)
+    if p.size == 0:
+        return np.empty((0, 3))
+    if p.ndim != 2 or p.shape[1] != 3 or not np.all(np.isfinite(p)):
+        msg = f"{name} must be finite with shape (S, 3), got shape {p.shape}"
+        raise ModelError(msg)
+    return p
+
+
+def _check_positive(**values: float) -> None:
+    for name, value in values.items():
+        if not (math.isfinite(value) and value > 0.0):
+            msg = f"{name} must be finite and > 0, got {value}"
+            raise ModelError(msg)
+
+
+def _offset(sensor_offset: ArrayLike | None) -> FloatArray:
+    return _IDENTITY if sensor_offset is None else _as_pose(sensor_offset, "sensor_offset")
+
+
+def _within(poses: FloatArray, centre: FloatArray, radius: float) -> np.ndarray:
+    return np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1]) <= radius
+
+
+def _to_visit_frame(visit: FloatArray, robot: FloatArray, offset: FloatArray, pts: FloatArray) -> FloatArray:
+    return transform_points(between(visit, compose(robot, offset)), pts)
+
+
+def _lift(points: FloatArray) -> FloatArray:
+    return np.ascontiguousarray(np.column_stack([points, np.zeros(len(points))]))
+
+
+def _se3(pose: FloatArray) -> FloatArray:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:2, 3] = pose[:2]
+    return m
+
+
+def _se2(matrix: FloatArray) -> FloatArray:
+    """Project a 4×4 rigid transform to SE(2): planar translation, yaw from the rotated x-axis."""
+    yaw = math.atan2(matrix[1, 0], matrix[0, 0])
+    return np.array([matrix[0, 3], matrix[1, 3], float(wrap_angle(yaw))])
+
+
+class _PointAligner(Protocol):
+    """What :func:`_align` calls of a ``kiss_icp.registration.Registration`` (kiss-icp ships no types)."""
+
+    def align_points_to_map(
+        self,
+        *,
+        points: FloatArray,
+        voxel_map: object,
+        initial_guess: FloatArray,
+        max_correspondance_distance: float,
+        kernel: float,
+    ) -> ArrayLike:
+        """The 4×4 transform taking ``points`` onto ``voxel_map``, ICP from ``initial_guess``."""
+        ...
+
+
+def _align(
+    icp: _PointAligner, src: FloatArray, voxel_map: object, pose: FloatArray | None, max_dist: float
+) -> FloatArray | None:
+    """One kiss-icp alignment of ``src`` onto ``voxel_map`` from ``pose``; None if it failed."""
+    if pose is None:
+        return None
+    matrix = np.asarray(
+        icp.align_points_to_map(
+            points=_lift(src),
+            voxel_map=voxel_map,
+            initial_guess=_se3(pose),
+            max_correspondance_distance=max_dist,
+            kernel=max_dist / 3.0,
+        ),
+        dtype=float,
+    )
+    if not np.all(np.isfinite(matrix)):
+        return None
+    return _se2(matrix)
+
+
+def _point_to_plane(
+    pose: FloatArray,
+    overlap: _Overlap,
+    cfg: LaserConfig,
+    prior_std: FloatArray,
+    prior_mean: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Gauss–Newton point-to-plane refinement of an ICP ``pose`` (Chen & Medioni, thesis Ch. 3.10.4),
+    its covariance (before flooring) and the information of the residuals alone (without the prior).
+
+    Each source point ``s_k`` (the fitness sample) within ``inlier_distance`` of its nearest target point
+    ``m_k`` with a line-like neighbourhood and unit normal ``n_k`` gives the residual
+    ``e_k = n_kᵀ (R s_k + t − m_k)`` with gradient ``g_k = (n_x, n_y, (R s_k) × n_k)`` with respect to
+    ``(x, y, yaw)``. A Gaussian prior centred on ``prior_mean`` (default: the ICP pose) with standard
+    deviations ``prior_std`` keeps the directions the residuals do not see (a corridor's axis) there:
+    scan-to-map matching passes the odometry guess, because point-to-point ICP slides along a corridor.
+    At convergence the covariance is ``(Σ g_k g_kᵀ / σ² + P⁻¹)⁻¹`` with
+    ``σ² = Σ e_k² / (N − 3)``. If the refinement wanders farther than ``distinct_xy``/``distinct_yaw``
+    the ICP pose is kept.
+    """
+    src, tgt = overlap.src_eval, overlap.tgt
+    prior = np.diag(np.asarray(prior_std, dtype=float) ** -2)
+    centre = pose if prior_mean is None else np.asarray(prior_mean, dtype=float)
+    current = pose.copy()
+    info = prior
+    seen: dict[bytes, int] = {}  # pose entering each iteration -> the first iteration it entered
+    done: list[tuple[FloatArray, FloatArray]] = []  # (information, pose) after each iteration
+    for it in range(_GN_ITERATIONS):
+        start = seen.setdefault(current.tobytes(), it)
+        if start < it:
+            # An iteration is a function of the pose alone, and none since ``start`` met the stopping
+            # test: the iterations repeat with period it - start. Take the last one's result directly.
+            info, current = done[start + (_GN_ITERATIONS - 1 - start) % (it - start)]
+            break
+        placed = transform_points(current, src)
+        dist, idx = overlap.near_target(placed)
+        close = np.flatnonzero(dist <= cfg.inlier_distance)
+        n, flat = overlap.normals_at(idx[close])
+        inl = close[flat]
+        n = n[flat]
+        if len(inl) <= 3:
+            return pose, _spd_inverse(prior), np.zeros((3, 3))
+        q = placed[inl]
+        e = np.einsum("ij,ij->i", n, q - tgt[idx[inl]])
+        arm = q - current[:2]
+        g = np.column_stack([n, arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]])
+        sigma2 = max(float(e @ e) / (len(e) - 3), _MIN_RESIDUAL_VARIANCE)
+        info = prior + g.T @ g / sigma2
+        offset = current - centre
+        offset[2] = wrap_angle(offset[2])
+        step = -cho_solve(
+            cho_factor(info, check_finite=False), g.T @ e / sigma2 + prior @ offset, check_finite=False
+        )
+        current = np.array(
+            [current[0] + step[0], current[1] + step[1], float(wrap_angle(current[2] + step[2]))]
+        )
+        done.append((info, current))
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    if moved(pose, current, cfg.distinct_xy, cfg.distinct_yaw):
+        current = pose
+    cov = _spd_inverse(info)
+    return current, 0.5 * (cov + cov.T), info - prior
+
+
+def weak_directions(information: FloatArray, ratio: float) -> FloatArray:
+    """Unit translation directions ``(k, 2)`` that a scan constrains less than ``ratio`` times its
+    best-constrained one: eigenvectors of the translation block of the residuals' ``information`` whose
+    eigenvalue is below ``ratio`` times the largest (none for ``ratio`` 0 or no information at all)."""
+    if ratio <= 0.0:  # off: no eigen-decomposition per scan
+        return np.zeros((0, 2))
+    block = 0.5 * (information[:2, :2] + information[:2, :2].T)
+    values, vectors = np.linalg.eigh(block)
+    if values[-1] <= 0.0:
+        return np.zeros((0, 2))
+    return np.asarray(vectors[:, values < ratio * float(values[-1])].T, dtype=float)
+
+
+def keep_unobserved(pose: FloatArray, guess: FloatArray, information: FloatArray, ratio: float) -> FloatArray:
+    """``pose`` with its translation away from ``guess`` removed along the :func:`weak_directions` (solution
+    remapping, Zhang, Kaess & Singh, ICRA 2016): there the guess (the wheel odometry) is kept. A
+    corridor's walls fix the cross-track position and the heading, and only noise in the estimated normals
+    "sees" the along-track one: point-to-point ICP and the polish then slide along the corridor by a
+    fraction of every step, erasing the travel. ``ratio`` 0, or no information at all (the polish found no
+    planes: ``pose`` is ICP's), keep ``pose``."""
+    return _keep_guess_along(pose, guess, weak_directions(information, ratio))
+
+
+def _keep_guess_along(pose: FloatArray, guess: FloatArray, weak: FloatArray) -> FloatArray:
+    """``pose`` with the translation of ``guess`` along the unit directions ``weak`` ``(k, 2)``."""
+    if not len(weak):
+        return pose
+    shift = pose[:2] - guess[:2]
+    for v in weak:
+        shift = shift - float(v @ shift) * v
+    return np.array([guess[0] + shift[0], guess[1] + shift[1], pose[2]])
+
+
+def _spd_inverse(matrix: FloatArray) -> FloatArray:
+    """Inverse of a symmetric positive-definite matrix (Cholesky)."""
+    return cho_solve(cho_factor(matrix, check_finite=False), np.eye(len(matrix)), check_finite=False)
+
+
+def _normals(
+    tgt: FloatArray, tree: cKDTree, which: np.ndarray, k: int = _NORMAL_NEIGHBOURS
+) -> tuple[FloatArray, np.ndarray]:
+    """Unit normals ``(M, 2)`` of target points ``which`` from the PCA of their ``k`` nearest neighbours,
+    and whether each neighbourhood is line-like (smaller/larger scatter eigenvalue at most
+    ``_MAX_CURVATURE``; corners and clutter have no reliable normal)."""
+    k = min(k, len(tgt))
+    _, nb = tree.query(tgt[which], k=k)
+    nb_pts = tgt[nb.reshape(len(which), k)]
+    centred = nb_pts - nb_pts.mean(axis=1, keepdims=True)
+    scatter = np.einsum("mki,mkj->mij", centred, centred)
+    vals, vecs = np.linalg.eigh(scatter)
+    return vecs[:, :, 0], vals[:, 0] <= _MAX_CURVATURE * vals[:, 1]
+
+
+def _floor_cov(cov: FloatArray, min_std: FloatArray) -> FloatArray:
+    """Floor a covariance: raise the eigenvalues of ``D⁻¹ cov D⁻¹``, ``D = diag(min_std)``, to at least 1.
+
+    The result is ⪰ ``cov`` and ⪰ ``D²`` (Loewner order) and equals ``cov`` when ``cov`` ⪰ ``D²`` already.
+    """
+    w = cov / np.outer(min_std, min_std)
+    vals, vecs = eigh(w)
+    floored = (vecs * np.maximum(vals, 1.0)) @ vecs.T
+    out = floored * np.outer(min_std, min_std)
+    return 0.5 * (out + out.T)
+
+
+class WorkerPool(Protocol):
+    """Runs a function elsewhere, :meth:`concurrent.futures.Executor.submit`'s shape (``ptm-run``'s worker
+    processes)."""
+
+    def submit(self, fn: Callable[..., _T], /, *args: Any, **kwargs: Any) -> Future[_T]: ...
+
+
+def _same_place_registration(
+    source: _PreparedPatch, target: _PreparedPatch, config: LaserConfig
+) -> Registration | None:
+    """``source`` registered onto ``target`` from ``(0, 0, 0)``; None when it cannot be registered."""
+    try:
+        return _register(source, target, _IDENTITY, config)
+    except RegistrationError:
+        return None
+
+
+def register_patch_pair(target: FloatArray, source: FloatArray, config: LaserConfig) -> Registration | None:
+    """Patch ``source`` registered onto patch ``target`` from ``(0, 0, 0)`` (:class:`PatchRegistrar`'s
+    registration of one pair, with both patches prepared afresh); None when one cannot be registered."""
+    return _same_place_registration(
+        _PreparedPatch(_as_points(source, "source"), config),
+        _PreparedPatch(_as_points(target, "target"), config),
+        config,
+    )
+
+
+class PatchRegistrar:
+    """Registrar over a visit sequence: visit j's patch registered onto visit i's from ``(0, 0, 0)`` (the
+    "same place" hypothesis; the rotations tried cover any heading, and odometry drift makes an
+    odometry-based guess meaningless). The outcome is :func:`laser_outcome`'s; None when a patch is
+    missing or too small to register. ``counters`` (optional) accumulates ``registrations`` and
+    ``registrations_valid``.
+
+    ``visits`` may grow between calls. Each patch is prepared for registration (downsampled, its KD-tree,
+    normals and voxel maps built) once and kept for the ``keep_prepared`` (default
+    :data:`_PREPARED_PATCHES`) most recently used visits; a visit whose patch object changed is prepared
+    afresh. The outcomes equal :func:`register_patches`' whatever ``keep_prepared``, and :meth:`many`'s.
+    """
+
+    def __init__(
+        self,
+        visits: Sequence[Visit],
+        config: LaserConfig | None = None,
+        counters: MutableMapping[str, int] | None = None,
+        *,
+        keep_prepared: int = _PREPARED_PATCHES,
+    ) -> None:
+        self.visits = visits
+        self.config = LaserConfig() if config is None else config
+        self.counters = counters
+        self.keep_prepared = keep_prepared
+        self._prepared: dict[int, tuple[FloatArray, _PreparedPatch]] = {}
+
+    def _prepare(self, k: int, patch: FloatArray, role: str) -> _PreparedPatch:
+        hit = self._prepared.pop(k, None)
+        if hit is None or hit[0] is not patch:
+            hit = (patch, _PreparedPatch(_as_points(patch, role), self.config))
+        self._prepared[k] = hit  # most recently used last
+        while len(self._prepared) > max(self.keep_prepared, 1):
+            del self._prepared[next(iter(self._prepared))]
+        return hit[1]
+
+    def _outcome(self, reg: Registration | None, i: int, j: int) -> RelativePose | NoMatch | None:
+        if reg is None:
+            return None
+        if self.counters is not None:
+            self.counters["registrations"] = self.counters.get("registrations", 0) + 1
+            self.counters["registrations_valid"] = self.counters.get("registrations_valid", 0) + int(
+                reg.valid
+            )
+        return laser_outcome(reg, i, j, self.config)
+
+    def __call__(self, i: int, j: int) -> RelativePose | NoMatch | None:
+        a, b = self.visits[i].patch, self.visits[j].patch
+        if a is None or b is None:
+            return None
+        source, target = self._prepare(j, b, "source"), self._prepare(i, a, "target")
+        return self._outcome(_same_place_registration(source, target, self.config), i, j)
+
+    def many(
+        self, pairs: Sequence[tuple[int, int]], workers: WorkerPool
+    ) -> dict[tuple[int, int], RelativePose | NoMatch | None]:
+        """The outcomes of ``pairs``, registered by ``workers`` (:func:`register_patch_pair`), in order."""
+        futures = {}
+        for i, j in pairs:
+            a, b = self.visits[i].patch, self.visits[j].patch
+            futures[(i, j)] = (
+                None if a is None or b is None else workers.submit(register_patch_pair, a, b, self.config)
+            )
+        return {
+            (i, j): None if f is None else self._outcome(f.result(), i, j) for (i, j), f in futures.items()
+        }
+
+
+def patch_registrar(
+    visits: Sequence[Visit],
+    config: LaserConfig | None = None,
+    counters: MutableMapping[str, int] | None = None,
+    *,
+    keep_prepared: int = _PREPARED_PATCHES,
+) -> PatchRegistrar:
+    """A :class:`PatchRegistrar` over ``visits``."""
+    return PatchRegistrar(visits, config, counters, keep_prepared=keep_prepared)
