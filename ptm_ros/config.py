@@ -1,20 +1,22 @@
 """The root configuration of ptm_ros: one frozen dataclass per concern under :class:`PtmConfig`.
 
-Defaults are inline in each concern's dataclass; ``config/ptm.yaml`` lists them for users; a YAML file
-given with ``--params`` overrides any subset (strictly: unknown keys and bad values are errors naming the
-field). The configuration actually used is saved beside every result (``DIR/config.yaml``).
+Each field is declared once in its concern's dataclass, with its default, its range or choices and its
+description (:func:`ptm_ros.settings.setting`): every instance is checked against them, and the nodes'
+ROS parameters carry them. ``config/ptm.yaml`` lists the defaults for users; a YAML file given with
+``--params`` overrides any subset (strictly: unknown keys and bad values are errors naming the field).
+The configuration actually used is saved beside every result (``DIR/config.yaml``).
 """
 
 from __future__ import annotations
 
-import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ptm_ros.configio import from_dict, load_yaml, to_dict
 from ptm_ros.errors import ConfigError
 from ptm_ros.inference.mcmc import McmcConfig
+from ptm_ros.inference.rbpf import RESAMPLE_METHODS
 from ptm_ros.maps.mapping import MappingConfig
 from ptm_ros.maps.occupancy import OccupancyConfig
 from ptm_ros.maps.refinement import RefinementConfig
@@ -24,93 +26,160 @@ from ptm_ros.perception.detectors import EquidistantConfig, PlacedLandmarksConfi
 from ptm_ros.perception.laser import LaserConfig
 from ptm_ros.perception.laser_odometry import LaserOdometryConfig
 from ptm_ros.perception.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
+from ptm_ros.settings import Settings, commented_yaml, json_schema, setting
 
 METHODS = ("exact", "rbpf", "mcmc")
 DETECTORS = ("equidistant", "laser-surprise", "appearance-surprise", "ground-truth")
 
 
 @dataclass(frozen=True)
-class TopicsConfig:
+class TopicsConfig(Settings):
     """Topic names read from bags (and subscribed to by the nodes)."""
 
-    odom: str = "/odom"
-    scan: str = "/scan"
-    panorama: str = "/panorama"
+    odom: str = setting(
+        "/odom",
+        doc=(
+            "the odometry (``nav_msgs/Odometry``); a bag must have it (``ptm-bringup`` remaps it onto the "
+            "landmark detector's ``odom``)."
+        ),
+    )
+    scan: str = setting(
+        "/scan",
+        doc=(
+            "the laser scans (``sensor_msgs/LaserScan``): patches, laser odometry, the laser-surprise "
+            "detector and the map; used when the bag has them (remapped onto the detector's ``scan``)."
+        ),
+    )
+    panorama: str = setting(
+        "/panorama",
+        doc=(
+            "the panoramic images (``sensor_msgs/Image``): the visits' appearance signatures and the "
+            "appearance-surprise detector; used when the bag has them (remapped onto the detector's "
+            "``panorama``)."
+        ),
+    )
 
 
 @dataclass(frozen=True)
-class DetectorConfig:
+class DetectorConfig(Settings):
     """Which landmark detector to use; None = the default for the bag's sensors. ``ground-truth`` fires where
     the true path passes landmarks fixed in the environment
     (:class:`ptm_ros.perception.detectors.PlacedLandmarksConfig`, the thesis' Intel protocol), offline only:
     it needs the run's ground truth."""
 
-    kind: str | None = None
-    equidistant: EquidistantConfig = field(default_factory=EquidistantConfig)
-    ground_truth: PlacedLandmarksConfig = field(default_factory=PlacedLandmarksConfig)
-    laser_surprise: LaserSurpriseConfig = field(default_factory=LaserSurpriseConfig)
-    appearance_surprise: AppearanceSurpriseConfig = field(default_factory=AppearanceSurpriseConfig)
-    vocabulary: str | None = None  # .npz of a SIFT vocabulary (ptm_ros.model.vocabulary) for words models
-    image_max_dt: float = 1.0  # s: a visit takes the signature of the panorama nearest in time, within this
-
-    def __post_init__(self) -> None:
-        if self.kind is not None and self.kind not in DETECTORS:
-            msg = f"detector kind must be one of {DETECTORS}, got {self.kind!r}"
-            raise ConfigError(msg)
-        if not self.image_max_dt > 0:
-            msg = f"image_max_dt must be > 0, got {self.image_max_dt}"
-            raise ConfigError(msg)
+    kind: str | None = setting(
+        None,
+        choices=DETECTORS,
+        doc=(
+            "the landmark detector; None: ``laser-surprise`` when the run has scans and ``model.use_laser`` "
+            "is on, else ``equidistant`` (:func:`ptm_ros.factories.detector_kind`)."
+        ),
+    )
+    equidistant: EquidistantConfig = setting(
+        factory=EquidistantConfig,
+        doc="the ``equidistant`` detector: a visit every so many metres and/or seconds (Ch. 4.5).",
+    )
+    ground_truth: PlacedLandmarksConfig = setting(
+        factory=PlacedLandmarksConfig,
+        doc="the ``ground-truth`` detector: landmarks placed along the true path, and their visits.",
+    )
+    laser_surprise: LaserSurpriseConfig = setting(
+        factory=LaserSurpriseConfig, doc="the ``laser-surprise`` detector (Ch. 4.8)."
+    )
+    appearance_surprise: AppearanceSurpriseConfig = setting(
+        factory=AppearanceSurpriseConfig,
+        doc="the ``appearance-surprise`` detector (Ch. 4.7); its ``words`` model needs ``vocabulary``.",
+    )
+    vocabulary: str | None = setting(
+        None,
+        doc=(
+            "``.npz`` of a SIFT vocabulary (:mod:`ptm_ros.model.vocabulary`) for the appearance-surprise "
+            "detector's ``words`` model; None: none."
+        ),
+    )
+    image_max_dt: float = setting(
+        1.0, gt=0, doc="a visit takes the signature of the panorama nearest in time, within this [s]."
+    )
 
 
 @dataclass(frozen=True)
-class InferenceConfig:
+class InferenceConfig(Settings):
     """Which estimator computes the PTM, and its budget."""
 
-    method: str = "rbpf"
-    particles: int = 100
-    resample: str = "optimal"  # RBPF: "optimal" (Fearnhead-Clifford) or "top"
-    seed: int = 0
-    top: int = 50  # topologies written to ptm.json
-    timeline: int = 3  # rbpf: topologies per visit in ptm.json's inference.timeline (0: no timeline)
-    greedy: bool = False  # also run the greedy single-answer baseline (a pose graph per visit: O(N²))
-    max_exact_visits: int = 9  # exact enumeration refuses larger N (B_9 = 21 147; B_12 = 4.2 million)
-    mcmc: McmcConfig = field(default_factory=McmcConfig)
-
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            msg = f"inference method must be one of {METHODS}, got {self.method!r}"
-            raise ConfigError(msg)
-        if self.resample not in ("optimal", "top"):
-            msg = f"inference resample must be 'optimal' or 'top', got {self.resample!r}"
-            raise ConfigError(msg)
-        if self.particles < 1 or self.top < 1:
-            msg = f"particles and top must be >= 1, got {self.particles}, {self.top}"
-            raise ConfigError(msg)
-        if self.timeline < 0:
-            msg = f"inference timeline must be >= 0 (topologies per visit), got {self.timeline}"
-            raise ConfigError(msg)
-        if not 1 <= self.max_exact_visits <= 12:
-            msg = f"max_exact_visits must be in 1..12, got {self.max_exact_visits}"
-            raise ConfigError(msg)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral) or self.seed < 0:
-            msg = f"inference seed must be an integer >= 0, got {self.seed!r}"
-            raise ConfigError(msg)
+    method: str = setting(
+        "rbpf",
+        choices=METHODS,
+        doc=(
+            "the estimator: ``exact`` enumeration of every topology (up to ``max_exact_visits`` visits), "
+            "``rbpf`` the Rao-Blackwellised particle filter, or ``mcmc`` batch sampling over set partitions "
+            "(settings in ``mcmc``)."
+        ),
+    )
+    particles: int = setting(
+        100,
+        ge=1,
+        doc=(
+            "RBPF: N, the most distinct topologies kept after each visit (also in the filter pass that "
+            "gives MCMC its starts and learns the heading noise)."
+        ),
+    )
+    resample: str = setting(
+        "optimal",
+        choices=RESAMPLE_METHODS,
+        doc="RBPF: ``optimal`` (Fearnhead-Clifford) or ``top`` (the N heaviest children, biased).",
+    )
+    seed: int = setting(
+        0,
+        ge=0,
+        doc=(
+            "seed of the random numbers (the filter's resampling, the MCMC chains, the metric likelihood's "
+            "importance samples): the same seed, the same result."
+        ),
+    )
+    top: int = setting(50, ge=1, doc="topologies written to ptm.json.")
+    timeline: int = setting(
+        3, ge=0, doc="rbpf: topologies per visit in ptm.json's inference.timeline (0: no timeline)."
+    )
+    greedy: bool = setting(
+        False, doc="also run the greedy single-answer baseline (a pose graph per visit: O(N²))."
+    )
+    max_exact_visits: int = setting(
+        9,
+        ge=1,
+        le=12,
+        doc="exact enumeration refuses larger N (B_9 = 21 147; B_12 = 4.2 million).",
+    )
+    mcmc: McmcConfig = setting(
+        factory=McmcConfig,
+        doc="the ``mcmc`` sampler: proposals, MC³ chains, starts, estimate and stopping rule.",
+    )
 
 
 @dataclass(frozen=True)
-class PtmConfig:
+class PtmConfig(Settings):
     """Everything ptm_ros can be told, one section per concern."""
 
-    model: ModelConfig = field(default_factory=ModelConfig)
-    laser: LaserConfig = field(default_factory=LaserConfig)
-    laser_odometry: LaserOdometryConfig = field(default_factory=LaserOdometryConfig)
-    detector: DetectorConfig = field(default_factory=DetectorConfig)
-    inference: InferenceConfig = field(default_factory=InferenceConfig)
-    topics: TopicsConfig = field(default_factory=TopicsConfig)
-    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)  # map.pgm / map.png and /map
-    mapping: MappingConfig = field(default_factory=MappingConfig)  # the map publisher's online map
-    refinement: RefinementConfig = field(default_factory=RefinementConfig)  # scan matches along revisits
-    routes: RouteConfig = field(default_factory=RouteConfig)  # route_graph.geojson's edges around walls
+    model: ModelConfig = setting(
+        factory=ModelConfig,
+        doc="the posterior: which measurements enter it, the prior over topologies, the likelihoods.",
+    )
+    laser: LaserConfig = setting(
+        factory=LaserConfig, doc="the visits' laser patches and their registration (scan matching)."
+    )
+    laser_odometry: LaserOdometryConfig = setting(
+        factory=LaserOdometryConfig, doc="the scan-to-map correction of the wheel odometry."
+    )
+    detector: DetectorConfig = setting(
+        factory=DetectorConfig, doc="the landmark detector that turns the input into visits."
+    )
+    inference: InferenceConfig = setting(
+        factory=InferenceConfig, doc="the estimator that computes the PTM, and its budget."
+    )
+    topics: TopicsConfig = setting(factory=TopicsConfig, doc="the topics read from a bag.")
+    occupancy: OccupancyConfig = setting(factory=OccupancyConfig, doc="map.pgm / map.png and /map.")
+    mapping: MappingConfig = setting(factory=MappingConfig, doc="the map publisher's online map.")
+    refinement: RefinementConfig = setting(factory=RefinementConfig, doc="scan matches along revisits.")
+    routes: RouteConfig = setting(factory=RouteConfig, doc="route_graph.geojson's edges around walls.")
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> PtmConfig:
@@ -180,22 +249,28 @@ def unwrap_ros_parameters(doc: dict[str, Any]) -> dict[str, Any]:
 
 
 def ros_parameters_yaml(config: PtmConfig | None = None) -> str:
-    """The configuration as a ROS 2 parameter file for all nodes (None values left out: ROS parameters
-    cannot be null, and a missing key takes its default)."""
-    import yaml
-
-    def drop_none(d: Any) -> Any:
-        if isinstance(d, dict):
-            return {k: drop_none(v) for k, v in d.items() if v is not None}
-        return d
-
-    body = drop_none(to_dict(config or PtmConfig()))
+    """The configuration as a ROS 2 parameter file for all nodes, every parameter preceded by its declared
+    description and range as comments (None values left out: ROS parameters cannot be null, and a
+    missing key takes its default)."""
     header = (
-        "# ptm_ros parameters with their defaults (generated from the config dataclasses by\n"
+        "# ptm_ros parameters with their defaults (generated from the configuration's declarations by\n"
         "# `python -m ptm_ros.config > config/ptm.yaml`). Use with `ptm-run --params FILE` or\n"
         "# `--ros-args --params-file FILE`; keep only the keys you change.\n"
     )
-    return header + yaml.safe_dump({"/**": {"ros__parameters": body}}, sort_keys=False)
+    body = commented_yaml(config or PtmConfig(), indent=4)
+    return header + "\n".join(["/**:", "  ros__parameters:", *body]) + "\n"
+
+
+#: Where the JSON schema of a parameter file ships (package data, :func:`params_schema`).
+PARAMS_SCHEMA_FILE = ("schema", "params.schema.json")
+
+
+def params_schema() -> dict[str, Any]:
+    """The JSON Schema of a parameter file (the plain form of ``ptm-run --params``; a ROS parameter
+    file holds the same under ``/**: ros__parameters:``), from the configuration's declarations."""
+    schema = json_schema(PtmConfig, title="ptm_ros parameters")
+    schema["$id"] = "urn:ptm_ros:schema:params"
+    return schema
 
 
 def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
@@ -219,4 +294,10 @@ def save_config(config: PtmConfig, path: str | Path) -> Path:
 
 
 if __name__ == "__main__":
-    print(ros_parameters_yaml(), end="")
+    import json
+    import sys
+
+    if sys.argv[1:] == ["--schema"]:
+        print(json.dumps(params_schema(), indent=1, ensure_ascii=False))
+    else:
+        print(ros_parameters_yaml(), end="")

@@ -279,7 +279,7 @@ def test_bad_input_fails_before_anything_starts(sim_bag, tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("inference: {particles: 0}\n")
     assert bringup.main(["--params", str(bad), "--out", str(tmp_path / "o")]) == 2
-    assert "particles and top must be >= 1" in capsys.readouterr().err
+    assert "InferenceConfig.particles must be an integer >= 1, got 0" in capsys.readouterr().err
     assert bringup.main(["--bag", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
     assert "does not exist" in capsys.readouterr().err
     odd = tmp_path / "odd.yaml"

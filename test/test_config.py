@@ -20,6 +20,18 @@ def test_shipped_defaults_file_matches_the_dataclasses():
     assert load_config(REPO / "config" / "ptm.yaml") == PtmConfig()
 
 
+def test_the_shipped_parameter_schema_is_generated_from_the_declarations():
+    """``ptm_ros/schema/params.schema.json`` is ``python -m ptm_ros.config --schema`` (package data)."""
+    import json
+    from importlib.resources import files
+
+    from ptm_ros.config import PARAMS_SCHEMA_FILE, params_schema
+
+    shipped = json.loads((REPO / "ptm_ros" / "/".join(PARAMS_SCHEMA_FILE)).read_text())
+    assert shipped == params_schema()
+    assert json.loads((files("ptm_ros") / "/".join(PARAMS_SCHEMA_FILE)).read_text()) == params_schema()
+
+
 #: Fields the shipped ptm.yaml leaves out: their default is None ("unset"), which a ROS 2 parameter cannot
 #: hold; a missing key takes the default.
 UNSET_BY_DEFAULT = {
@@ -81,9 +93,9 @@ def write(tmp_path, text):
     [
         ("inference: {particlez: 3}\n", r"inference: unknown key\(s\) \['particlez'\]"),
         ("inference: {particles: three}\n", r"inference.particles: expected an integer"),
-        ("inference: {particles: 0}\n", r"particles and top must be >= 1"),
+        ("inference: {particles: 0}\n", r"InferenceConfig\.particles must be an integer >= 1, got 0"),
         ("model: {odometry: {area_m2: .nan}}\n", r"model.odometry.area_m2: NaN"),
-        ("model: {prior: {kind: uniform}}\n", r"prior kind must be one of"),
+        ("model: {prior: {kind: uniform}}\n", r"PriorConfig\.kind must be one of"),
         ("model: {use_laser: 1}\n", r"model.use_laser: expected true/false"),
         ("inference: [1, 2]\n", r"inference: expected a mapping"),
         ("inference: {method: rbpf\n", r"^malformed YAML in \S+, line 2, column 1: [^\n]+$"),
@@ -134,7 +146,7 @@ def test_a_negative_seed_is_refused_before_any_work(tmp_path, capsys):
     from ptm_ros.tools import run as run_cli
     from ptm_ros.tools import sim as sim_cli
 
-    with pytest.raises(ConfigError, match="inference seed must be an integer >= 0, got -1"):
+    with pytest.raises(ConfigError, match=r"InferenceConfig\.seed must be an integer >= 0, got -1"):
         load_config(None, {"inference": {"seed": -1}})
     assert run_cli.main([str(tmp_path / "missing.bag"), "--out", str(tmp_path / "o"), "--seed", "-1"]) == 2
     err = capsys.readouterr().err.strip()

@@ -905,11 +905,11 @@ def draw(node: Any, visits: list[Visit], session: str) -> Any:
 def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream, clean_visits):
 
     rng = np.random.default_rng(21)
-    callback = {"odometry": "_on_odom", "scan": "_on_scan"}
+    callback = {"odometry": "odometry_message", "scan": "scan_message"}  # the map inbox's inputs
     stream = [b for b in sim_stream if b.stream in callback]
     clean = map_publisher(ros)
     for b in stream:
-        getattr(clean, callback[b.stream])(message(b))
+        getattr(clean.inbox, callback[b.stream])(message(b))
     expected = draw(clean, clean_visits, "clean")
     assert expected is not None and expected.grid is not None and len(clean._map_pub.items) == 1
     assert clean.inbox.online.counters.resets == 0
@@ -918,9 +918,9 @@ def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream,
     sent = dict.fromkeys(callback, 0)
     for b in stream:  # the run with wild odometry samples and scans in between
         for _ in range(int(rng.poisson(2.0))):
-            getattr(node, callback[b.stream])(wild_message(b, rng))
+            getattr(node.inbox, callback[b.stream])(wild_message(b, rng))
             sent[b.stream] += 1
-        getattr(node, callback[b.stream])(message(b))
+        getattr(node.inbox, callback[b.stream])(message(b))
     texts = [wild_text(rng, visit_to_json(v)) for v in clean_visits for _ in range(200)]
     for text in texts:  # wild visit messages: dropped or taken, never a crash
         node.inbox.visit(text)
@@ -938,7 +938,7 @@ def test_map_publisher_metric_map_survives_storms_of_its_inputs(ros, sim_stream,
     # The same run again, its clock restarted 500 s earlier (a new detector session): mapped exactly.
     shift = stream[0].stamp - 500.0 - stream[-1].stamp
     for b in stream:
-        getattr(node, callback[b.stream])(message(b, b.stamp + shift))
+        getattr(node.inbox, callback[b.stream])(message(b, b.stamp + shift))
     again = [replace(v, stamp=v.stamp + shift) for v in clean_visits]
     got = draw(node, again, "again")
     assert got is not None and got.grid is not None and node.inbox.online.counters.resets >= 1

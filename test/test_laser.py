@@ -685,13 +685,13 @@ def test_to_relative_pose_rejects_self_pairs():
 @pytest.mark.parametrize(
     ("field", "value", "match"),
     [
-        ("voxel", 0.1, "voxel must be >= 0.25"),
+        ("voxel", 0.1, "voxel must be a finite number >= 0.25"),
         ("n_rotations", 0, "n_rotations must be an integer >= 1"),
-        ("min_inlier_fraction", 0.0, r"min_inlier_fraction must be in \(0, 1\]"),
+        ("min_inlier_fraction", 0.0, r"min_inlier_fraction must be a finite number in \(0, 1\]"),
         ("patch_radius", -1.0, "patch_radius must be a finite number > 0"),
         ("min_points", 2.5, "min_points must be an integer"),
-        ("refine", 1, "refine must be a bool"),
-        ("min_peak_drop", 1.0, r"min_peak_drop must be in \[0, 1\)"),
+        ("refine", 1, "refine must be true or false"),
+        ("min_peak_drop", 1.0, r"min_peak_drop must be a finite number in \[0, 1\)"),
     ],
 )
 def test_config_validation(field, value, match):

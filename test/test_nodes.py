@@ -13,7 +13,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,7 @@ from ptm_ros.perception.landmarks import (
     with_input_skips,
 )
 from ptm_ros.session import FilterSession
+from ptm_ros.settings import Settings, setting
 from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
 
 # --------------------------------------------------------------------------------------------- fixtures
@@ -98,7 +99,7 @@ def test_every_config_leaf_is_a_typed_parameter():
     assert specs["model.appearance.models"].type == T.PARAMETER_STRING_ARRAY
     assert specs["detector.kind"].optional and specs["detector.kind"].type == T.PARAMETER_NOT_SET
     assert specs["model.appearance.nig_kappa"].optional
-    assert all("(" in p.description for p in specs.values())  # every parameter is described
+    assert all(not p.description.startswith("(") for p in specs.values())  # every parameter is described
     # the defaults rebuild the default configuration, and every leaf of the YAML file is a parameter
     defaults = {p.name: p.default for p in specs.values()}
     assert common.config_from_parameters(defaults) == PtmConfig()
@@ -114,26 +115,21 @@ def test_every_config_leaf_is_a_typed_parameter():
 
 
 @dataclass(frozen=True)
-class Inner:
-    """A section.
+class Inner(Settings):
+    """A section."""
 
-    Attributes:
-        alpha: the first
-            parameter, on two lines.
-    """
-
-    alpha: float = 1.0
-    beta: int = 2  # counts things
-    gamma: str | None = None
+    alpha: float = setting(1.0, gt=0, doc="the first parameter")
+    beta: int = setting(2, ge=1, le=10, doc="counts things")
+    gamma: str | None = setting(None, doc="a name, or none")
 
 
 @dataclass(frozen=True)
-class Root:
+class Root(Settings):
     """The root."""
 
-    inner: Inner = field(default_factory=Inner)
-    names: tuple[str, ...] = ("a", "b")
-    flag: bool = False  # a switch
+    inner: Inner = setting(factory=Inner, doc="the section")
+    names: tuple[str, ...] = setting(("a", "b"), choices=("a", "b", "c"), doc="some names")
+    flag: bool = setting(False, doc="a switch")
 
 
 def test_parameters_of_a_dataclass_tree():
@@ -148,14 +144,34 @@ def test_parameters_of_a_dataclass_tree():
         T.PARAMETER_STRING_ARRAY,
         T.PARAMETER_BOOL,
     ]
-    assert specs["inner.alpha"].description.startswith("the first parameter, on two lines.")
+    assert specs["inner.alpha"].description == "the first parameter (Inner.alpha: float)"
     assert specs["inner.beta"].description.startswith("counts things")
+    assert specs["names"].description.startswith("some names; one of a, b, c")
     assert specs["flag"].description.startswith("a switch")
     assert specs["inner.gamma"].optional and specs["inner.gamma"].default is None
     assert specs["names"].default == ["a", "b"]
     got = common.config_from_parameters({"inner.gamma": "x", "names": ["c"], "inner.beta": 5}, Root)
     assert got == Root(inner=Inner(beta=5, gamma="x"), names=("c",))
     assert common.config_from_parameters({"inner.gamma": "null"}, Root) == Root()
+    with pytest.raises(ConfigError, match=r"Inner.beta must be an integer in \[1, 10\], got 11"):
+        common.config_from_parameters({"inner.beta": 11}, Root)
+    with pytest.raises(ConfigError, match=r"Root.names must be a list of one of \('a', 'b', 'c'\)"):
+        common.config_from_parameters({"names": ["d"]}, Root)
+
+
+def test_parameter_descriptors_carry_the_declared_ranges():
+    """The ROS descriptor of a bounded field carries its range (an exclusive bound as inclusive, an open
+    end as the type's extreme, ±inf for a double), so a parameter tool shows and enforces it."""
+    specs = {p.name: p for p in common.config_parameters(Root)}
+    beta = common._descriptor(specs["inner.beta"]).integer_range[0]
+    assert (beta.from_value, beta.to_value) == (1, 10)
+    alpha = common._descriptor(specs["inner.alpha"]).floating_point_range[0]
+    assert (alpha.from_value, alpha.to_value) == (0.0, math.inf)
+    assert not common._descriptor(specs["flag"]).floating_point_range
+    real = {p.name: p for p in common.config_parameters()}
+    assert sum(p.range is not None for p in real.values()) > len(real) // 2  # most parameters are bounded
+    particles = common._descriptor(real["inference.particles"]).integer_range[0]
+    assert particles.from_value == 1 and particles.to_value == 2**63 - 1
 
 
 def test_parameter_values_build_the_same_config_as_ptm_run():
@@ -176,7 +192,7 @@ def test_parameter_values_build_the_same_config_as_ptm_run():
     )
     assert common.config_from_parameters(values) == expected
     assert common.config_from_parameters({"detector.kind": "~"}).detector.kind is None
-    with pytest.raises(ConfigError, match="particles and top must be >= 1"):
+    with pytest.raises(ConfigError, match=r"InferenceConfig\.particles must be an integer >= 1, got 0"):
         common.config_from_parameters({"inference.particles": 0})
     with pytest.raises(ConfigError, match=r"inference.particles: expected an integer"):
         common.config_from_parameters({"inference.particles": "many"})
@@ -1229,7 +1245,7 @@ def test_player_replays_the_recorded_bytes_then_announces_the_end(tmp_path, monk
 @pytest.mark.parametrize(
     ("node", "ros_args", "match"),
     [
-        ("topology_filter", ["-p", "inference.particles:=0"], "particles and top must be >= 1"),
+        ("topology_filter", ["-p", "inference.particles:=0"], "inference.particles must be an integer >= 1"),
         ("landmark_detector", ["-p", "sensor_qos:=fast"], "sensor_qos must be one of"),
         ("map_publisher", ["-p", "out_dir:=3"], "out_dir"),
         ("map_publisher", ["-p", "inference.particlez:=3"], "unknown parameter(s) ['inference.particlez']"),

@@ -303,7 +303,7 @@ def test_cli_reports_errors_with_exit_code(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("inference: {method: magic}\n")
     assert run_cli.main([str(tmp_path), "--out", str(tmp_path / "o"), "--params", str(bad), "--quiet"]) == 2
-    assert "inference method" in capsys.readouterr().err
+    assert "InferenceConfig.method must be one of" in capsys.readouterr().err
 
 
 def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):

@@ -572,14 +572,14 @@ def test_appearance_detector_on_panoramas() -> None:
     ("field", "value", "match"),
     [
         ("statistic", "volume", "statistic must be one of"),
-        ("side_half_angle", 2.0, r"side_half_angle must be in \(0, π/2\)"),
-        ("memory", 0.0, "memory must be finite and > 0"),
-        ("memory_distance", -1.0, "memory_distance must be > 0"),
+        ("side_half_angle", 2.0, r"side_half_angle must be a finite number in \(0, 1\.5708\)"),
+        ("memory", 0.0, "memory must be a finite number > 0"),
+        ("memory_distance", -1.0, "memory_distance must be a number > 0"),
         ("prior_std", 0.0, "prior_std must be a finite number > 0"),
-        ("band_sigmas", math.nan, "band_sigmas must be finite"),
+        ("band_sigmas", math.nan, "band_sigmas must be a finite number > 0"),
         ("samples", 1, "samples must be an integer >= 2"),
         ("warmup", 1.5, "warmup must be an integer >= 1"),
-        ("min_travel", -0.1, "min_travel must be finite and >= 0"),
+        ("min_travel", -0.1, "min_travel must be a finite number >= 0"),
     ],
 )
 def test_laser_config_rejects_bad_values(field: str, value: object, match: str) -> None:
@@ -588,7 +588,7 @@ def test_laser_config_rejects_bad_values(field: str, value: object, match: str) 
 
 
 def test_appearance_config_and_detector_reject_bad_values() -> None:
-    with pytest.raises(ConfigError, match="model must be 'words' or 'fourier'"):
+    with pytest.raises(ConfigError, match=r"model must be one of \('words', 'fourier'\)"):
         AppearanceSurpriseConfig(model="colour")
     with pytest.raises(ConfigError, match="edcm_strength must be a finite number > 0"):
         AppearanceSurpriseConfig(edcm_strength=0.0)

@@ -129,6 +129,7 @@ from ptm_ros.model.geometry import FloatArray
 from ptm_ros.model.partitions import Labels, blocks, canonical, is_canonical, random_partition, stirling2
 from ptm_ros.model.posterior import PosteriorModel, normalize_log, same_place_probabilities, total_variation
 from ptm_ros.model.visits import Visit
+from ptm_ros.settings import Settings, setting
 
 Block = tuple[int, ...]
 
@@ -154,126 +155,136 @@ _CHUNK = 64
 
 
 @dataclass(frozen=True)
-class McmcConfig:
-    """Settings of the MCMC sampler (see the module docstring for the maths).
+class McmcConfig(Settings):
+    """Settings of the MCMC sampler (see the module docstring for the maths)."""
 
-    Attributes:
-        proposal: "split-merge" (Alg. 2), "odometry" (Alg. 3), "appearance" (Alg. 10), "reassign" (one
-            visit moved, not in the thesis) or "auto" = an equal mixture of the data-driven proposals the
-            model supports (odometry with reassign, appearance; plain split–merge when none).
-        odometry_scale: s (m) of the odometry merge weights ``exp(-d²/2s²)``; 1 m (about 2 σ_T) made
-            fewer wrong merges than 2–4 m on the 33-visit benchmark, so chains were trapped less often.
-        appearance_strength: λ of the appearance weights ``exp(∓λ sep)``.
-        new_place_distance: m; the reassign proposal opens a new place for a visit as readily as it joins
-            a place this far from the visit (weights ``exp(-d²/2s²)``, ``s`` = ``odometry_scale``).
-        proposal_mix: ε, weight of the uniform distribution mixed into data-driven merges and splits.
-        max_split_enumeration: largest block whose splits the appearance proposal scores (2^{k-1}-1 each).
-        max_chaining: C_max of proposal chaining (Alg. 4); 1 = no chaining.
-        betas: inverse temperatures of MC³ (Alg. 5), ``1.0`` first, strictly decreasing; ``(1.0,)`` = one
-            plain chain. On the 33-visit benchmark a single chain was sometimes trapped for thousands of
-            sweeps in a "shifted loop" mode (1 run in 10 at s = 1 m, 2 in 3 at s = 2 m); with the default,
-            one replica at β = ½, every run (7 of 7) converged in the first round, for ~2× the evaluations.
-        chains: independent chains (each an MC³ ladder) with their own seeds, compared for convergence.
-        processes: worker processes running the chains (1 = in this process, where the chains also
-            share the model's posterior cache; forking is also unwelcome inside a multi-threaded node).
-        initial: "singletons" (thesis), "one-place", "random" (uniform over topologies, per chain),
-            "rbpf": the particle filter's most probable topologies, chain ``c`` from the ``c``-th (a data-
-            driven start for long runs, where chains from singletons stay trapped; ``ptm-run`` runs the
-            filter first, :func:`ptm_ros.session.infer`; :func:`run_mcmc` needs them as
-            ``initial``), or "auto" (default): "singletons" up to ``auto_filter_visits`` visits, "rbpf"
-            beyond (:func:`starts_from_filter`): on the long real runs chains from singletons stay far
-            below the filter's best topology, chains from the filter's end at or above it
-            (``bench/mcmc.json``).
-        auto_filter_visits: most visits for which "auto" starts from singletons (the simulated 33-visit
-            world converges from there in ~3 s).
-        estimate: the PTM returned as ``probabilities``: "visited" (default) or "histogram".
-        tolerance: TV below which sample doubling and chain agreement declare convergence.
-        burn_in: fraction of each chain's sweeps left out of the histogram estimate.
-        min_iterations: sweeps of the first round (rounds then double).
-        max_iterations: cap on sweeps per chain.
-        max_seconds: cap on the sampling's wall time (s), checked after every sweep; the particle filter
-            run for the starts (``initial`` "rbpf") and the report after sampling come on top.
-        trace_samples: most cold-chain states kept per chain in :attr:`McmcResult.cold_states` (the trace
-            is thinned by a common stride to fit; for SRQ plots, thesis Ch. 3.6).
-    """
-
-    proposal: str = "auto"
-    odometry_scale: float = 1.0
-    appearance_strength: float = 10.0
-    new_place_distance: float = 2.0
-    proposal_mix: float = 0.05
-    max_split_enumeration: int = 12
-    max_chaining: int = 1
-    betas: tuple[float, ...] = (1.0, 0.5)
-    chains: int = 2
-    processes: int = 1
-    initial: str = "auto"
-    auto_filter_visits: int = 40
-    estimate: str = "visited"
-    tolerance: float = 0.02
-    burn_in: float = 0.1
-    min_iterations: int = 500
-    max_iterations: int = 200_000
-    max_seconds: float = 60.0
-    trace_samples: int = 4000
+    proposal: str = setting(
+        "auto",
+        choices=PROPOSALS,
+        doc=(
+            'the proposal: "split-merge" (Alg. 2), "odometry" (Alg. 3), "appearance" (Alg. 10), "reassign" '
+            '(one visit moved, not in the thesis) or "auto" = an equal mixture of the data-driven proposals '
+            "the model supports (odometry with reassign, appearance; plain split–merge when none)."
+        ),
+    )
+    odometry_scale: float = setting(
+        1.0,
+        gt=0,
+        doc=(
+            "s [m] of the odometry merge weights ``exp(-d²/2s²)``; 1 m (about 2 σ_T) made fewer wrong merges "
+            "than 2–4 m on the 33-visit benchmark, so chains were trapped less often."
+        ),
+    )
+    appearance_strength: float = setting(10.0, ge=0, doc="λ of the appearance weights ``exp(∓λ sep)``.")
+    new_place_distance: float = setting(
+        2.0,
+        gt=0,
+        doc=(
+            "the reassign proposal opens a new place for a visit as readily as it joins a place this far "
+            "from the visit [m] (weights ``exp(-d²/2s²)``, ``s`` = ``odometry_scale``)."
+        ),
+    )
+    proposal_mix: float = setting(
+        0.05,
+        ge=0,
+        lt=1,
+        doc="ε, weight of the uniform distribution mixed into data-driven merges and splits.",
+    )
+    max_split_enumeration: int = setting(
+        12,
+        ge=2,
+        le=_MAX_SPLIT_ENUMERATION,
+        doc="largest block whose splits the appearance proposal scores (2^{k-1}-1 each).",
+    )
+    max_chaining: int = setting(1, ge=1, doc="C_max of proposal chaining (Alg. 4); 1 = no chaining.")
+    betas: tuple[float, ...] = setting(
+        (1.0, 0.5),
+        gt=0,
+        le=1,
+        doc=(
+            "inverse temperatures of MC³ (Alg. 5), ``1.0`` first, strictly decreasing; ``(1.0,)`` = one plain"
+            " chain. On the 33-visit benchmark a single chain was sometimes trapped for thousands of sweeps "
+            'in a "shifted loop" mode (1 run in 10 at s = 1 m, 2 in 3 at s = 2 m); with the default, one '
+            "replica at β = ½, every run (7 of 7) converged in the first round, for ~2× the evaluations."
+        ),
+    )
+    chains: int = setting(
+        2, ge=1, doc="independent chains (each an MC³ ladder) with their own seeds, compared for convergence."
+    )
+    processes: int = setting(
+        1,
+        ge=1,
+        doc=(
+            "worker processes running the chains (1 = in this process, where the chains also share the "
+            "model's posterior cache; forking is also unwelcome inside a multi-threaded node)."
+        ),
+    )
+    initial: str = setting(
+        "auto",
+        choices=INITIAL_STATES,
+        doc=(
+            'the chains\' starting topologies: "singletons" (thesis), "one-place", "random" (uniform over '
+            'topologies, per chain), "rbpf": the particle filter\'s most probable topologies, chain ``c`` '
+            "from the ``c``-th (a data-driven start for long runs, where chains from singletons stay "
+            "trapped; ``ptm-run`` runs the filter first, :func:`ptm_ros.session.infer`; :func:`run_mcmc` "
+            'needs them as ``initial``), or "auto" (default): "singletons" up to ``auto_filter_visits`` '
+            'visits, "rbpf" beyond (:func:`starts_from_filter`): on the long real runs chains from '
+            "singletons stay far below the filter's best topology, chains from the filter's end at or above "
+            "it (``bench/mcmc.json``)."
+        ),
+    )
+    auto_filter_visits: int = setting(
+        40,
+        ge=1,
+        doc=(
+            'most visits for which "auto" starts from singletons (the simulated 33-visit world converges from'
+            " there in ~3 s)."
+        ),
+    )
+    estimate: str = setting(
+        "visited",
+        choices=ESTIMATES,
+        doc='the PTM returned as ``probabilities``: "visited" (default) or "histogram".',
+    )
+    tolerance: float = setting(
+        0.02, gt=0, lt=1, doc="TV below which sample doubling and chain agreement declare convergence."
+    )
+    burn_in: float = setting(
+        0.1, ge=0, le=0.5, doc="fraction of each chain's sweeps left out of the histogram estimate."
+    )
+    min_iterations: int = setting(500, ge=1, doc="sweeps of the first round (rounds then double).")
+    max_iterations: int = setting(200_000, ge=1, doc="cap on sweeps per chain.")
+    max_seconds: float = setting(
+        60.0,
+        gt=0,
+        doc=(
+            "cap on the sampling's wall time [s], checked after every sweep; the particle filter run for the "
+            'starts (``initial`` "rbpf") and the report after sampling come on top.'
+        ),
+    )
+    trace_samples: int = setting(
+        4000,
+        ge=1,
+        doc=(
+            "most cold-chain states kept per chain in :attr:`McmcResult.cold_states` (the trace is thinned by"
+            " a common stride to fit; for SRQ plots, thesis Ch. 3.6)."
+        ),
+    )
 
     def __post_init__(self) -> None:
-        for name, value, options in (
-            ("proposal", self.proposal, PROPOSALS),
-            ("estimate", self.estimate, ESTIMATES),
-            ("initial", self.initial, INITIAL_STATES),
-        ):
-            if value not in options:
-                msg = f"McmcConfig.{name} must be one of {options}, got {value!r}"
-                raise ConfigError(msg)
-        in_range: dict[str, Callable[[float], bool]] = {
-            "odometry_scale": lambda v: v > 0.0,
-            "appearance_strength": lambda v: v >= 0.0,
-            "new_place_distance": lambda v: v > 0.0,
-            "proposal_mix": lambda v: 0.0 <= v < 1.0,
-            "tolerance": lambda v: 0.0 < v < 1.0,
-            "burn_in": lambda v: 0.0 <= v <= 0.5,
-            "max_seconds": lambda v: v > 0.0,
-        }
-        for name, check in in_range.items():
-            value = getattr(self, name)
-            number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            if not (number and check(value)):
-                msg = f"McmcConfig.{name} is out of range: {value!r}"
-                raise ConfigError(msg)
-        for name, count, low in (
-            ("max_split_enumeration", self.max_split_enumeration, 2),
-            ("max_chaining", self.max_chaining, 1),
-            ("chains", self.chains, 1),
-            ("processes", self.processes, 1),
-            ("min_iterations", self.min_iterations, 1),
-            ("max_iterations", self.max_iterations, 1),
-            ("trace_samples", self.trace_samples, 1),
-            ("auto_filter_visits", self.auto_filter_visits, 1),
-        ):
-            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < low:
-                msg = f"McmcConfig.{name} must be an integer >= {low}, got {count!r}"
-                raise ConfigError(msg)
-        if self.max_split_enumeration > _MAX_SPLIT_ENUMERATION:
-            msg = f"McmcConfig.max_split_enumeration must be <= {_MAX_SPLIT_ENUMERATION}"
-            raise ConfigError(msg)
+        super().__post_init__()
+        # a list (YAML, callers) becomes a tuple, its numbers floats
+        object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
+
+    def check(self) -> None:
+        """``max_iterations >= min_iterations``; ``betas`` a ladder from 1.0, strictly decreasing."""
         if self.max_iterations < self.min_iterations:
             msg = (
                 f"McmcConfig.max_iterations ({self.max_iterations}) < min_iterations ({self.min_iterations})"
             )
             raise ConfigError(msg)
-        try:
-            betas = tuple(float(b) for b in self.betas)
-        except (TypeError, ValueError) as err:
-            msg = f"McmcConfig.betas must be a sequence of numbers, got {self.betas!r}"
-            raise ConfigError(msg) from err
-        object.__setattr__(self, "betas", betas)
-        if (
-            not betas
-            or betas[0] != 1.0
-            or not all(math.isfinite(b) and b > 0.0 for b in betas)
-            or any(b >= a for a, b in pairwise(betas))
-        ):
+        betas = tuple(self.betas)
+        if not betas or betas[0] != 1.0 or any(b >= a for a, b in pairwise(betas)):
             msg = f"McmcConfig.betas must start at 1.0 and decrease strictly to > 0, got {betas}"
             raise ConfigError(msg)
 

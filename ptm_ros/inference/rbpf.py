@@ -159,6 +159,7 @@ from ptm_ros.model.partitions import Labels
 from ptm_ros.model.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
 from ptm_ros.model.ptm import Landmark, Ptm, make_ptm
 from ptm_ros.model.visits import Visit, visit_fields, visit_from_fields
+from ptm_ros.settings import Settings, setting
 
 IntArray = NDArray[np.intp]
 
@@ -181,28 +182,25 @@ _SLACK = 2
 
 
 @dataclass(frozen=True)
-class RbpfConfig:
-    """Settings of the particle filter.
+class RbpfConfig(Settings):
+    """Settings of the particle filter."""
 
-    Attributes:
-        particles: N, the largest number of distinct topologies kept after each visit.
-        resample: ``"optimal"`` (Fearnhead–Clifford) or ``"top"`` (the N heaviest children, biased).
-        record_top: the most probable topologies each update records in its :class:`FilterState`
-            (``top``: the PTM after that visit, eq. 38–39); 0 records none.
-    """
-
-    particles: int = 100
-    resample: str = "optimal"
-    record_top: int = 0
-
-    def __post_init__(self) -> None:
-        for name, value, low in (("particles", self.particles, 1), ("record_top", self.record_top, 0)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                msg = f"RbpfConfig.{name} must be an integer >= {low}, got {value!r}"
-                raise ConfigError(msg)
-        if self.resample not in RESAMPLE_METHODS:
-            msg = f"RbpfConfig.resample must be one of {RESAMPLE_METHODS}, got {self.resample!r}"
-            raise ConfigError(msg)
+    particles: int = setting(
+        100, ge=1, doc="N, the largest number of distinct topologies kept after each visit"
+    )
+    resample: str = setting(
+        "optimal",
+        choices=RESAMPLE_METHODS,
+        doc='``"optimal"`` (Fearnhead–Clifford) or ``"top"`` (the N heaviest children, biased)',
+    )
+    record_top: int = setting(
+        0,
+        ge=0,
+        doc=(
+            "the most probable topologies each update records in its FilterState (``top``: the PTM after "
+            "that visit, eq. 38–39); 0 records none"
+        ),
+    )
 
 
 @dataclass(frozen=True)

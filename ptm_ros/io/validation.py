@@ -53,6 +53,13 @@ def valid_stamp(header: Any) -> float | None:
     return None if ns is None else ns_to_stamp(ns)
 
 
+def odometry_xy_yaw(msg: Any) -> tuple[float, float, float]:
+    """``(x, y, yaw)`` of a ``nav_msgs/Odometry`` as :func:`ptm_ros.io.bag.read_run` decodes it, bit for
+    bit (non-finite values passed through, for the caller to count)."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return float(p.x), float(p.y), quaternion_to_yaw(q.x, q.y, q.z, q.w)
+
+
 def odometry_pose(msg: Any) -> tuple[NDArray[np.float64] | None, Rejection | None, bool]:
     """``(pose, None, normalised)`` of a valid Odometry message, else ``(None, (reason, detail), False)``:
     ``odometry-non-finite``, ``odometry-out-of-range`` (beyond :data:`MAX_POSITION`) or

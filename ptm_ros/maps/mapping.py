@@ -37,7 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.errors import DataError
 from ptm_ros.maps.occupancy import OccupancyConfig, OccupancyGrid, build_grid
 from ptm_ros.maps.refinement import Mapper, RefinementConfig, refine_trajectory
 from ptm_ros.maps.smoothing import smooth_topology
@@ -45,53 +45,55 @@ from ptm_ros.model.geometry import FloatArray, Registrar, RelativePose, interpol
 from ptm_ros.model.posterior import ModelConfig, chained_registrations, split_aliases
 from ptm_ros.model.visits import Visit
 from ptm_ros.perception.laser import LaserConfig, usable_points
+from ptm_ros.settings import Settings, setting
 
 TELEPORT_SLACK_M = 1.0  # m added to max_speed · Δt before an odometry step counts as a teleport
 SAME_STAMP_S = 1e-6  # s: an odometry sample this close to a visit's stamp is that visit's sample
 
 
 @dataclass(frozen=True)
-class MappingConfig:
-    """The map publisher's online metric map (lengths in m, angles in rad).
+class MappingConfig(Settings):
+    """The map publisher's online metric map (lengths in m, angles in rad)."""
 
-    Attributes:
-        period: s (wall) between two rebuilds of the map at least; a rebuild that took d seconds also
-            waits 4 d, so drawing the map never takes more than a fifth of a core.
-        keyframe_xy: a scan joins the map after the odometry moved this far since the last keyframe …
-        keyframe_yaw: … or turned this much (both 0: every scan, as ``ptm-run``'s map).
-        pose_xy: the detector sends an odometry sample after this much motion since the last one …
-        pose_yaw: … or this much rotation (both 0: every sample) …
-        pose_interval: … or this many seconds (the detector's stream; 0: time alone sends every one).
-        max_pending_scans: scans waiting for the odometry to reach their stamp; older ones are dropped
-            (a fast replay can run the scans far ahead of the detector's odometry: 10000 scans of 360
-            beams are 15 MB).
-        max_speed: m/s; a longer odometry step (plus 1 m) is a teleport: a new session, the map restarts.
-    """
-
-    period: float = 2.0
-    keyframe_xy: float = 0.2
-    keyframe_yaw: float = 0.1
-    pose_xy: float = 0.05
-    pose_yaw: float = 0.05
-    pose_interval: float = 1.0
-    max_pending_scans: int = 10000
-    max_speed: float = 5.0
-
-    def __post_init__(self) -> None:
-        for name in ("period", "keyframe_xy", "keyframe_yaw", "pose_xy", "pose_yaw", "pose_interval"):
-            value = getattr(self, name)
-            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-            if not (ok and value >= 0.0):
-                msg = f"MappingConfig.{name} must be a finite number >= 0, got {value!r}"
-                raise ConfigError(msg)
-        n = self.max_pending_scans
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            msg = f"MappingConfig.max_pending_scans must be an integer >= 1, got {n!r}"
-            raise ConfigError(msg)
-        v = self.max_speed
-        if isinstance(v, bool) or not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
-            msg = f"MappingConfig.max_speed must be a finite number > 0 (m/s), got {v!r}"
-            raise ConfigError(msg)
+    period: float = setting(
+        2.0,
+        ge=0,
+        doc=(
+            "wall-clock time between two rebuilds of the map at least [s]; a rebuild that took d seconds "
+            "also waits 4 d, so drawing the map never takes more than a fifth of a core."
+        ),
+    )
+    keyframe_xy: float = setting(
+        0.2, ge=0, doc="a scan joins the map after the odometry moved this far [m] since the last keyframe …"
+    )
+    keyframe_yaw: float = setting(
+        0.1, ge=0, doc="… or turned this much [rad] (both 0: every scan, as ``ptm-run``'s map)."
+    )
+    pose_xy: float = setting(
+        0.05,
+        ge=0,
+        doc="the detector sends an odometry sample after this much motion [m] since the last one …",
+    )
+    pose_yaw: float = setting(0.05, ge=0, doc="… or this much rotation [rad] (both 0: every sample) …")
+    pose_interval: float = setting(
+        1.0, ge=0, doc="… or this many seconds (the detector's stream; 0: time alone sends every one)."
+    )
+    max_pending_scans: int = setting(
+        10000,
+        ge=1,
+        doc=(
+            "scans waiting for the odometry to reach their stamp; older ones are dropped (a fast replay can "
+            "run the scans far ahead of the detector's odometry: 10000 scans of 360 beams are 15 MB)."
+        ),
+    )
+    max_speed: float = setting(
+        5.0,
+        gt=0,
+        doc=(
+            "top speed [m/s]; a longer odometry step (``max_speed · Δt + 1 m``) is a teleport: a new "
+            "session, the map restarts."
+        ),
+    )
 
 
 def every_sample(config: MappingConfig) -> MappingConfig:

@@ -56,7 +56,6 @@ the cells of the saved map in either mode.
 from __future__ import annotations
 
 import json
-import math
 import re
 import struct
 import zlib
@@ -71,6 +70,7 @@ from scipy.special import expit
 
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.model.geometry import FloatArray
+from ptm_ros.settings import Settings, setting
 
 IntArray = NDArray[np.int64]
 
@@ -87,59 +87,75 @@ MAP_IMAGES = {"trinary": "{stem}.pgm", "scale": "{stem}_scale.png"}
 OPAQUE = 255
 
 
+#: map_server modes :func:`save_map` writes (``OccupancyConfig.mode``).
+MAP_MODES = tuple(MAP_IMAGES)
+#: Occupancy of a free pixel (grey level 254): ``free_thresh`` must lie above it for the pixel to read free.
+FREE_PIXEL_OCCUPANCY = 1.0 / 255.0
+
+
 @dataclass(frozen=True)
-class OccupancyConfig:
-    """Occupancy grid parameters.
+class OccupancyConfig(Settings):
+    """Occupancy grid parameters."""
 
-    Attributes:
-        resolution: cell size (m).
-        max_range: usable beam length (m); longer returns are truncated to free space without a hit.
-        missing_ray_length: a no-return beam (range at or beyond the scan's ``range_max``) clears this
-            far (m; 0: not at all), as Cartographer's ``missing_data_ray_length``.
-        l_occ: log-odds increment of a cell holding a return (> 0; logit(0.7)).
-        l_free: log-odds increment of a cell a beam passes through (< 0; logit(0.45): a hit outweighs
-            about 4 passes, module docstring).
-        clamp: log odds are kept in ``[-clamp, clamp]`` (> 0).
-        margin: unknown border around the data (m).
-        occupied_thresh: map_server threshold: occupancy above it is occupied.
-        free_thresh: map_server threshold: occupancy below it is free.
-        max_cells: largest grid built (a guard against a stray pose far away).
-        mode: map_server mode of the saved map and of ``/map`` (module docstring): ``trinary``
-            (``map.pgm``; 100 / 0 / -1) or ``scale`` (``map_scale.png``; 100 / 0 / -1 and the occupancy
-            between the thresholds as 1..99).
-    """
+    resolution: float = setting(0.05, gt=0, doc="cell size [m].")
+    max_range: float = setting(
+        20.0, gt=0, doc="usable beam length [m]; longer returns are truncated to free space without a hit."
+    )
+    missing_ray_length: float = setting(
+        2.0,
+        ge=0,
+        doc=(
+            "a no-return beam (range at or beyond the scan's ``range_max``) clears this far [m] (0: not at "
+            "all), as Cartographer's ``missing_data_ray_length``."
+        ),
+    )
+    l_occ: float = setting(
+        0.85, gt=0, doc="log-odds increment of a cell holding a return (evidence for occupied; logit(0.7))."
+    )
+    l_free: float = setting(
+        -0.2,
+        lt=0,
+        doc=(
+            "log-odds increment of a cell a beam passes through (evidence for free; logit(0.45): a hit "
+            "outweighs about 4 passes, module docstring)."
+        ),
+    )
+    clamp: float = setting(5.0, gt=0, doc="log odds are kept in ``[-clamp, clamp]``.")
+    margin: float = setting(1.0, ge=0, doc="unknown border around the data [m].")
+    occupied_thresh: float = setting(
+        0.65,
+        gt=FREE_PIXEL_OCCUPANCY,
+        lt=1,
+        doc=(
+            "map_server threshold: occupancy above it is occupied (below 1, the occupancy of the occupied "
+            "pixel 0; above ``free_thresh``)."
+        ),
+    )
+    free_thresh: float = setting(
+        0.25,
+        gt=FREE_PIXEL_OCCUPANCY,
+        lt=1,
+        doc=(
+            "map_server threshold: occupancy below it is free (above 1/255, the occupancy of the free pixel "
+            "254; below ``occupied_thresh``, with a grey level between the two for unknown)."
+        ),
+    )
+    max_cells: int = setting(
+        50_000_000, ge=1, doc="largest grid built (a guard against a stray pose far away)."
+    )
+    mode: str = setting(
+        "trinary",
+        choices=MAP_MODES,
+        doc=(
+            "map_server mode of the saved map and of ``/map`` (module docstring): ``trinary`` (``map.pgm``; "
+            "100 / 0 / -1) or ``scale`` (``map_scale.png``; 100 / 0 / -1 and the occupancy between the "
+            "thresholds as 1..99)."
+        ),
+    )
 
-    resolution: float = 0.05
-    max_range: float = 20.0
-    missing_ray_length: float = 2.0
-    l_occ: float = 0.85
-    l_free: float = -0.2
-    clamp: float = 5.0
-    margin: float = 1.0
-    occupied_thresh: float = 0.65
-    free_thresh: float = 0.25
-    max_cells: int = 50_000_000
-    mode: str = "trinary"
-
-    def __post_init__(self) -> None:
-        positive = {"resolution": self.resolution, "max_range": self.max_range, "clamp": self.clamp}
-        for name, value in positive.items():
-            if not (math.isfinite(value) and value > 0):
-                msg = f"OccupancyConfig.{name} must be a positive finite number, got {value}"
-                raise ConfigError(msg)
-        if not (math.isfinite(self.l_occ) and self.l_occ > 0):
-            msg = f"OccupancyConfig.l_occ must be > 0 (evidence for occupied), got {self.l_occ}"
-            raise ConfigError(msg)
-        if not (math.isfinite(self.l_free) and self.l_free < 0):
-            msg = f"OccupancyConfig.l_free must be < 0 (evidence for free), got {self.l_free}"
-            raise ConfigError(msg)
-        if not (math.isfinite(self.missing_ray_length) and self.missing_ray_length >= 0):
-            msg = f"OccupancyConfig.missing_ray_length must be >= 0, got {self.missing_ray_length}"
-            raise ConfigError(msg)
-        if not (math.isfinite(self.margin) and self.margin >= 0):
-            msg = f"OccupancyConfig.margin must be >= 0, got {self.margin}"
-            raise ConfigError(msg)
-        if not (1.0 / 255.0 < self.free_thresh < self.occupied_thresh < 1.0):
+    def check(self) -> None:
+        """``free_thresh < occupied_thresh``, with an 8-bit grey level between them for unknown."""
+        if self.free_thresh >= self.occupied_thresh:
             msg = (
                 "OccupancyConfig thresholds must satisfy 1/255 < free_thresh < occupied_thresh < 1 "
                 f"(free pixel 254, occupied pixel 0), got free_thresh={self.free_thresh}, "
@@ -152,12 +168,6 @@ class OccupancyConfig:
                 f"OccupancyConfig: no 8-bit grey level reads as unknown between free_thresh="
                 f"{self.free_thresh} and occupied_thresh={self.occupied_thresh}; widen the band"
             )
-            raise ConfigError(msg)
-        if self.max_cells < 1:
-            msg = f"OccupancyConfig.max_cells must be >= 1, got {self.max_cells}"
-            raise ConfigError(msg)
-        if self.mode not in MAP_IMAGES:
-            msg = f"OccupancyConfig.mode must be one of {sorted(MAP_IMAGES)}, got {self.mode!r}"
             raise ConfigError(msg)
 
 

@@ -46,7 +46,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ptm_ros.errors import ConfigError, ModelError, RegistrationError
+from ptm_ros.errors import ModelError, RegistrationError
 from ptm_ros.maps.posegraph import RelativeFactors
 from ptm_ros.maps.smoothing import (
     RobustGraph,
@@ -69,6 +69,7 @@ from ptm_ros.model.odometry import OdometryConfig, optimize_poses
 from ptm_ros.model.partitions import canonical
 from ptm_ros.model.visits import Visit
 from ptm_ros.perception.laser import LaserConfig, Registration, register_patches, voxel_downsample
+from ptm_ros.settings import Settings, setting
 
 _NUMERIC_VARIANCE = 1e-6  # m², rad²: keeps a zero-travel odometry factor finite
 
@@ -103,62 +104,48 @@ class Mapper(Protocol):
 
 
 @dataclass(frozen=True)
-class RefinementConfig:
-    """Keyframe scan matching along revisited passages (module docstring; lengths in m, angles in rad).
+class RefinementConfig(Settings):
+    """Keyframe scan matching along revisited passages (module docstring; lengths in m, angles in rad)."""
 
-    Attributes:
-        enabled: refine smoothed trajectories (``ptm-run``'s and the map publisher's) when scans exist.
-        keyframe_xy: a scan becomes a keyframe after this much odometry travel since the last one …
-        keyframe_yaw: … or this much turning.
-        submap_travel: scans within this odometry travel before and after a keyframe form its submap.
-        min_travel: two keyframes are a candidate pair only this much odometry travel apart or more
-            (nearer ones are tied by the odometry).
-        search_radius: … and at most this far apart under the current estimate.
-        max_candidates: nearest candidates registered per keyframe and round.
-        max_shift: a match farther than this from the estimated relative pose is rejected.
-        rounds: search-and-solve rounds (a round without a new valid match ends early).
-        corridors: also use matches that slide along a corridor (sharp across it and in heading,
-            :attr:`ptm_ros.perception.laser.Registration.slide_axis`), with ``corridor_std`` added along the
-            axis.
-        corridor_std: standard deviation added along a corridor match's axis.
-    """
-
-    enabled: bool = True
-    keyframe_xy: float = 1.0
-    keyframe_yaw: float = 0.5
-    submap_travel: float = 2.0
-    min_travel: float = 5.0
-    search_radius: float = 2.0
-    max_candidates: int = 3
-    max_shift: float = 2.0
-    rounds: int = 2
-    corridors: bool = True
-    corridor_std: float = 2.0
-
-    def __post_init__(self) -> None:
-        for name in ("enabled", "corridors"):
-            if not isinstance(getattr(self, name), bool):
-                msg = f"RefinementConfig.{name} must be a bool, got {getattr(self, name)!r}"
-                raise ConfigError(msg)
-        for name in (
-            "keyframe_xy",
-            "keyframe_yaw",
-            "submap_travel",
-            "min_travel",
-            "search_radius",
-            "max_shift",
-            "corridor_std",
-        ):
-            value = getattr(self, name)
-            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-            if not (ok and value > 0.0):
-                msg = f"RefinementConfig.{name} must be a finite number > 0, got {value!r}"
-                raise ConfigError(msg)
-        for name in ("max_candidates", "rounds"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                msg = f"RefinementConfig.{name} must be an integer >= 1, got {value!r}"
-                raise ConfigError(msg)
+    enabled: bool = setting(
+        True, doc="refine smoothed trajectories (``ptm-run``'s and the map publisher's) when scans exist."
+    )
+    keyframe_xy: float = setting(
+        1.0, gt=0, doc="a scan becomes a keyframe after this much odometry travel [m] since the last one …"
+    )
+    keyframe_yaw: float = setting(0.5, gt=0, doc="… or this much turning [rad].")
+    submap_travel: float = setting(
+        2.0, gt=0, doc="scans within this odometry travel [m] before and after a keyframe form its submap."
+    )
+    min_travel: float = setting(
+        5.0,
+        gt=0,
+        doc=(
+            "two keyframes are a candidate pair only this much odometry travel [m] apart or more (nearer "
+            "ones are tied by the odometry)."
+        ),
+    )
+    search_radius: float = setting(
+        2.0, gt=0, doc="… and at most this far apart [m] under the current estimate."
+    )
+    max_candidates: int = setting(3, ge=1, doc="nearest candidates registered per keyframe and round.")
+    max_shift: float = setting(
+        2.0, gt=0, doc="a match farther than this [m] from the estimated relative pose is rejected."
+    )
+    rounds: int = setting(
+        2, ge=1, doc="search-and-solve rounds (a round without a new valid match ends early)."
+    )
+    corridors: bool = setting(
+        True,
+        doc=(
+            "also use matches that slide along a corridor (sharp across it and in heading, "
+            ":attr:`ptm_ros.perception.laser.Registration.slide_axis`), with ``corridor_std`` added along the"
+            " axis."
+        ),
+    )
+    corridor_std: float = setting(
+        2.0, gt=0, doc="standard deviation [m] added along a corridor match's axis."
+    )
 
 
 @dataclass(frozen=True)

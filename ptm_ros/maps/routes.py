@@ -72,12 +72,13 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from ptm_ros.errors import ConfigError, DataError
+from ptm_ros.errors import DataError
 from ptm_ros.maps.map_quality import ClassGrid
 from ptm_ros.maps.occupancy import FREE, OCCUPIED, UNKNOWN, grid_traversal
 from ptm_ros.model.geometry import FloatArray, interpolate_poses
 from ptm_ros.model.partitions import num_places
 from ptm_ros.model.ptm import Ptm, Topology
+from ptm_ros.settings import Settings, setting
 
 IntArray = NDArray[np.int64]
 
@@ -97,34 +98,28 @@ _STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))
 
 
 @dataclass(frozen=True)
-class RouteConfig:
-    """How the route graph's edges keep off the walls of the run's map (module docstring; lengths in m).
+class RouteConfig(Settings):
+    """How the route graph's edges keep off the walls of the run's map (module docstring; lengths in m)."""
 
-    Attributes:
-        corridor: a rerouted edge keeps within this distance of its straight segment (> 0).
-        unknown_cost: cost of a metre through an unknown cell (never observed, or between the map's
-            thresholds) relative to a free one (>= 1): detours keep to space the scans saw free.
-        max_waypoints: most waypoints of one rerouted connection (>= 1); it sizes the block of ids each
-            pair owns, so changing it renumbers the waypoints and hops.
-    """
-
-    corridor: float = 6.0
-    unknown_cost: float = 4.0
-    max_waypoints: int = 16
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.corridor) and self.corridor > 0):
-            msg = f"RouteConfig.corridor must be a positive finite number (m), got {self.corridor}"
-            raise ConfigError(msg)
-        if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1.0):
-            msg = f"RouteConfig.unknown_cost must be a finite number >= 1, got {self.unknown_cost}"
-            raise ConfigError(msg)
-        if isinstance(self.max_waypoints, bool) or not isinstance(self.max_waypoints, int):
-            msg = f"RouteConfig.max_waypoints must be an integer, got {self.max_waypoints!r}"
-            raise ConfigError(msg)
-        if self.max_waypoints < 1:
-            msg = f"RouteConfig.max_waypoints must be >= 1, got {self.max_waypoints}"
-            raise ConfigError(msg)
+    corridor: float = setting(
+        6.0, gt=0, doc="a rerouted edge keeps within this distance [m] of its straight segment."
+    )
+    unknown_cost: float = setting(
+        4.0,
+        ge=1,
+        doc=(
+            "cost of a metre through an unknown cell (never observed, or between the map's thresholds) "
+            "relative to a free one: detours keep to space the scans saw free."
+        ),
+    )
+    max_waypoints: int = setting(
+        16,
+        ge=1,
+        doc=(
+            "most waypoints of one rerouted connection; it sizes the block of ids each pair owns, so "
+            "changing it renumbers the waypoints and hops."
+        ),
+    )
 
 
 @dataclass(frozen=True)

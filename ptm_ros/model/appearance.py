@@ -62,6 +62,7 @@ from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.model.geometry import FloatArray
 from ptm_ros.model.partitions import blocks
 from ptm_ros.model.visits import Visit
+from ptm_ros.settings import Settings, setting
 
 IntArray = NDArray[np.int64]
 Block = tuple[int, ...]
@@ -586,71 +587,76 @@ def _dcm_moment_guess(x: IntArray, totals: IntArray, min_alpha: float, max_preci
 
 
 @dataclass(frozen=True)
-class AppearanceConfig:
-    """Appearance likelihood settings (thesis Ch. 2.5, 4.4).
+class AppearanceConfig(Settings):
+    """Appearance likelihood settings (thesis Ch. 2.5, 4.4)."""
 
-    Attributes:
-        models: which measurement models to multiply: ``"fourier"`` (Fourier signatures, NIG model)
-            and/or ``"words"`` (bag-of-words histograms, Pólya model).
-        n_coeffs: Fourier coefficients per band (the thesis used the first five frequencies).
-        bands: horizontal bands of the panorama, each with its own ``n_coeffs`` coefficients.
-        include_dc: keep the mean brightness as the first coefficient of each band.
-        gain_invariant: divide each band's magnitudes by its mean brightness.
-        within_fraction: empirical Bayes, share of each component's variance over all visits expected
-            within a place (see :func:`nig_prior_from_data`): the prior guess, used alone when
-            ``within_learned`` is off or no visit carries a signature spread.
-        within_learned: learn the within-place variance from the run (the visits' signature spreads,
-            panoramas one place's width apart) instead of fixing it at ``within_fraction``.
-        within_prior_visits: weight of ``within_fraction`` against the learned spreads, in visits.
-        nig_alpha: inverse-gamma shape (> 1; larger = the within-place variance is known more surely).
-        nig_kappa: prior pseudo-count of the true appearance; None = ``ρ/(1-ρ)`` (empirical Bayes).
-        dcm_alpha: symmetric Dirichlet parameter per word; None = Minka's ML estimate from all visits.
-        dcm_min_alpha: floor of the estimated per-word Dirichlet parameters (words rare in the run).
-        dcm_max_iter: iteration limit of Minka's fixed point.
-        dcm_tol: convergence tolerance of Minka's fixed point (max change of log α).
-    """
-
-    models: tuple[str, ...] = ("fourier",)
-    n_coeffs: int = 8
-    bands: int = 1
-    include_dc: bool = False
-    gain_invariant: bool = False
-    within_fraction: float = 0.3
-    within_learned: bool = True
-    within_prior_visits: float = 2.0
-    nig_alpha: float = 5.0
-    nig_kappa: float | None = None
-    dcm_alpha: float | None = None
-    dcm_min_alpha: float = 1e-3
-    dcm_max_iter: int = 100_000
-    dcm_tol: float = 1e-9
+    models: tuple[str, ...] = setting(
+        ("fourier",),
+        choices=MODELS,
+        doc=(
+            'which measurement models to multiply: ``"fourier"`` (Fourier signatures, NIG model) and/or '
+            '``"words"`` (bag-of-words histograms, Pólya model).'
+        ),
+    )
+    n_coeffs: int = setting(
+        8, ge=1, doc="Fourier coefficients per band (the thesis used the first five frequencies)."
+    )
+    bands: int = setting(
+        1, ge=1, doc="horizontal bands of the panorama, each with its own ``n_coeffs`` coefficients."
+    )
+    include_dc: bool = setting(False, doc="keep the mean brightness as the first coefficient of each band.")
+    gain_invariant: bool = setting(False, doc="divide each band's magnitudes by its mean brightness.")
+    within_fraction: float = setting(
+        0.3,
+        gt=0,
+        lt=1,
+        doc=(
+            "empirical Bayes, share of each component's variance over all visits expected within a place (see"
+            " :func:`nig_prior_from_data`): the prior guess, used alone when ``within_learned`` is off or no "
+            "visit carries a signature spread."
+        ),
+    )
+    within_learned: bool = setting(
+        True,
+        doc=(
+            "learn the within-place variance from the run (the visits' signature spreads, panoramas one "
+            "place's width apart) instead of fixing it at ``within_fraction``."
+        ),
+    )
+    within_prior_visits: float = setting(
+        2.0, ge=0, doc="weight of ``within_fraction`` against the learned spreads, in visits."
+    )
+    nig_alpha: float = setting(
+        5.0,
+        gt=1,
+        doc=(
+            "inverse-gamma shape (> 1 for a finite prior mean; larger = the within-place variance is known "
+            "more surely)."
+        ),
+    )
+    nig_kappa: float | None = setting(
+        None, gt=0, doc="prior pseudo-count of the true appearance; None = ``ρ/(1-ρ)`` (empirical Bayes)."
+    )
+    dcm_alpha: float | None = setting(
+        None, gt=0, doc="symmetric Dirichlet parameter per word; None = Minka's ML estimate from all visits."
+    )
+    dcm_min_alpha: float = setting(
+        1e-3, gt=0, doc="floor of the estimated per-word Dirichlet parameters (words rare in the run)."
+    )
+    dcm_max_iter: int = setting(100_000, ge=1, doc="iteration limit of Minka's fixed point.")
+    dcm_tol: float = setting(
+        1e-9, gt=0, doc="convergence tolerance of Minka's fixed point (max change of log α)."
+    )
 
     def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "models", tuple(self.models))  # a list (YAML, callers) becomes a tuple
+
+    def check(self) -> None:
+        """At least one model, none named twice."""
         models = tuple(self.models)
-        object.__setattr__(self, "models", models)
-        unknown = [m for m in models if m not in MODELS]
-        if not models or unknown or len(set(models)) != len(models):
-            msg = f"models must be distinct names among {MODELS}, got {models}"
-            raise ConfigError(msg)
-        if self.n_coeffs < 1 or self.bands < 1:
-            msg = f"n_coeffs and bands must be >= 1, got {self.n_coeffs}, {self.bands}"
-            raise ConfigError(msg)
-        if not 0.0 < self.within_fraction < 1.0:
-            msg = f"within_fraction must be in (0, 1), got {self.within_fraction}"
-            raise ConfigError(msg)
-        if not (np.isfinite(self.within_prior_visits) and self.within_prior_visits >= 0.0):
-            msg = f"within_prior_visits must be finite and >= 0, got {self.within_prior_visits}"
-            raise ConfigError(msg)
-        if not (np.isfinite(self.nig_alpha) and self.nig_alpha > 1.0):
-            msg = f"nig_alpha must be finite and > 1, got {self.nig_alpha}"
-            raise ConfigError(msg)
-        for name in ("nig_kappa", "dcm_alpha"):
-            value = getattr(self, name)
-            if value is not None and not (np.isfinite(value) and value > 0.0):
-                msg = f"{name} must be None or finite and > 0, got {value}"
-                raise ConfigError(msg)
-        if not (self.dcm_min_alpha > 0.0 and self.dcm_tol > 0.0 and self.dcm_max_iter >= 1):
-            msg = "dcm_min_alpha and dcm_tol must be > 0 and dcm_max_iter >= 1"
+        if not models or len(set(models)) != len(models):
+            msg = f"AppearanceConfig.models must be distinct names among {MODELS}, got {models}"
             raise ConfigError(msg)
 
 

@@ -99,10 +99,11 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.special import logsumexp
 
-from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.errors import ModelError
 from ptm_ros.model.geometry import FloatArray, RelativePose, between, wrap_angle
 from ptm_ros.model.partitions import Labels, canonical
 from ptm_ros.model.visits import Visit, poses_array
+from ptm_ros.settings import Settings, setting
 
 #: Largest number of visits accepted (the normal matrix is factored densely, ``d = 3(N-1)``).
 MAX_VISITS = 1000
@@ -120,113 +121,96 @@ SWEPT_CELL = 0.25
 
 
 @dataclass(frozen=True)
-class OdometryConfig:
-    """Parameters of the metric likelihood (units in brackets; defaults for an indoor wheeled robot).
+class OdometryConfig(Settings):
+    """Parameters of the metric likelihood (units in brackets; defaults for an indoor wheeled robot)."""
 
-    Attributes:
-        a_xy: translation variance per metre travelled [m²/m] (5 cm/√m).
-        b_xy: translation variance floor per odometry segment [m²].
-        a_th: heading variance per radian turned [rad²/rad].
-        b_th: heading variance floor per odometry segment [rad²].
-        c_th: heading variance per metre travelled [rad²/m].
-        sigma_topology: σ_T, how far a visit passes from its place [m].
-        area_m2: A, area of the mapped environment over which places are uniform [m²]; 0 (the default):
-            learned from the visits as ``area_model`` says.
-        area_model: how ``A`` is learned when ``area_m2`` is 0: ``"swept"`` (default) the area the
-            robot's path covers (:func:`swept_area`), ``"extent"`` the rectangle spanned by the visits
-            (:func:`mapped_area`). Both are floored at ``penalty_radius²``.
-        penalty_radius: D, distance below which distinct places are penalised (eq. 15) [m].
-        penalty_max: c_max, the penalty (negative log prior) at distance 0 [nats]; 0 disables the prior.
-        registration_volume: V_reg, volume of registration outcomes when two visits are different
-            places [m²·rad].
-        learn_heading: learn a scale on the heading noise (``a_th``, ``b_th``, ``c_th``) from the run's laser
-            registrations (:mod:`ptm_ros.model.heading_noise`) while the filter runs; off: the values as
-            given.
-        heading_prior_sd: s, the standard deviation of the log-normal prior of that scale around 1 (the
-            values as given).
-        registration_outlier: ε, probability that a registration passing its fitness tests between two
-            visits of one place is nevertheless a false match, uniform over ``V_reg``: a symmetric alias
-            (a crossing or corridor passed in opposite directions by a 180° laser matches best turned
-            by π). 0 trusts every valid registration (the Gaussian of eq. 49 alone). Default: 20 of 151
-            valid registrations of visits < 1.5 m apart were off the true relative pose by > 0.5 m or
-            > 0.3 rad (Intel, ACES, MIT-CSAIL and the simulated worlds' 7/20; laser-surprise visits;
-            ``bench/fitness_loo.md``, where each run is also scored with ε fitted on the other two).
-        n_samples: importance samples (eq. 18); 0 returns the Laplace estimate (fast path).
-        max_sampled_visits: importance sampling only for up to this many visits; beyond, the Laplace
-            estimate. In ``d = 3(N-1)`` dimensions the weights degenerate: on the real runs' MAP
-            topologies the effective sample size falls to a few samples beyond some 40 visits, and the
-            estimate's spread over seeds grows to the size of the differences between topologies,
-            while the Laplace estimate stays close to the samples' mean (``bench/odometry.json``
-            records the effective sample size against N).
-        proposal: coordinates of the Gaussian proposal: ``"relative"`` (odometry increments, default)
-            or ``"absolute"`` (visit poses, as printed in the thesis); see the module docstring.
-        max_iterations: Levenberg–Marquardt iterations.
-        tolerance: LM stops after a step that lowers ``-log f_G`` by less than this [nats].
-    """
-
-    a_xy: float = 0.05**2
-    b_xy: float = 0.01**2
-    a_th: float = 0.05**2
-    b_th: float = 0.01**2
-    c_th: float = 0.02**2
-    sigma_topology: float = 0.5
-    area_m2: float = 0.0
-    area_model: str = "swept"
-    penalty_radius: float = 3.0
-    penalty_max: float = 5.0
-    registration_volume: float = 25.0
-    learn_heading: bool = True
-    heading_prior_sd: float = 1.0
-    registration_outlier: float = 0.132
-    n_samples: int = 200
-    max_sampled_visits: int = 40
-    proposal: str = "relative"
-    max_iterations: int = 50
-    tolerance: float = 1e-6
-
-    def __post_init__(self) -> None:
-        floats = {
-            "a_xy": (self.a_xy, False),
-            "b_xy": (self.b_xy, True),
-            "a_th": (self.a_th, False),
-            "b_th": (self.b_th, True),
-            "c_th": (self.c_th, False),
-            "sigma_topology": (self.sigma_topology, True),
-            "area_m2": (self.area_m2, False),
-            "penalty_radius": (self.penalty_radius, True),
-            "penalty_max": (self.penalty_max, False),
-            "registration_volume": (self.registration_volume, True),
-            "heading_prior_sd": (self.heading_prior_sd, True),
-            "tolerance": (self.tolerance, True),
-        }
-        for name, (value, strict) in floats.items():
-            ok = isinstance(value, (int, float)) and math.isfinite(value)
-            ok = ok and (value > 0.0 if strict else value >= 0.0)
-            if not ok:
-                bound = "> 0" if strict else ">= 0"
-                msg = f"OdometryConfig.{name} must be finite and {bound}, got {value!r}"
-                raise ConfigError(msg)
-        if not isinstance(self.learn_heading, bool):
-            msg = f"OdometryConfig.learn_heading must be true or false, got {self.learn_heading!r}"
-            raise ConfigError(msg)
-        eps = self.registration_outlier
-        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0.0 <= eps < 1.0:
-            msg = f"OdometryConfig.registration_outlier must be in [0, 1), got {eps!r}"
-            raise ConfigError(msg)
-        if self.area_model not in AREA_MODELS:
-            msg = f"OdometryConfig.area_model must be one of {AREA_MODELS}, got {self.area_model!r}"
-            raise ConfigError(msg)
-        if self.proposal not in PROPOSALS:
-            msg = f"OdometryConfig.proposal must be one of {PROPOSALS}, got {self.proposal!r}"
-            raise ConfigError(msg)
-        for name, value, low in (
-            ("n_samples", self.n_samples, 0),
-            ("max_sampled_visits", self.max_sampled_visits, 1),
-            ("max_iterations", self.max_iterations, 1),
-        ):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                msg = f"OdometryConfig.{name} must be an integer >= {low}, got {value!r}"
-                raise ConfigError(msg)
+    a_xy: float = setting(0.05**2, ge=0, doc="translation variance per metre travelled [m²/m] (5 cm/√m).")
+    b_xy: float = setting(0.01**2, gt=0, doc="translation variance floor per odometry segment [m²].")
+    a_th: float = setting(0.05**2, ge=0, doc="heading variance per radian turned [rad²/rad].")
+    b_th: float = setting(0.01**2, gt=0, doc="heading variance floor per odometry segment [rad²].")
+    c_th: float = setting(0.02**2, ge=0, doc="heading variance per metre travelled [rad²/m].")
+    sigma_topology: float = setting(0.5, gt=0, doc="σ_T, how far a visit passes from its place [m].")
+    area_m2: float = setting(
+        0.0,
+        ge=0,
+        doc=(
+            "A, area of the mapped environment over which places are uniform [m²]; 0 (the default): learned "
+            "from the visits as ``area_model`` says."
+        ),
+    )
+    area_model: str = setting(
+        "swept",
+        choices=AREA_MODELS,
+        doc=(
+            'how ``A`` is learned when ``area_m2`` is 0: ``"swept"`` (default) the area the robot\'s path '
+            'covers (:func:`swept_area`), ``"extent"`` the rectangle spanned by the visits '
+            "(:func:`mapped_area`). Both are floored at ``penalty_radius²``."
+        ),
+    )
+    penalty_radius: float = setting(
+        3.0, gt=0, doc="D, distance below which distinct places are penalised (eq. 15) [m]."
+    )
+    penalty_max: float = setting(
+        5.0, ge=0, doc="c_max, the penalty (negative log prior) at distance 0 [nats]; 0 disables the prior."
+    )
+    registration_volume: float = setting(
+        25.0,
+        gt=0,
+        doc="V_reg, volume of registration outcomes when two visits are different places [m²·rad].",
+    )
+    learn_heading: bool = setting(
+        True,
+        doc=(
+            "learn a scale on the heading noise (``a_th``, ``b_th``, ``c_th``) from the run's laser "
+            "registrations (:mod:`ptm_ros.model.heading_noise`) while the filter runs; off: the values as "
+            "given."
+        ),
+    )
+    heading_prior_sd: float = setting(
+        1.0,
+        gt=0,
+        doc="s, the standard deviation of the log-normal prior of that scale around 1 (the values as given).",
+    )
+    registration_outlier: float = setting(
+        0.132,
+        ge=0,
+        lt=1,
+        doc=(
+            "ε, probability that a registration passing its fitness tests between two visits of one place is "
+            "nevertheless a false match, uniform over ``V_reg``: a symmetric alias (a crossing or corridor "
+            "passed in opposite directions by a 180° laser matches best turned by π). 0 trusts every valid "
+            "registration (the Gaussian of eq. 49 alone). Default: 20 of 151 valid registrations of visits < "
+            "1.5 m apart were off the true relative pose by > 0.5 m or > 0.3 rad (Intel, ACES, MIT-CSAIL and "
+            "the simulated worlds' 7/20; laser-surprise visits; ``bench/fitness_loo.md``, where each run is "
+            "also scored with ε fitted on the other two)."
+        ),
+    )
+    n_samples: int = setting(
+        200, ge=0, doc="importance samples (eq. 18); 0 returns the Laplace estimate (fast path)."
+    )
+    max_sampled_visits: int = setting(
+        40,
+        ge=1,
+        doc=(
+            "importance sampling only for up to this many visits; beyond, the Laplace estimate. In ``d = "
+            "3(N-1)`` dimensions the weights degenerate: on the real runs' MAP topologies the effective "
+            "sample size falls to a few samples beyond some 40 visits, and the estimate's spread over seeds "
+            "grows to the size of the differences between topologies, while the Laplace estimate stays close "
+            "to the samples' mean (``bench/odometry.json`` records the effective sample size against N)."
+        ),
+    )
+    proposal: str = setting(
+        "relative",
+        choices=PROPOSALS,
+        doc=(
+            'coordinates of the Gaussian proposal: ``"relative"`` (odometry increments, default) or '
+            '``"absolute"`` (visit poses, as printed in the thesis); see the module docstring.'
+        ),
+    )
+    max_iterations: int = setting(50, ge=1, doc="most Levenberg–Marquardt iterations.")
+    tolerance: float = setting(
+        1e-6, gt=0, doc="LM stops after a step that lowers ``-log f_G`` by less than this [nats]."
+    )
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
@@ -49,18 +49,43 @@ from ptm_ros.model.odometry import AliasTest, MetricResult, OdometryConfig, alia
 from ptm_ros.model.partitions import MAX_ENUMERATION, Labels, blocks, enumerate_partitions, is_canonical
 from ptm_ros.model.priors import PriorConfig, make_prior
 from ptm_ros.model.visits import Visit
+from ptm_ros.settings import Settings, setting
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(Settings):
     """Which measurements enter the posterior, and their models' parameters."""
 
-    prior: PriorConfig = field(default_factory=PriorConfig)
-    odometry: OdometryConfig = field(default_factory=OdometryConfig)
-    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
-    use_odometry: bool = True
-    use_appearance: bool = True  # only when every visit carries the configured appearance measurement
-    use_laser: bool = True  # only when a registrar is given
+    prior: PriorConfig = setting(factory=PriorConfig, doc="the prior P(T) over topologies (Ch. 1.3).")
+    odometry: OdometryConfig = setting(
+        factory=OdometryConfig,
+        doc="the metric likelihood P(O, S | T) of odometry and laser registrations (Ch. 2.2–2.4).",
+    )
+    appearance: AppearanceConfig = setting(
+        factory=AppearanceConfig, doc="the appearance likelihood P(A | T) (Ch. 2.5)."
+    )
+    use_odometry: bool = setting(
+        True,
+        doc=(
+            "multiply in the metric likelihood of odometry and laser registrations; off: the posterior is "
+            "the prior times the appearance likelihood."
+        ),
+    )
+    use_appearance: bool = setting(
+        True,
+        doc=(
+            "multiply in the appearance likelihood; it enters only when at least two visits carry each "
+            "configured appearance measurement (``appearance.models``)."
+        ),
+    )
+    use_laser: bool = setting(
+        True,
+        doc=(
+            "use the laser scans: registrations between visits of one place enter the metric likelihood "
+            "(only when a registrar is given), visits carry laser patches and the default detector is "
+            "laser surprise; off: neither registrations nor patches."
+        ),
+    )
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from scipy.special import gammaln, logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.model.partitions import IntSequence, is_canonical
+from ptm_ros.settings import Settings, setting
 
 
 class TopologyPrior(Protocol):
@@ -192,24 +193,23 @@ class OccupancyPrior:
         return out
 
 
+#: The priors :func:`make_prior` builds.
+PRIOR_KINDS = ("dirichlet", "yule-simon", "occupancy")
+
+
 @dataclass(frozen=True)
-class PriorConfig:
+class PriorConfig(Settings):
     """Which prior over topologies to use and its parameters (thesis Ch. 1.3)."""
 
-    kind: str = "dirichlet"  # "dirichlet" | "yule-simon" | "occupancy"
-    alpha: float = 1.0  # Dirichlet process concentration
-    u: float = 0.3  # Yule-Simon new-place probability
-    rate: float = 20.0  # occupancy: expected number of places
-    max_places: int = 200  # occupancy: truncation of the Poisson
-
-    def __post_init__(self) -> None:
-        if self.kind not in PRIOR_KINDS:
-            msg = f"prior kind must be one of {sorted(PRIOR_KINDS)}, got {self.kind!r}"
-            raise ConfigError(msg)
-        make_prior(self)  # validates the parameters of the chosen kind
-
-
-PRIOR_KINDS = frozenset({"dirichlet", "yule-simon", "occupancy"})
+    kind: str = setting(
+        "dirichlet",
+        choices=PRIOR_KINDS,
+        doc="the prior: Dirichlet process (Ch. 1.3.1), Yule-Simon (1.3.2) or occupancy (1.3.3)",
+    )
+    alpha: float = setting(1.0, gt=0, doc="dirichlet: the concentration α (new places' weight)")
+    u: float = setting(0.3, gt=0, lt=1, doc="yule-simon: the probability u that a visit opens a new place")
+    rate: float = setting(20.0, gt=0, doc="occupancy: expected number of places")
+    max_places: int = setting(200, ge=1, doc="occupancy: truncation of the Poisson number of places")
 
 
 def make_prior(config: PriorConfig) -> TopologyPrior:

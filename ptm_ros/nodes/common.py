@@ -5,7 +5,9 @@ Parameters
 ----------
 Every leaf field of :class:`~ptm_ros.config.PtmConfig` becomes one read-only ROS parameter named by its
 dotted path (``inference.particles``, ``model.odometry.a_xy``), typed after the field (bool, integer,
-double, string, string array), described by the field's docstring entry or inline comment. A field whose
+double, string, string array), with the description and the range of its declaration
+(:func:`ptm_ros.settings.setting`; an exclusive bound is given to ROS as inclusive, the configuration's
+own check then refuses the bound itself). A field whose
 type admits None (``detector.kind``, ``model.appearance.nig_kappa``) is dynamically typed and unset by
 default; the strings ``null``, ``~`` and ``""`` also mean None. The values are validated by building the
 configuration with :func:`ptm_ros.configio.from_dict`, so a node rejects exactly what ``ptm-run`` rejects,
@@ -33,20 +35,14 @@ from __future__ import annotations
 import dataclasses
 import faulthandler
 import functools
-import inspect
-import io
 import itertools
 import math
-import re
 import signal
 import sys
-import tokenize
 import traceback
-import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +71,8 @@ from ptm_ros.io.bag import (
     stamp_to_ns,
     yaw_to_quaternion,
 )
+from ptm_ros.io.validation import odometry_xy_yaw
+from ptm_ros.settings import admitted, default_of, settings_fields, spec_of, unwrap_optional
 
 if typing.TYPE_CHECKING:
     from rclpy.node import Node
@@ -187,8 +185,11 @@ class ConfigParameter:
         type: a ``rcl_interfaces/ParameterType`` constant; ``PARAMETER_NOT_SET`` when ``optional``.
         default: the dataclass default (None for an unset optional).
         optional: the field admits None (declared dynamically typed).
-        description: from the field's docstring entry or inline comment.
-        range: ``(low, high)`` from the field's ``metadata["range"]``, if any.
+        description: the field's declared description (:func:`~ptm_ros.settings.setting`), its choices and
+            its type.
+        range: ``(low, high)``, inclusive, from the field's declared bounds (±inf where open), if any.
+        admits: what the field admits, in words (``an integer >= 1``), for the error of a value out of
+            the range.
     """
 
     name: str
@@ -197,14 +198,7 @@ class ConfigParameter:
     optional: bool
     description: str
     range: tuple[float, float] | None = None
-
-
-def _unwrap_optional(hint: Any) -> tuple[Any, bool]:
-    if typing.get_origin(hint) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        if len(args) == 1 and len(args) != len(typing.get_args(hint)):
-            return args[0], True
-    return hint, False
+    admits: str = ""
 
 
 def _ros_type(hint: Any) -> int:
@@ -217,80 +211,28 @@ def _ros_type(hint: Any) -> int:
     return ParameterType.PARAMETER_NOT_SET
 
 
-@cache
-def field_docs(cls: type) -> dict[str, str]:
-    """Field descriptions of a dataclass: its docstring's ``Attributes:`` entries, else the comment at
-    the end of the field's line in the source."""
-    docs: dict[str, str] = {}
-    try:
-        source = inspect.getsource(cls)
-    except (OSError, TypeError):
-        source = ""
-    names = {f.name for f in dataclasses.fields(cls)}
-    for tok_line in _field_comments(source):
-        name, comment = tok_line
-        if name in names:
-            docs[name] = comment
-    doc = inspect.getdoc(cls) or ""
-    section = re.split(r"^\s*Attributes:\s*$", doc, maxsplit=1, flags=re.MULTILINE)
-    if len(section) == 2:
-        current = None
-        for line in section[1].splitlines():
-            m = re.match(r"^\s{2,}(\w+):\s*(.*)$", line)
-            if m and m.group(1) in names:
-                current = m.group(1)
-                docs[current] = m.group(2).strip()
-            elif current and line.strip() and line.startswith("    "):
-                docs[current] += " " + line.strip()
-            elif not line.strip():
-                current = None
-    return docs
-
-
-def _field_comments(source: str) -> list[tuple[str, str]]:
-    """``(field, comment)`` for every ``name: type = value  # comment`` line of a class body."""
-    out = []
-    first_name: dict[int, str] = {}
-    try:
-        for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-            row = tok.start[0]
-            if tok.type == tokenize.NAME and row not in first_name:
-                first_name[row] = tok.string
-            elif tok.type == tokenize.COMMENT and row in first_name:
-                out.append((first_name[row], tok.string.lstrip("#").strip()))
-    except (tokenize.TokenError, IndentationError, SyntaxError):
-        return out
-    return out
-
-
 def config_parameters(root: type = PtmConfig, prefix: str = "") -> tuple[ConfigParameter, ...]:
-    """Every leaf field of the configuration dataclass ``root`` as a :class:`ConfigParameter`."""
-    hints = typing.get_type_hints(root)
-    docs = field_docs(root)
+    """Every leaf field of the configuration dataclass ``root`` as a :class:`ConfigParameter`, described and
+    bounded by its :func:`~ptm_ros.settings.setting` declaration."""
     out: list[ConfigParameter] = []
-    for f in dataclasses.fields(root):
-        if not f.init:
-            continue
+    for f, full_hint in settings_fields(root):
         name = f"{prefix}{f.name}"
-        hint, optional = _unwrap_optional(hints[f.name])
+        hint, optional = unwrap_optional(full_hint)
         if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             out.extend(config_parameters(hint, f"{name}."))
             continue
-        if f.default is not dataclasses.MISSING:
-            default = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
-        else:
-            default = None
+        default = default_of(f)
         ros_type = ParameterType.PARAMETER_NOT_SET if optional else _ros_type(hint)
         if isinstance(default, tuple):
             default = list(default)
-        text = docs.get(f.name, "")
+        spec = spec_of(f)
+        text = spec.doc if spec is not None else ""
+        if spec is not None and spec.choices is not None:
+            text = f"{text}; one of {', '.join(map(str, spec.choices))}"
         type_name = getattr(hint, "__name__", str(hint))
         description = (
             f"{text} ({root.__name__}.{f.name}: {type_name}{' or None' if optional else ''})".strip()
         )
-        rng = f.metadata.get("range") if f.metadata else None
         out.append(
             ConfigParameter(
                 name=name,
@@ -298,10 +240,14 @@ def config_parameters(root: type = PtmConfig, prefix: str = "") -> tuple[ConfigP
                 default=default,
                 optional=optional,
                 description=description,
-                range=None if rng is None else (float(rng[0]), float(rng[1])),
+                range=None if spec is None else spec.range(),
+                admits="" if spec is None else admitted(hint, spec),
             )
         )
     return tuple(out)
+
+
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1  # an open integer range in a ROS IntegerRange
 
 
 def _descriptor(p: ConfigParameter) -> ParameterDescriptor:
@@ -315,7 +261,9 @@ def _descriptor(p: ConfigParameter) -> ParameterDescriptor:
     if p.range is not None:
         lo, hi = p.range
         if p.type == ParameterType.PARAMETER_INTEGER:
-            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+            low = _INT64_MIN if lo == -math.inf else math.ceil(lo)
+            high = _INT64_MAX if hi == math.inf else math.floor(hi)
+            d.integer_range = [IntegerRange(from_value=low, to_value=high, step=0)]
         elif p.type == ParameterType.PARAMETER_DOUBLE:
             d.floating_point_range = [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
     return d
@@ -373,7 +321,8 @@ def declare_config(node: Node, root: type = PtmConfig) -> Any:
             msg = f"parameter {p.name}: expected {expected}{hint}; {err}"
             raise ConfigError(msg) from err
         except InvalidParameterValueException as err:
-            msg = f"parameter {p.name}: {err}"
+            rule = f" must be {p.admits}" if p.admits else ""
+            msg = f"parameter {p.name}{rule}: {err}"
             raise ConfigError(msg) from err
         values[p.name] = param.value
     return config_from_parameters(values, root)
@@ -465,8 +414,7 @@ def time_msg(stamp: float) -> Time:
 
 def odometry_sample(msg: Any) -> tuple[float, tuple[float, float, float]]:
     """``(stamp, (x, y, yaw))`` of a ``nav_msgs/Odometry`` (non-finite values passed through)."""
-    p, q = msg.pose.pose.position, msg.pose.pose.orientation
-    return header_stamp(msg.header), (float(p.x), float(p.y), quaternion_to_yaw(q.x, q.y, q.z, q.w))
+    return header_stamp(msg.header), odometry_xy_yaw(msg)
 
 
 def scan_fields(msg: Any) -> tuple[float, NDArray[np.float32], float, float, float, float]:

@@ -19,7 +19,7 @@ from typing import Any
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import DataError
 from ptm_ros.factories import cached
-from ptm_ros.io.validation import Rejection, ScanPayload
+from ptm_ros.io.validation import Rejection, ScanPayload, odometry_xy_yaw, scan_payload, valid_stamp
 from ptm_ros.maps.mapping import MapInputs, OnlineMap
 from ptm_ros.model.geometry import Registrar
 from ptm_ros.model.ptm import Ptm
@@ -119,6 +119,15 @@ class MapInbox:
     def _ignore_visit(self, key: str, text: str) -> None:
         self.counters["visits_ignored"] += 1
         self._log_once(key, text)
+
+    def odometry_message(self, msg: Any) -> None:
+        """Take a ``landmark_odom`` message (nav_msgs/Odometry or any object with its fields)."""
+        self.odometry(valid_stamp(msg.header), odometry_xy_yaw(msg))
+
+    def scan_message(self, msg: Any) -> None:
+        """Take a ``landmark_scans`` message (sensor_msgs/LaserScan or any object with its fields)."""
+        payload, rejected = scan_payload(msg)
+        self.scan(valid_stamp(msg.header), payload, rejected)
 
     def odometry(self, stamp: float | None, pose: tuple[float, float, float]) -> None:
         """Take an odometry sample of the map (``stamp`` None: not a valid ROS time)."""

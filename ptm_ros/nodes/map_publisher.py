@@ -80,7 +80,6 @@ from std_srvs.srv import Trigger
 
 from ptm_ros.config import PtmConfig
 from ptm_ros.errors import PtmError
-from ptm_ros.io.validation import scan_payload, valid_stamp
 from ptm_ros.maps.mapping import MapInputs, MapResult, draw_map
 from ptm_ros.maps.occupancy import OccupancyConfig, OccupancyGrid, save_map_files, to_ros_data
 from ptm_ros.model.geometry import Registrar
@@ -96,7 +95,6 @@ from ptm_ros.nodes.common import (
     declare_node_parameter,
     diagnostic_status,
     guarded,
-    odometry_sample,
     pose_msg,
     run_node,
     time_msg,
@@ -221,13 +219,11 @@ class MapPublisherNode(Node):
 
     @guarded
     def _on_odom(self, msg: Odometry) -> None:
-        _, pose = odometry_sample(msg)
-        self.inbox.odometry(valid_stamp(msg.header), pose)
+        self.inbox.odometry_message(msg)
 
     @guarded
     def _on_scan(self, msg: LaserScan) -> None:
-        payload, rejected = scan_payload(msg)
-        self.inbox.scan(valid_stamp(msg.header), payload, rejected)
+        self.inbox.scan_message(msg)
 
     def _draw(
         self, snap: MapInputs, labels: tuple[int, ...], frame: str, registrar: Registrar

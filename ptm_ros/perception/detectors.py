@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ptm_ros.errors import ConfigError, DataError
 from ptm_ros.model.geometry import wrap_angle
+from ptm_ros.settings import Settings, setting
 
 
 class Detector(Protocol):
@@ -73,56 +74,69 @@ class Detector(Protocol):
 
 
 @dataclass(frozen=True)
-class EquidistantConfig:
+class EquidistantConfig(Settings):
     """Equidistant landmarks (Ch. 4.5): every ``spacing`` metres of travel and/or every ``period`` s.
 
     A value of 0 disables that criterion; at least one must be enabled. ``first_at_start`` emits a visit
     at the first odometry message.
     """
 
-    spacing: float = 3.0
-    period: float = 0.0
-    first_at_start: bool = True
+    spacing: float = setting(
+        3.0, ge=0, doc="odometry travel since the last visit that declares the next one [m] (0: off)."
+    )
+    period: float = setting(
+        0.0, ge=0, doc="time since the last visit that declares the next one [s] (0: off)."
+    )
+    first_at_start: bool = setting(True, doc="declare a visit at the first odometry message.")
 
-    def __post_init__(self) -> None:
-        for name in ("spacing", "period"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                msg = f"equidistant {name} must be finite and >= 0, got {v}"
-                raise ConfigError(msg)
+    def check(self) -> None:
+        """At least one of the two criteria is enabled."""
         if self.spacing == 0.0 and self.period == 0.0:
             msg = "equidistant detector needs spacing > 0 or period > 0"
             raise ConfigError(msg)
 
 
 @dataclass(frozen=True)
-class PlacedLandmarksConfig:
-    """Landmarks placed along a true path, and their visits (module docstring; lengths in m).
+class PlacedLandmarksConfig(Settings):
+    """Landmarks placed along a true path, and their visits (module docstring; lengths in m)."""
 
-    Attributes:
-        spacing: the first landmark is at the start of the path, each next one where the path first
-            lies ``spacing`` or more from every landmark placed so far (any two are ``spacing`` apart or
-            more; every point of the path lies within ``spacing`` of one). The thesis' Intel run: 5 m.
-        capture_radius: a visit happens when the path comes within this of a landmark; its stamp is that
-            of the closest approach. At most ``spacing / 2``, so a visit belongs to one landmark, and
-            keep it below ptm-eval's same-place radius (1.5 m) so that every visit is scored.
-        leave_radius: after a visit the path must get farther than this from the landmark before the
-            next visit to it counts (a path grazing the capture circle makes one visit, not several).
-        step: the path is resampled every ``step`` along its length first (ground truth comes as one
-            pose per scan, which can be metres apart at speed).
-    """
+    spacing: float = setting(
+        5.0,
+        gt=0,
+        doc=(
+            "the first landmark is at the start of the path, each next one where the path first lies "
+            "``spacing`` or more from every landmark placed so far (any two are ``spacing`` apart or more; "
+            "every point of the path lies within ``spacing`` of one). The thesis' Intel run: 5 m."
+        ),
+    )
+    capture_radius: float = setting(
+        1.0,
+        gt=0,
+        doc=(
+            "a visit happens when the path comes within this of a landmark; its stamp is that of the closest "
+            "approach. At most ``spacing / 2``, so a visit belongs to one landmark, and keep it below "
+            "ptm-eval's same-place radius (1.5 m) so that every visit is scored."
+        ),
+    )
+    leave_radius: float = setting(
+        2.0,
+        gt=0,
+        doc=(
+            "after a visit the path must get farther than this from the landmark before the next visit to it "
+            "counts (a path grazing the capture circle makes one visit, not several)."
+        ),
+    )
+    step: float = setting(
+        0.05,
+        gt=0,
+        doc=(
+            "the path is resampled every ``step`` along its length first (ground truth comes as one pose per "
+            "scan, which can be metres apart at speed)."
+        ),
+    )
 
-    spacing: float = 5.0
-    capture_radius: float = 1.0
-    leave_radius: float = 2.0
-    step: float = 0.05
-
-    def __post_init__(self) -> None:
-        for name in ("spacing", "capture_radius", "leave_radius", "step"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0.0):
-                msg = f"placed landmarks: {name} must be finite and > 0, got {v}"
-                raise ConfigError(msg)
+    def check(self) -> None:
+        """A visit belongs to one landmark, and a path leaves a landmark only beyond its capture circle."""
         if self.capture_radius > self.spacing / 2.0:
             msg = (
                 f"placed landmarks: capture_radius {self.capture_radius} m exceeds spacing / 2 "

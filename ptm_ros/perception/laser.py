@@ -65,6 +65,7 @@ from ptm_ros.model.geometry import (
     wrap_angle,
 )
 from ptm_ros.model.visits import Visit
+from ptm_ros.settings import Settings, setting
 
 __all__ = [
     "FLAT_OPTIMUM",
@@ -105,118 +106,118 @@ _MIN_RESIDUAL_VARIANCE = 1e-12  # m², keeps the information finite on noise-fre
 
 
 @dataclass(frozen=True)
-class LaserConfig:
-    """Parameters of patch building and patch registration (lengths in m, angles in rad).
+class LaserConfig(Settings):
+    """Parameters of patch building and patch registration (lengths in m, angles in rad)."""
 
-    Attributes:
-        patch_radius: scans taken within this distance of the visit pose form its patch (Fig. 48).
-        patch_voxel: resolution at which patches are stored (first point per voxel).
-        keyframe_xy: a scan joins a patch only after the robot moved this far since the last one …
-        keyframe_yaw: … or turned this much.
-        refine: correct the odometry along a passage by scan-to-map ICP before concatenating.
-        voxel: kiss-icp map voxel of the fine ICP stage (>= 0.25); the coarse stage uses twice this.
-        max_range: longest beam used; pass ``min(scan.range_max, max_range)`` to :func:`scan_to_points`;
-            patches drop points farther from their sensor.
-        correspondence_distance: maximum point distance of a correspondence in the fine ICP stage.
-        n_rotations: initial headings tried, evenly spaced over the full turn around the guess.
-        inlier_distance: a source point within this distance of the target is an inlier.
-        min_inlier_fraction: a registration is valid only if at least this fraction of the source
-            points lie near the target *and* of the target points near the source.
-        min_points: fewest points a (downsampled) patch may have to be registered, and fewest inliers
-            of a valid registration.
-        distinct_xy: translation at which two solutions count as distinct.
-        distinct_yaw: rotation at which two solutions count as distinct.
-        min_peak_drop: the match must be a sharp peak: moving the solution by ``distinct_xy`` (in any
-            of 8 directions) or turning it by ``±distinct_yaw`` must lose at least this inlier fraction
-            (rejects corridors and other sliding matches).
-        ambiguity_margin: the registration is invalid when a distinct solution from another initial
-            heading comes within this inlier fraction of the best one (symmetric rooms).
-        min_std_xy: covariance floor, translation standard deviation.
-        min_std_yaw: covariance floor, heading standard deviation.
-        max_iterations: ICP iterations per stage.
-        use_fitness: besides the relative pose of a valid match, score the fitness ``f`` (the symmetric
-            inlier fraction of the best alignment) of every registration of a chained pair as evidence
-            for or against one place (:func:`fitness_log_bayes`); a failed match is then evidence too.
-        fitness_same_a, fitness_same_b: Beta density of ``f`` for two visits of one place.
-        fitness_different_a, fitness_different_b: Beta density of ``f`` for visits of different places.
-        fitness_outlier: weight of a uniform component mixed into both densities (robustness).
-    """
-
-    patch_radius: float = 3.0
-    patch_voxel: float = 0.05
-    keyframe_xy: float = 0.05
-    keyframe_yaw: float = 0.05
-    refine: bool = True
-    voxel: float = 0.5
-    max_range: float = 30.0
-    correspondence_distance: float = 1.0
-    n_rotations: int = 8
-    inlier_distance: float = 0.15
-    min_inlier_fraction: float = 0.4
-    min_points: int = 30
-    distinct_xy: float = 1.0
-    distinct_yaw: float = 0.17
-    min_peak_drop: float = 0.2
-    ambiguity_margin: float = 0.1
-    min_std_xy: float = 0.05
-    min_std_yaw: float = 0.02
-    max_iterations: int = 100
-    use_fitness: bool = True
-    fitness_same_a: float = 1.6
-    fitness_same_b: float = 1.6
-    fitness_different_a: float = 6.5
-    fitness_different_b: float = 31.3
-    fitness_outlier: float = 0.05
-
-    def __post_init__(self) -> None:
-        positive = (
-            "fitness_same_a",
-            "fitness_same_b",
-            "fitness_different_a",
-            "fitness_different_b",
-            "patch_radius",
-            "patch_voxel",
-            "max_range",
-            "correspondence_distance",
-            "inlier_distance",
-            "distinct_xy",
-            "distinct_yaw",
-            "min_std_xy",
-            "min_std_yaw",
-        )
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0.0):
-                msg = f"LaserConfig.{name} must be a finite number > 0, got {value!r}"
-                raise ConfigError(msg)
-        if not (isinstance(self.voxel, int | float) and math.isfinite(self.voxel) and self.voxel >= 0.25):
-            msg = f"LaserConfig.voxel must be >= 0.25 m (kiss-icp), got {self.voxel!r}"
-            raise ConfigError(msg)
-        if not 0.0 < self.min_inlier_fraction <= 1.0:
-            msg = f"LaserConfig.min_inlier_fraction must be in (0, 1], got {self.min_inlier_fraction!r}"
-            raise ConfigError(msg)
-        for name in ("keyframe_xy", "keyframe_yaw"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0.0):
-                msg = f"LaserConfig.{name} must be a finite number >= 0, got {value!r}"
-                raise ConfigError(msg)
-        for name in ("refine", "use_fitness"):
-            if not isinstance(getattr(self, name), bool):
-                msg = f"LaserConfig.{name} must be a bool, got {getattr(self, name)!r}"
-                raise ConfigError(msg)
-        if not 0.0 <= self.fitness_outlier < 1.0:
-            msg = f"LaserConfig.fitness_outlier must be in [0, 1), got {self.fitness_outlier!r}"
-            raise ConfigError(msg)
-        for name in ("min_peak_drop", "ambiguity_margin"):
-            value = getattr(self, name)
-            if not 0.0 <= value < 1.0:
-                msg = f"LaserConfig.{name} must be in [0, 1), got {value!r}"
-                raise ConfigError(msg)
-        for name, low in (("n_rotations", 1), ("min_points", 4), ("max_iterations", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                msg = f"LaserConfig.{name} must be an integer >= {low}, got {value!r}"
-                raise ConfigError(msg)
+    patch_radius: float = setting(
+        3.0, gt=0, doc="scans taken within this distance of the visit pose form its patch (Fig. 48)."
+    )
+    patch_voxel: float = setting(
+        0.05, gt=0, doc="resolution at which patches are stored (first point per voxel)."
+    )
+    keyframe_xy: float = setting(
+        0.05, ge=0, doc="a scan joins a patch only after the robot moved this far since the last one …"
+    )
+    keyframe_yaw: float = setting(0.05, ge=0, doc="… or turned this much.")
+    refine: bool = setting(
+        True, doc="correct the odometry along a passage by scan-to-map ICP before concatenating."
+    )
+    voxel: float = setting(
+        0.5,
+        ge=0.25,
+        doc=(
+            "kiss-icp map voxel of the fine ICP stage (at least 0.25 for kiss-icp); the coarse stage uses "
+            "twice this."
+        ),
+    )
+    max_range: float = setting(
+        30.0,
+        gt=0,
+        doc=(
+            "longest beam used; pass ``min(scan.range_max, max_range)`` to :func:`scan_to_points`; patches "
+            "drop points farther from their sensor."
+        ),
+    )
+    correspondence_distance: float = setting(
+        1.0, gt=0, doc="maximum point distance of a correspondence in the fine ICP stage."
+    )
+    n_rotations: int = setting(
+        8, ge=1, doc="initial headings tried, evenly spaced over the full turn around the guess."
+    )
+    inlier_distance: float = setting(
+        0.15, gt=0, doc="a source point within this distance of the target is an inlier."
+    )
+    min_inlier_fraction: float = setting(
+        0.4,
+        gt=0,
+        le=1,
+        doc=(
+            "a registration is valid only if at least this fraction of the source points lie near the target "
+            "*and* of the target points near the source."
+        ),
+    )
+    min_points: int = setting(
+        30,
+        ge=4,
+        doc=(
+            "fewest points a (downsampled) patch may have to be registered, and fewest inliers of a valid "
+            "registration."
+        ),
+    )
+    distinct_xy: float = setting(1.0, gt=0, doc="translation at which two solutions count as distinct.")
+    distinct_yaw: float = setting(0.17, gt=0, doc="rotation at which two solutions count as distinct.")
+    min_peak_drop: float = setting(
+        0.2,
+        ge=0,
+        lt=1,
+        doc=(
+            "the match must be a sharp peak: moving the solution by ``distinct_xy`` (in any of 8 directions) "
+            "or turning it by ``±distinct_yaw`` must lose at least this inlier fraction (rejects corridors "
+            "and other sliding matches)."
+        ),
+    )
+    ambiguity_margin: float = setting(
+        0.1,
+        ge=0,
+        lt=1,
+        doc=(
+            "the registration is invalid when a distinct solution from another initial heading comes within "
+            "this inlier fraction of the best one (symmetric rooms)."
+        ),
+    )
+    min_std_xy: float = setting(0.05, gt=0, doc="covariance floor, translation standard deviation.")
+    min_std_yaw: float = setting(0.02, gt=0, doc="covariance floor, heading standard deviation.")
+    max_iterations: int = setting(100, ge=1, doc="ICP iterations per stage.")
+    use_fitness: bool = setting(
+        True,
+        doc=(
+            "besides the relative pose of a valid match, score the fitness ``f`` (the symmetric inlier "
+            "fraction of the best alignment) of every registration of a chained pair as evidence for or "
+            "against one place (:func:`fitness_log_bayes`); a failed match is then evidence too."
+        ),
+    )
+    fitness_same_a: float = setting(
+        1.6, gt=0, doc="shape ``a`` of the Beta density of the fitness ``f`` for two visits of one place."
+    )
+    fitness_same_b: float = setting(
+        1.6, gt=0, doc="shape ``b`` of the Beta density of the fitness ``f`` for two visits of one place."
+    )
+    fitness_different_a: float = setting(
+        6.5,
+        gt=0,
+        doc="shape ``a`` of the Beta density of the fitness ``f`` for visits of different places.",
+    )
+    fitness_different_b: float = setting(
+        31.3,
+        gt=0,
+        doc="shape ``b`` of the Beta density of the fitness ``f`` for visits of different places.",
+    )
+    fitness_outlier: float = setting(
+        0.05,
+        ge=0,
+        lt=1,
+        doc="weight of a uniform component mixed into both fitness densities (robustness).",
+    )
 
 
 # ------------------------------------------------------------------------------------------ scans

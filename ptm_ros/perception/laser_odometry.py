@@ -60,132 +60,131 @@ from ptm_ros.model.geometry import (
     wrap_angle,
 )
 from ptm_ros.perception.laser import LaserConfig, ScanMap, voxel_downsample
+from ptm_ros.settings import Settings, setting
 
 
 @dataclass(frozen=True)
-class LaserOdometryConfig:
-    """Parameters of the scan-to-map correction of the wheel odometry (lengths in m, angles in rad).
+class LaserOdometryConfig(Settings):
+    """Parameters of the scan-to-map correction of the wheel odometry (lengths in m, angles in rad)."""
 
-    Attributes:
-        enabled: correct the odometry with the scans (when the run has scans).
-        window: keyframe scans in the local map.
-        keyframe_xy: a scan becomes a keyframe after the robot moved this far since the last one …
-        keyframe_yaw: … or turned this much.
-        voxel: kiss-icp voxel of the local map (>= 0.25); the source scan is downsampled to it.
-        correspondence_distance: farthest point pair ICP associates.
-        max_correction_xy: larger corrections of one scan step are rejected (the step keeps wheel odometry).
-        max_correction_yaw: the same for heading.
-        min_points: fewer usable points than this in a scan (after downsampling) or in the map: no match.
-        min_inlier_fraction: a match places at least this fraction of the scan's points within the
-            laser ``inlier_distance`` of the local map, else it is rejected (e.g. a wheel-odometry jump
-            that ICP followed into a wrong local optimum).
-        refine: polish the ICP pose by point-to-plane Gauss–Newton (:mod:`ptm_ros.perception.laser`).
-        match_xy: motion gate: a scan is matched only after the corrected pose moved this far since the
-            last matched (or rejected) scan … (at most ``keyframe_xy``; 0 here or in ``match_yaw``: every
-            scan is matched, as without the gate)
-        match_yaw: … or turned this much (at most ``keyframe_yaw``) …
-        match_interval: … or this many seconds passed (s; 0: the motion gate alone).
-        time_offset: s from a scan's stamp to when it was taken, in [-1, 0] (a laser driver that stamps
-            its scans late). The visit extractor then uses, at every odometry stamp, the input odometry
-            of ``stamp + time_offset`` (interpolated): the laser odometry, the visits' poses and patches,
-            the detector and the map all work in the scans' time frame; the visits' input ``odom_pose``
-            stays the odometry at their stamp (ptm.json's landmark pose). ``ptm-calibrate`` estimates it
-            from a bag (:func:`time_offset_scores`, :func:`best_time_offset`): ``-0.15`` on MIT-CSAIL, 0 on
-            Intel, ACES and the simulator (issue #8's closing notes).
-        learn_time_offset: with ``time_offset`` 0, learn the offset from the run itself (issue #23: the
-            parameters learned from the run): the first ``learn_scans`` scans are held, the offset is
-            estimated on them (:func:`learn_time_offset`, no ground truth), and every message is then
-            processed with it from the first one on (:class:`ptm_ros.perception.landmarks.VisitExtractor`). A
-            non-zero ``time_offset`` is used as given; ``ptm-calibrate`` writes its choice with this off.
-        learn_scans: scans the learned offset is estimated on (the visits come out once they are in; when
-            the scans fall silent for the extractor's ``stall_s`` of odometry, or never come, on fewer).
-        learn_step: resolution of the learned offset (s): the candidates :func:`learn_time_offset` tries
-            lie on this grid, that of ``ptm-calibrate``'s candidates.
-        degenerate_ratio: with ``refine``, a translation direction the scan constrains less than this
-            fraction of its best-constrained one (eigenvalues of the point-to-plane information) keeps the
-            wheel odometry's motion, scaled by the learned :attr:`LaserOdometry.wheel_scale`
-            (:func:`ptm_ros.perception.laser.keep_unobserved`): a corridor's axis, which noisy wall normals
-            alone "see", so that matching does not erase the travel along it (issue #23: 2–5 m erased between
-            visits in the simulated corridor worlds; ``bench/calibration_corridors.md``). 0: off.
-        scale_prior_m: with ``degenerate_ratio``, the wheel odometry kept along weak directions is scaled
-            by the wheel scale learned from the run (:attr:`LaserOdometry.wheel_scale`): the path length of
-            consecutive fully constrained matches over the wheel odometry's over the same steps, each sum
-            starting at this many metres (the prior: scale 1 until the run has shown otherwise).
-    """
+    enabled: bool = setting(True, doc="correct the odometry with the scans (when the run has scans).")
+    window: int = setting(10, ge=1, doc="keyframe scans in the local map.")
+    keyframe_xy: float = setting(
+        0.25, gt=0, doc="a scan becomes a keyframe after the robot moved this far since the last one …"
+    )
+    keyframe_yaw: float = setting(0.1, gt=0, doc="… or turned this much.")
+    voxel: float = setting(
+        0.5,
+        ge=0.25,
+        doc=(
+            "kiss-icp voxel of the local map (at least 0.25 for kiss-icp); the source scan is downsampled "
+            "to it."
+        ),
+    )
+    correspondence_distance: float = setting(1.0, gt=0, doc="farthest point pair ICP associates.")
+    max_correction_xy: float = setting(
+        0.5, gt=0, doc="larger corrections of one scan step are rejected (the step keeps wheel odometry)."
+    )
+    max_correction_yaw: float = setting(0.2, gt=0, doc="the same for heading.")
+    min_points: int = setting(
+        10, ge=1, doc="fewer usable points than this in a scan (after downsampling) or in the map: no match."
+    )
+    min_inlier_fraction: float = setting(
+        0.3,
+        ge=0,
+        le=1,
+        doc=(
+            "a match places at least this fraction of the scan's points within the laser ``inlier_distance`` "
+            "of the local map, else it is rejected (e.g. a wheel-odometry jump that ICP followed into a wrong"
+            " local optimum)."
+        ),
+    )
+    refine: bool = setting(
+        True, doc="polish the ICP pose by point-to-plane Gauss–Newton (:mod:`ptm_ros.perception.laser`)."
+    )
+    match_xy: float = setting(
+        0.04,
+        ge=0,
+        doc=(
+            "motion gate: a scan is matched only after the corrected pose moved this far since the last "
+            "matched (or rejected) scan … (at most ``keyframe_xy``; 0 here or in ``match_yaw``: every scan is"
+            " matched, as without the gate)"
+        ),
+    )
+    match_yaw: float = setting(0.02, ge=0, doc="… or turned this much (at most ``keyframe_yaw``) …")
+    match_interval: float = setting(
+        0.09, ge=0, doc="… or this many seconds passed (s; 0: the motion gate alone)."
+    )
+    time_offset: float = setting(
+        0.0,
+        ge=-1,
+        le=0,
+        doc=(
+            "s from a scan's stamp to when it was taken, in [-1, 0] (a laser driver that stamps its scans "
+            "late). The visit extractor then uses, at every odometry stamp, the input odometry of ``stamp + "
+            "time_offset`` (interpolated): the laser odometry, the visits' poses and patches, the detector "
+            "and the map all work in the scans' time frame; the visits' input ``odom_pose`` stays the "
+            "odometry at their stamp (ptm.json's landmark pose). ``ptm-calibrate`` estimates it from a bag "
+            "(:func:`time_offset_scores`, :func:`best_time_offset`): ``-0.15`` on MIT-CSAIL, 0 on Intel, ACES"
+            " and the simulator (issue #8's closing notes)."
+        ),
+    )
+    learn_time_offset: bool = setting(
+        True,
+        doc=(
+            "with ``time_offset`` 0, learn the offset from the run itself (issue #23: the parameters learned "
+            "from the run): the first ``learn_scans`` scans are held, the offset is estimated on them "
+            "(:func:`learn_time_offset`, no ground truth), and every message is then processed with it from "
+            "the first one on (:class:`ptm_ros.perception.landmarks.VisitExtractor`). A non-zero "
+            "``time_offset`` is used as given; ``ptm-calibrate`` writes its choice with this off."
+        ),
+    )
+    learn_scans: int = setting(
+        300,
+        ge=1,
+        doc=(
+            "scans the learned offset is estimated on (the visits come out once they are in; when the scans "
+            "fall silent for the extractor's ``stall_s`` of odometry, or never come, on fewer)."
+        ),
+    )
+    learn_step: float = setting(
+        0.05,
+        gt=0,
+        le=0.5,
+        doc=(
+            "resolution of the learned offset (s): the candidates :func:`learn_time_offset` tries lie on this"
+            " grid, that of ``ptm-calibrate``'s candidates."
+        ),
+    )
+    degenerate_ratio: float = setting(
+        0.05,
+        ge=0,
+        lt=1,
+        doc=(
+            "with ``refine``, a translation direction the scan constrains less than this fraction of its "
+            "best-constrained one (eigenvalues of the point-to-plane information) keeps the wheel odometry's "
+            "motion, scaled by the learned :attr:`LaserOdometry.wheel_scale` "
+            "(:func:`ptm_ros.perception.laser.keep_unobserved`): a corridor's axis, which noisy wall normals "
+            'alone "see", so that matching does not erase the travel along it (issue #23: 2–5 m erased '
+            "between visits in the simulated corridor worlds; ``bench/calibration_corridors.md``). 0: off."
+        ),
+    )
+    scale_prior_m: float = setting(
+        5.0,
+        gt=0,
+        doc=(
+            "with ``degenerate_ratio``, the wheel odometry kept along weak directions is scaled by the wheel "
+            "scale learned from the run (:attr:`LaserOdometry.wheel_scale`): the path length of consecutive "
+            "fully constrained matches over the wheel odometry's over the same steps, each sum starting at "
+            "this many metres (the prior: scale 1 until the run has shown otherwise)."
+        ),
+    )
 
-    enabled: bool = True
-    window: int = 10
-    keyframe_xy: float = 0.25
-    keyframe_yaw: float = 0.1
-    voxel: float = 0.5
-    correspondence_distance: float = 1.0
-    max_correction_xy: float = 0.5
-    max_correction_yaw: float = 0.2
-    min_points: int = 10
-    min_inlier_fraction: float = 0.3
-    refine: bool = True
-    match_xy: float = 0.04
-    match_yaw: float = 0.02
-    match_interval: float = 0.09
-    time_offset: float = 0.0
-    learn_time_offset: bool = True
-    learn_scans: int = 300
-    learn_step: float = 0.05
-    degenerate_ratio: float = 0.05
-    scale_prior_m: float = 5.0
-
-    def __post_init__(self) -> None:
-        dr = self.degenerate_ratio
-        if isinstance(dr, bool) or not (isinstance(dr, int | float) and 0.0 <= dr < 1.0):
-            msg = f"LaserOdometryConfig.degenerate_ratio must be a number in [0, 1), got {dr!r}"
-            raise ConfigError(msg)
-        for name in ("enabled", "refine", "learn_time_offset"):
-            if not isinstance(getattr(self, name), bool):
-                msg = f"LaserOdometryConfig.{name} must be a bool, got {getattr(self, name)!r}"
-                raise ConfigError(msg)
-        for name in ("window", "min_points", "learn_scans"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                msg = f"LaserOdometryConfig.{name} must be an integer >= 1, got {value!r}"
-                raise ConfigError(msg)
-        for name in (
-            "keyframe_xy",
-            "keyframe_yaw",
-            "correspondence_distance",
-            "max_correction_xy",
-            "max_correction_yaw",
-        ):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0.0):
-                msg = f"LaserOdometryConfig.{name} must be a finite number > 0, got {value!r}"
-                raise ConfigError(msg)
-        if not 0.0 <= self.min_inlier_fraction <= 1.0:
-            msg = (
-                f"LaserOdometryConfig.min_inlier_fraction must be in [0, 1], got {self.min_inlier_fraction!r}"
-            )
-            raise ConfigError(msg)
-        if not (isinstance(self.voxel, int | float) and math.isfinite(self.voxel) and self.voxel >= 0.25):
-            msg = f"LaserOdometryConfig.voxel must be >= 0.25 m (kiss-icp), got {self.voxel!r}"
-            raise ConfigError(msg)
-        to = self.time_offset
-        if isinstance(to, bool) or not (isinstance(to, int | float) and -1.0 <= to <= 0.0):
-            msg = f"LaserOdometryConfig.time_offset must be a number of seconds in [-1, 0], got {to!r}"
-            raise ConfigError(msg)
-        ls = self.learn_step
-        if isinstance(ls, bool) or not (isinstance(ls, int | float) and 0.0 < ls <= 0.5):
-            msg = f"LaserOdometryConfig.learn_step must be a number of seconds in (0, 0.5], got {ls!r}"
-            raise ConfigError(msg)
-        if not (math.isfinite(self.scale_prior_m) and self.scale_prior_m > 0.0):
-            msg = f"LaserOdometryConfig.scale_prior_m must be a finite length > 0, got {self.scale_prior_m!r}"
-            raise ConfigError(msg)
-        mi = self.match_interval
-        if isinstance(mi, bool) or not (isinstance(mi, int | float) and math.isfinite(mi) and mi >= 0.0):
-            msg = f"LaserOdometryConfig.match_interval must be a finite number >= 0 (s), got {mi!r}"
-            raise ConfigError(msg)
+    def check(self) -> None:
+        """The motion gate lies within the keyframe spacing (keyframes are taken from matched scans)."""
         for name, limit in (("match_xy", "keyframe_xy"), ("match_yaw", "keyframe_yaw")):
             value = getattr(self, name)
-            valid = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-            if not (valid and 0.0 <= value <= getattr(self, limit)):
+            if value > getattr(self, limit):
                 msg = (
                     f"LaserOdometryConfig.{name} must be a number in [0, {limit} = {getattr(self, limit)!r}] "
                     f"(keyframes are taken from matched scans), got {value!r}"

@@ -74,8 +74,10 @@ from ptm_ros.model.appearance import fourier_signature
 from ptm_ros.model.geometry import FloatArray, wrap_angle
 from ptm_ros.model.vocabulary import Vocabulary
 from ptm_ros.perception.detectors import Detector, OdometryTracker
+from ptm_ros.settings import Settings, setting
 
 __all__ = [
+    "APPEARANCE_MODELS",
     "STATISTICS",
     "AppearanceSurpriseConfig",
     "AppearanceSurpriseDetector",
@@ -919,105 +921,81 @@ def scan_statistic(
 
 
 @dataclass(frozen=True)
-class LaserSurpriseConfig:
-    """Laser surprise detector (thesis Ch. 4.8); defaults chosen on the simulated worlds (see the bench).
+class LaserSurpriseConfig(Settings):
+    """Laser surprise detector (thesis Ch. 4.8); defaults chosen on the simulated worlds (see the bench)."""
 
-    Attributes:
-        statistic: per-scan statistic, a key of :data:`STATISTICS` (see :func:`scan_statistic`).
-        front_half_angle: half-width of the front sector (rad).
-        side_half_angle: half-width of the left / right sectors around ±90° (rad).
-        max_range: beams longer than this (m) count as this (caps ``range_max`` of the scan).
-        memory: forgetting per scan, in scans (see the module docstring).
-        memory_distance: forgetting per metre of odometry travel, in m (``inf`` = none).
-        prior_std: within-place standard deviation of each statistic component the prior expects
-            (statistic units: log m for the log statistics); a floor under the model's spread.
-        prior_strength: weight of that expectation in scans (``ν_0 = d + 1 + prior_strength``).
-        prior_kappa: prior pseudo-count of the place mean (centred on the first scan).
-        band_sigmas: ``k`` of the band ``mean + k·std`` of the predicted surprise. The predicted surprise
-            is skewed (about ``a + b·χ²_d``), so ``k = 3`` is exceeded by 2 % of the model's own draws;
-            ``k = 5`` by 0.6–0.8 % (``d`` = 3, 1), and the simulated worlds lose nothing up to ``k = 6``.
-        samples: measurements drawn from the predictive for the predicted surprise.
-        warmup: scans absorbed before a landmark may be declared.
-        min_travel: least odometry travel (m) between two landmarks (applies once odometry is fed): a
-            junction is two changes (the opening appears, then ends) but one place.
-        localize_distance: the landmark is placed at the most open scan (largest mean log range to the
-            left and right, the ``sides`` statistic) within this odometry travel (m) of the surprise
-            maximum, and declared once the robot has travelled that far past it; 0 = at the maximum.
-            The maximum lies where the change *starts*, which depends on the direction of travel
-            (entering a junction from either side: about one corridor width apart, 1.7 m in the
-            simulated worlds); the most open point of a junction or doorway region does not.
-        seed: seed of the detector's random generator when none is passed in.
-    """
-
-    statistic: str = "sectors"
-    front_half_angle: float = 0.25
-    side_half_angle: float = 0.25
-    max_range: float = 30.0
-    memory: float = 20.0
-    memory_distance: float = 0.5
-    prior_std: float = 0.03
-    prior_strength: float = 2.0
-    prior_kappa: float = 0.1
-    band_sigmas: float = 5.0
-    samples: int = 1000
-    warmup: int = 10
-    min_travel: float = 2.0
-    localize_distance: float = 1.5
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.localize_distance) and self.localize_distance >= 0.0):
-            msg = (
-                f"LaserSurpriseConfig.localize_distance must be finite and >= 0, got {self.localize_distance}"
-            )
-            raise ConfigError(msg)
-        if self.statistic not in STATISTICS:
-            msg = f"LaserSurpriseConfig.statistic must be one of {sorted(STATISTICS)}, got {self.statistic!r}"
-            raise ConfigError(msg)
-        for name in ("front_half_angle", "side_half_angle"):
-            v = getattr(self, name)
-            if not 0.0 < v < 0.5 * math.pi:
-                msg = f"LaserSurpriseConfig.{name} must be in (0, π/2), got {v}"
-                raise ConfigError(msg)
-        _check_positive(
-            "LaserSurpriseConfig", self, ("max_range", "prior_std", "prior_strength", "prior_kappa")
-        )
-        _check_common("LaserSurpriseConfig", self)
+    statistic: str = setting(
+        "sectors",
+        choices=tuple(STATISTICS),
+        doc="per-scan statistic, a key of :data:`STATISTICS` (see :func:`scan_statistic`).",
+    )
+    front_half_angle: float = setting(
+        0.25, gt=0, lt=0.5 * math.pi, doc="half-width of the front sector (rad)."
+    )
+    side_half_angle: float = setting(
+        0.25, gt=0, lt=0.5 * math.pi, doc="half-width of the left / right sectors around ±90° (rad)."
+    )
+    max_range: float = setting(
+        30.0, gt=0, doc="beams longer than this (m) count as this (caps ``range_max`` of the scan)."
+    )
+    memory: float = setting(20.0, gt=0, doc="forgetting per scan, in scans (see the module docstring).")
+    memory_distance: float = setting(
+        0.5, gt=0, finite=False, doc="forgetting per metre of odometry travel, in m (``inf`` = none)."
+    )
+    prior_std: float = setting(
+        0.03,
+        gt=0,
+        doc=(
+            "within-place standard deviation of each statistic component the prior expects (statistic units: "
+            "log m for the log statistics); a floor under the model's spread."
+        ),
+    )
+    prior_strength: float = setting(
+        2.0, gt=0, doc="weight of that expectation in scans (``ν_0 = d + 1 + prior_strength``)."
+    )
+    prior_kappa: float = setting(
+        0.1, gt=0, doc="prior pseudo-count of the place mean (centred on the first scan)."
+    )
+    band_sigmas: float = setting(
+        5.0,
+        gt=0,
+        doc=(
+            "``k`` of the band ``mean + k·std`` of the predicted surprise. The predicted surprise is skewed "
+            "(about ``a + b·χ²_d``), so ``k = 3`` is exceeded by 2 % of the model's own draws; ``k = 5`` by "
+            "0.6–0.8 % (``d`` = 3, 1), and the simulated worlds lose nothing up to ``k = 6``."
+        ),
+    )
+    samples: int = setting(
+        1000, ge=2, doc="measurements drawn from the predictive for the predicted surprise."
+    )
+    warmup: int = setting(10, ge=1, doc="scans absorbed before a landmark may be declared.")
+    min_travel: float = setting(
+        2.0,
+        ge=0,
+        doc=(
+            "least odometry travel (m) between two landmarks (applies once odometry is fed): a junction is "
+            "two changes (the opening appears, then ends) but one place."
+        ),
+    )
+    localize_distance: float = setting(
+        1.5,
+        ge=0,
+        doc=(
+            "the landmark is placed at the most open scan (largest mean log range to the left and right, the "
+            "``sides`` statistic) within this odometry travel (m) of the surprise maximum, and declared once "
+            "the robot has travelled that far past it; 0 = at the maximum. The maximum lies where the change "
+            "*starts*, which depends on the direction of travel (entering a junction from either side: about "
+            "one corridor width apart, 1.7 m in the simulated worlds); the most open point of a junction or "
+            "doorway region does not."
+        ),
+    )
+    seed: int = setting(0, ge=0, doc="seed of the detector's random generator when none is passed in.")
 
     def prior(self, first: FloatArray) -> Niw:
         """NIW prior centred on the first measurement with ``E[Σ] = prior_std² I``."""
         d = first.size
         dof = d + 1.0 + self.prior_strength
         return Niw(first, self.prior_kappa, dof, self.prior_strength * self.prior_std**2 * np.eye(d))
-
-
-def _check_positive(owner: str, config: object, names: tuple[str, ...]) -> None:
-    for name in names:
-        v = getattr(config, name)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v > 0.0):
-            msg = f"{owner}.{name} must be a finite number > 0, got {v!r}"
-            raise ConfigError(msg)
-
-
-def _check_common(owner: str, config: LaserSurpriseConfig | AppearanceSurpriseConfig) -> None:
-    """Checks of the fields both detector configs share."""
-    if not (math.isfinite(config.memory) and config.memory > 0.0):
-        msg = f"{owner}.memory must be finite and > 0 (measurements), got {config.memory}"
-        raise ConfigError(msg)
-    if not config.memory_distance > 0.0:
-        msg = f"{owner}.memory_distance must be > 0 (m; inf disables), got {config.memory_distance}"
-        raise ConfigError(msg)
-    if not (math.isfinite(config.band_sigmas) and config.band_sigmas > 0.0):
-        msg = f"{owner}.band_sigmas must be finite and > 0, got {config.band_sigmas}"
-        raise ConfigError(msg)
-    if not (math.isfinite(config.min_travel) and config.min_travel >= 0.0):
-        msg = f"{owner}.min_travel must be finite and >= 0, got {config.min_travel}"
-        raise ConfigError(msg)
-    for name, low in (("samples", 2), ("warmup", 1)):
-        v = getattr(config, name)
-        if isinstance(v, bool) or not isinstance(v, int) or v < low:
-            msg = f"{owner}.{name} must be an integer >= {low}, got {v!r}"
-            raise ConfigError(msg)
 
 
 _OPEN_PLATEAU = 0.1  # log m: scans this close to the most open one count as equally open (a junction)
@@ -1155,53 +1133,67 @@ class LaserSurpriseDetector(_SurpriseDetector):
 # ---------------------------------------------------------------------------------------------------
 
 
+#: The measurement models of :class:`AppearanceSurpriseDetector`.
+APPEARANCE_MODELS = ("words", "fourier")
+
+
 @dataclass(frozen=True)
-class AppearanceSurpriseConfig:
-    """Appearance surprise detector (thesis Ch. 4.7; Fourier variant Ch. 2.5).
+class AppearanceSurpriseConfig(Settings):
+    """Appearance surprise detector (thesis Ch. 4.7; Fourier variant Ch. 2.5)."""
 
-    Attributes:
-        model: ``"words"`` (SIFT bag of words, EDCM; needs a vocabulary) or ``"fourier"`` (log Fourier
-            magnitudes, independent Normal–Gamma components).
-        memory, memory_distance, band_sigmas, samples, warmup, min_travel, seed: as in
-            :class:`LaserSurpriseConfig`, counted in panoramas.
-        edcm_strength: EDCM prior weight in word occurrences (:class:`EdcmPrior`).
-        edcm_precision: EDCM prior ``s = Σβ`` (its mode).
-        max_features: strongest SIFT keypoints kept per panorama (0 = all).
-        contrast_threshold: OpenCV SIFT contrast threshold.
-        n_coeffs: Fourier coefficients (``"fourier"``).
-        log_floor: Fourier magnitudes are floored here before the log (``"fourier"``).
-        prior_std: within-place standard deviation of a log magnitude (``"fourier"``).
-        prior_strength, prior_kappa: as in :class:`LaserSurpriseConfig` (``"fourier"``).
-    """
-
-    model: str = "words"
-    memory: float = 5.0
-    memory_distance: float = float("inf")
-    band_sigmas: float = 5.0
-    samples: int = 200
-    warmup: int = 3
-    min_travel: float = 2.0
-    seed: int = 0
-    edcm_strength: float = 10.0
-    edcm_precision: float = 10.0
-    max_features: int = 0
-    contrast_threshold: float = 0.04
-    n_coeffs: int = 8
-    log_floor: float = 1e-4
-    prior_std: float = 0.5
-    prior_strength: float = 2.0
-    prior_kappa: float = 0.1
-
-    def __post_init__(self) -> None:
-        if self.model not in ("words", "fourier"):
-            msg = f"AppearanceSurpriseConfig.model must be 'words' or 'fourier', got {self.model!r}"
-            raise ConfigError(msg)
-        names = ("edcm_strength", "edcm_precision", "contrast_threshold", "log_floor", "prior_std")
-        _check_positive("AppearanceSurpriseConfig", self, (*names, "prior_strength", "prior_kappa"))
-        if self.max_features < 0 or self.n_coeffs < 1:
-            msg = f"need max_features >= 0 and n_coeffs >= 1, got {self.max_features}, {self.n_coeffs}"
-            raise ConfigError(msg)
-        _check_common("AppearanceSurpriseConfig", self)
+    model: str = setting(
+        "words",
+        choices=APPEARANCE_MODELS,
+        doc=(
+            '``"words"`` (SIFT bag of words, EDCM; needs a vocabulary) or ``"fourier"`` (log Fourier '
+            "magnitudes, independent Normal–Gamma components)."
+        ),
+    )
+    memory: float = setting(
+        5.0, gt=0, doc="forgetting per panorama, in panoramas (see the module docstring)."
+    )
+    memory_distance: float = setting(
+        float("inf"),
+        gt=0,
+        finite=False,
+        doc="forgetting per metre of odometry travel, in m (``inf`` = none).",
+    )
+    band_sigmas: float = setting(
+        5.0, gt=0, doc="``k`` of the band ``mean + k·std`` of the predicted surprise."
+    )
+    samples: int = setting(
+        200, ge=2, doc="measurements drawn from the predictive for the predicted surprise."
+    )
+    warmup: int = setting(3, ge=1, doc="panoramas absorbed before a landmark may be declared.")
+    min_travel: float = setting(
+        2.0,
+        ge=0,
+        doc="least odometry travel (m) between two landmarks (applies once odometry is fed).",
+    )
+    seed: int = setting(0, ge=0, doc="seed of the detector's random generator when none is passed in.")
+    edcm_strength: float = setting(
+        10.0, gt=0, doc="EDCM prior weight in word occurrences (:class:`EdcmPrior`)."
+    )
+    edcm_precision: float = setting(10.0, gt=0, doc="EDCM prior ``s = Σβ`` (its mode).")
+    max_features: int = setting(0, ge=0, doc="strongest SIFT keypoints kept per panorama (0 = all).")
+    contrast_threshold: float = setting(0.04, gt=0, doc="OpenCV SIFT contrast threshold.")
+    n_coeffs: int = setting(8, ge=1, doc='Fourier coefficients (``"fourier"``).')
+    log_floor: float = setting(
+        1e-4, gt=0, doc='Fourier magnitudes are floored here before the log (``"fourier"``).'
+    )
+    prior_std: float = setting(
+        0.5, gt=0, doc='within-place standard deviation of a log magnitude (``"fourier"``).'
+    )
+    prior_strength: float = setting(
+        2.0,
+        gt=0,
+        doc='weight of the ``prior_std`` expectation in panoramas (Normal–Gamma prior; ``"fourier"``).',
+    )
+    prior_kappa: float = setting(
+        0.1,
+        gt=0,
+        doc='prior pseudo-count of the place mean (centred on the first panorama; ``"fourier"``).',
+    )
 
 
 class AppearanceSurpriseDetector(_SurpriseDetector):
