@@ -91,6 +91,8 @@ from ptm_ros.scoring.baselines import GreedyAssociation, GreedyConfig, greedy_as
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 #: Schema tag of :meth:`FilterSession.state_dict` (``ptm-run``'s state file and inside the node's).
 SESSION_STATE_SCHEMA = "ptm_ros.filter_session/2"
+#: ``meta["tool"]`` of ``ptm-run``'s state files (the ``topology_filter`` node resumes them too).
+RUN_STATE_TOOL = "ptm-run"
 #: ``ptm.inference`` key of MCMC's comparison with the particle filter it started from.
 VERSUS_KEY = "versus_rbpf"
 #: ``ptm.extra`` key of the visits the map is unsure of (:func:`ptm_ros.reporting.doubts.doubts_dict`).

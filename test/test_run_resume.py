@@ -4,6 +4,7 @@ the same ptm.json as an uninterrupted run; a state of another run, or a damaged 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -27,6 +28,8 @@ from ptm_ros.inference.persistence import (
 from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
+from ptm_ros.nodes.filter_inbox import FilterInbox, Reaction
+from ptm_ros.nodes.messages import END_SCHEMA, visit_message
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.pipeline import (
     OUTPUT_FILES,
@@ -258,10 +261,68 @@ def test_corrupt_or_foreign_state_is_refused(bag, params, partial_state, tmp_pat
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(partial_state.read_bytes()[: len(data) // 3])
     assert "corrupt" in resume_error(bag, params, truncated, tmp_path, capsys)
-    foreign = tmp_path / "node.npz"
+    foreign = tmp_path / "other.npz"
     state, _ = load_filter_state(partial_state)
+    save_filter_state(foreign, state, meta={"node": "map_publisher"})
+    assert "written by map_publisher" in resume_error(bag, params, foreign, tmp_path, capsys)
     save_filter_state(foreign, state, meta={"node": "topology_filter"})
-    assert "written by topology_filter" in resume_error(bag, params, foreign, tmp_path, capsys)
+    assert "lack the configuration" in resume_error(bag, params, foreign, tmp_path, capsys)
+
+
+# ------------------------------------------------------------------ one schema: ptm-run <-> the node
+
+
+def node_inbox(state_file: Path | None = None) -> FilterInbox:
+    """The topology filter node's logic with the run's configuration (as its parameters would give)."""
+    return FilterInbox(load_config(None, PARAMS), logging.getLogger("test_run_resume"), state_file=state_file)
+
+
+def detector_messages(visits, session: str) -> list[str]:
+    """The detector node's history of the run on landmark_visits: every visit, then its end marker."""
+    end = json.dumps({"schema": END_SCHEMA, "visits": len(visits), "session": session})
+    return [*(visit_message(v, session) for v in visits), end]
+
+
+def test_ptm_run_resumes_a_state_the_filter_node_saved(bag, params, reference, tmp_path):
+    """A checkpoint of the node (6 of the run's visits, from a detector session) resumed by ``ptm-run``:
+    the same ptm.json as the uninterrupted run."""
+    visits = detect_visits(read_run(bag), load_config(None, PARAMS))
+    node = node_inbox(tmp_path / "node.npz")
+    for text in detector_messages(visits, "detector-1")[:6]:
+        node.receive(text)
+    node.save_state()
+    out = tmp_path / "out"
+    argv = [str(bag), "--out", str(out), "--params", str(params), "--quiet", "--no-report", "--no-map"]
+    assert run_cli.main([*argv, "--resume", "--state-file", str(tmp_path / "node.npz")]) == 0
+    assert comparable(read_ptm(out)) == comparable(reference)
+    assert read_ptm(out)["inference"]["n_topologies"] == reference["inference"]["n_topologies"]
+
+
+def test_the_filter_node_resumes_a_state_ptm_run_saved(bag, partial_state, tmp_path):
+    """``ptm-run``'s checkpoint (4 visits) resumed by the node, then the whole run replayed by a new
+    detector session (as ``ptm-bringup --bag`` does): the session is adopted, the 4 visits are skipped as
+    redelivered, and the map ends where the uninterrupted node's does."""
+    visits = detect_visits(read_run(bag), load_config(None, PARAMS))
+    fresh = node_inbox()
+    for text in detector_messages(visits, "detector-1"):
+        fresh.receive(text)
+    state = shutil.copy(partial_state, tmp_path / "state.npz")
+    node = node_inbox(tmp_path / "node.npz")
+    assert node.resume(Path(state)) is Reaction.PUBLISH
+    assert node.persistence["resumed_visits"] == 4 and len(node.session.visits) == 4
+    node.save_state()  # before any detector: the adoption is pending in the node's own state too
+    node = node_inbox(tmp_path / "node.npz")
+    assert node.resume(tmp_path / "node.npz") is Reaction.PUBLISH
+    for text in detector_messages(visits, "detector-2"):
+        node.receive(text)
+    assert node.counters["redelivered"] == 4 and node.counters["resets"] == 0
+    assert node.counters["accepted"] == len(visits) - 4 and node.complete
+    assert node.current_ptm().topologies == fresh.current_ptm().topologies
+    other = node_inbox()  # another run's detector: its visit 0 is not the state's, a new map starts
+    assert other.resume(Path(state)) is Reaction.PUBLISH
+    moved = [replace(visits[0], stamp=visits[0].stamp + 1e-3), *visits[1:]]
+    other.receive(detector_messages(moved, "detector-3")[0])
+    assert other.counters["redelivered"] == 0 and len(other.session.visits) == 1
 
 
 def test_other_methods_and_bad_options_are_refused(bag, params, tmp_path, capsys):

@@ -28,7 +28,7 @@ from ptm_ros.model.visits import Visit, pose_field
 from ptm_ros.nodes.logs import Logger, OnceLogger
 from ptm_ros.nodes.messages import parse_visit_envelope
 from ptm_ros.reporting.figures import ess_fraction
-from ptm_ros.session import FilterSession
+from ptm_ros.session import RUN_STATE_TOOL, SESSION_STATE_SCHEMA, FilterSession
 
 NODE_NAME = "topology_filter"
 #: Schema tag of the node's state file content (its ``session`` is a :class:`FilterSession` state).
@@ -103,6 +103,9 @@ class FilterInbox:
         self._last_stamp = -math.inf  # stamp of the latest visit in the map
         self._retired: dict[str, int] = {}  # finished detector sessions -> visits they had
         self._resumed: dict[str | None, int] = {}  # detector sessions -> visits restored from state_file
+        self._adopt = (
+            0  # visits restored from ptm-run's state: the detector session delivering them is adopted
+        )
         self._unsaved = 0  # visits taken since the state was last saved
         self.dirty = False  # anything changed since the state was last saved (visits, end markers, resets)
 
@@ -169,6 +172,11 @@ class FilterInbox:
         """Consume the detector's visit ``visit.index`` of detector session ``session`` (re-indexed from
         the last reset on; see :mod:`ptm_ros.nodes.topology_filter` for what is dropped)."""
         key = (visit.stamp, visit.pose)
+        if self._adopt and session not in self._retired and self._restored(visit.index, key):
+            self._stream, self._resumed[session], self._adopt = session, self._adopt, 0
+            self._logger.info(
+                f"detector session {session!r} delivers the visits of the resumed ptm-run state"
+            )
         if self._redelivered(session, visit.index, key):
             self.counters["redelivered"] += 1
             if self.counters["redelivered"] == 1:
@@ -233,6 +241,11 @@ class FilterInbox:
             return False
         return not (session is None and index == 0 and key != self._first)
 
+    def _restored(self, index: int, key: tuple[Any, ...]) -> bool:
+        """Whether visit ``index`` with ``key`` (stamp, pose) is the map's visit ``index``."""
+        visits = self.session.visits
+        return index < len(visits) and (visits[index].stamp, visits[index].pose) == key
+
     def _retire(self) -> None:
         """Remember the current detector session as finished (its late visits never start a new map)."""
         if self._stream is None:
@@ -246,6 +259,7 @@ class FilterInbox:
         self.session.reset()
         self._next_index = self._end_count = self._stream = self._first = self.last = None
         self._last_stamp = -math.inf
+        self._adopt = 0
         self.counters["resets"] += 1
         self.dirty = True
 
@@ -308,6 +322,7 @@ class FilterInbox:
             "last": None if self.last is None else dataclasses.astuple(self.last),
             "counters": dict(self.counters),
             "retired": [[k, n] for k, n in self._retired.items()],
+            "adopt": self._adopt,
         }
 
     def save_state(self) -> Path:
@@ -372,16 +387,22 @@ class FilterInbox:
 
     def _check_meta(self, meta: dict[str, Any]) -> None:
         mine = self.state_meta()
-        if meta.get("node") != NODE_NAME:
-            msg = f"the state was saved by {meta.get('node')!r}, not {NODE_NAME}"
+        offline = meta.get("tool") == RUN_STATE_TOOL  # ptm-run's state: the same session, no stream
+        if meta.get("node") != NODE_NAME and not offline:
+            msg = (
+                f"the state was saved by {meta.get('node') or meta.get('tool')!r}, not {NODE_NAME} or ptm-run"
+            )
             raise DataError(msg)
-        for key in ("config", "refit_max_visits"):
+        for key in ("config",) if offline else ("config", "refit_max_visits"):
             if meta.get(key) != mine[key]:
                 diff = differences(meta.get(key), mine[key]) if isinstance(mine[key], dict) else [key]
                 msg = f"the state was made with another {key} ({', '.join(diff[:5])} differ)"
                 raise ConfigError(msg)
 
     def _load_state(self, state: dict[str, Any]) -> None:
+        if state.get("schema") == SESSION_STATE_SCHEMA:
+            self._load_run_state(state)
+            return
         if state.get("schema") != NODE_STATE_SCHEMA:
             msg = f"not a {NODE_NAME} state (schema {state.get('schema')!r})"
             raise DataError(msg)
@@ -400,6 +421,7 @@ class FilterInbox:
                 raise DataError(msg)
             self.counters.update({k: int(v) for k, v in state["counters"].items()})
             self._retired = {str(k): int(n) for k, n in state["retired"]}
+            self._adopt = int(state.get("adopt", 0))  # absent in states saved before ptm-run's were read
         except (KeyError, TypeError, ValueError, IndexError) as err:
             msg = f"malformed {NODE_NAME} state: {type(err).__name__}: {err}"
             raise DataError(msg) from err
@@ -407,12 +429,26 @@ class FilterInbox:
         self._resumed[self._stream] = self._next_index or 0
         self._unsaved, self.dirty = 0, False
 
+    def _load_run_state(self, state: dict[str, Any]) -> None:
+        """Continue from ``ptm-run``'s state (its session's, :data:`~ptm_ros.session.SESSION_STATE_SCHEMA`):
+        the map holds its visits; the first detector session that delivers one of them (same index,
+        stamp and pose) is adopted, its visits up to there redelivered, the later ones filtered."""
+        self.session.load_state(state)
+        visits = self.session.visits
+        n = len(visits)
+        self._next_index = n if n else None
+        self._stream, self._end_count, self._adopt = None, None, n
+        self._first = (visits[0].stamp, visits[0].pose) if n else None
+        self._last_stamp = visits[-1].stamp if n else -math.inf
+        self._retired, self._resumed = {}, {}
+        self._unsaved, self.dirty = 0, False
+
     def _reset_all(self) -> None:
         self.session.reset()
         self._next_index = self._end_count = self._stream = self._first = self.last = None
         self._last_stamp = -math.inf
         self.counters.update(dict.fromkeys(COUNTERS, 0))
-        self._retired, self._resumed = {}, {}
+        self._retired, self._resumed, self._adopt = {}, {}, 0
 
 
 def visit_line(index: int, state: FilterState, map_mass: float, *, how: str, ms: float) -> str:

@@ -55,7 +55,10 @@ reliable, keep-all and transient local, so a new subscription receives the detec
 keep-all Fast DDS writer keeps its latest 5000 messages: measured), in order; the restored ones are
 skipped (``redelivered``), the rest mapped, and the ensemble is exactly that of a filter never
 interrupted. This needs the detector that made the saved visits to be still running (a restarted
-detector starts a new session, hence a new map). A file that cannot be used — truncated, corrupt,
+detector starts a new session, hence a new map). A ``ptm-run`` state file (the same filter session,
+without a place in a detector stream) is resumed too: the first detector session that delivers one of
+its visits (same index, stamp and pose: a replay of the same bag) is adopted and its visits up to the
+saved ones are skipped. A file that cannot be used — truncated, corrupt,
 foreign, or made with another configuration or ``refit_max_visits`` — is logged as an error, moved to
 ``<state_file>.rejected``, and the node starts afresh (the detector's history rebuilds the map; the
 diagnostics say WARN: ``persistence.resume_rejected``). A failed save is logged and counted

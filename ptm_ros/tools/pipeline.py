@@ -77,12 +77,14 @@ from ptm_ros.maps.refinement import Mapper, RegistrationJob
 from ptm_ros.model.partitions import Labels
 from ptm_ros.model.ptm import Ptm, save_ptm
 from ptm_ros.model.visits import Visit
+from ptm_ros.nodes.filter_inbox import NODE_NAME, NODE_STATE_SCHEMA
 from ptm_ros.perception.landmarks import IMAGE, ODOM, SCAN, VisitExtractor, diagnostics_dict, with_input_skips
 from ptm_ros.perception.laser import Registration, WorkerPool
 from ptm_ros.perception.surprise import surprise_trace
 from ptm_ros.reporting.doubts import doubt_lines, find_doubts
 from ptm_ros.reporting.report import save_chain_trace, split_chain_trace
 from ptm_ros.session import (
+    RUN_STATE_TOOL,
     SESSION_STATE_SCHEMA,
     VERSUS_KEY,
     FilterSession,
@@ -284,10 +286,6 @@ class RunResult:
     trajectory: np.ndarray | None = None
 
 
-#: ``meta["tool"]`` of that file.
-RUN_STATE_TOOL = "ptm-run"
-
-
 @dataclass(frozen=True)
 class RunCheckpoint:
     """Saving and resuming :func:`run_offline`'s RBPF (``ptm-run --autosave/--resume``, issue #8).
@@ -328,17 +326,18 @@ def run_state_meta(used: PtmConfig, bag: Path, visits: Sequence[Visit]) -> dict[
 
 
 def check_state_config(meta: Mapping[str, Any], used: PtmConfig, path: Path) -> None:
-    """Refuse a state file that ``ptm-run`` did not write or wrote with another configuration.
+    """Refuse a state file that neither ``ptm-run`` nor the ``topology_filter`` node wrote, or that was
+    written with another configuration.
 
     Raises:
-        DataError: not written by ``ptm-run``.
+        DataError: written by another program.
         ConfigError: made with another configuration (the differing parameters are named).
     """
     from ptm_ros.inference.persistence import differences
 
-    if meta.get("tool") != RUN_STATE_TOOL:
+    if meta.get("tool") != RUN_STATE_TOOL and meta.get("node") != NODE_NAME:
         writer = meta.get("tool") or meta.get("node") or "an unknown program"
-        msg = f"cannot resume from {path}: written by {writer}, not {RUN_STATE_TOOL}"
+        msg = f"cannot resume from {path}: written by {writer}, not {RUN_STATE_TOOL} or the {NODE_NAME} node"
         raise DataError(msg)
     if not isinstance(meta.get("config"), Mapping):
         msg = f"cannot resume from {path}: its meta data lack the configuration"
@@ -353,11 +352,28 @@ def check_state_config(meta: Mapping[str, Any], used: PtmConfig, path: Path) -> 
         raise ConfigError(msg)
 
 
+def session_state_of(state: Mapping[str, Any], path: Path) -> Mapping[str, Any]:
+    """The filter session's state in a state file: the file's content for ``ptm-run``'s, its ``session``
+    for the ``topology_filter`` node's (one session schema, :data:`~ptm_ros.session.SESSION_STATE_SCHEMA`).
+
+    Raises:
+        DataError: a node state without a session.
+    """
+    if state.get("schema") != NODE_STATE_SCHEMA:
+        return state
+    session = state.get("session")
+    if not isinstance(session, Mapping):
+        msg = f"cannot resume from {path}: a {NODE_NAME} state without its filter session"
+        raise DataError(msg)
+    return session
+
+
 def check_run_state(
     state: Mapping[str, Any], meta: Mapping[str, Any], visits: Sequence[Visit], path: Path
 ) -> list[Visit]:
-    """Check that a state belongs to this run: the same number of visits, the same visit fingerprint,
-    and its saved visits equal to the first ones extracted now (extraction is deterministic).
+    """Check that a state belongs to this run: its saved visits equal to the first ones extracted now
+    (extraction is deterministic, offline and in the detector node alike); for ``ptm-run``'s own state
+    also the same number of visits and the same visit fingerprint.
 
     Returns:
         The saved visits.
@@ -368,15 +384,16 @@ def check_run_state(
     from ptm_ros.inference.persistence import first_different_visit, visit_from_state, visits_fingerprint
 
     where = f"cannot resume from {path}"
-    if meta.get("n_visits") != len(visits):
-        msg = (
-            f"{where}: it belongs to a run of {meta.get('n_visits')} landmark visits, this one has "
-            f"{len(visits)} (another bag or detector?)"
-        )
-        raise DataError(msg)
-    if meta.get("visits_sha256") != visits_fingerprint(visits):
-        msg = f"{where}: its visits differ from this bag's (another bag?)"
-        raise DataError(msg)
+    if meta.get("tool") == RUN_STATE_TOOL:  # ptm-run's own state also records the whole run's visits
+        if meta.get("n_visits") != len(visits):
+            msg = (
+                f"{where}: it belongs to a run of {meta.get('n_visits')} landmark visits, this one has "
+                f"{len(visits)} (another bag or detector?)"
+            )
+            raise DataError(msg)
+        if meta.get("visits_sha256") != visits_fingerprint(visits):
+            msg = f"{where}: its visits differ from this bag's (another bag?)"
+            raise DataError(msg)
     if state.get("schema") != SESSION_STATE_SCHEMA:
         schema = state.get("schema")
         msg = f"{where}: not a filter session state (schema {schema!r}, not {SESSION_STATE_SCHEMA!r})"
@@ -386,6 +403,9 @@ def check_run_state(
     except (KeyError, TypeError) as err:
         msg = f"{where}: malformed state ({type(err).__name__}: {err})"
         raise DataError(msg) from err
+    if len(saved) > len(visits):
+        msg = f"{where}: it holds {len(saved)} visits, this run has {len(visits)} (another bag?)"
+        raise DataError(msg)
     k = first_different_visit(saved, visits)
     if k is not None:
         msg = f"{where}: its visit {k} differs from this run's"
@@ -806,7 +826,8 @@ def _checkpoint(
 
     resumed = 0
     if saved is not None:
-        state, saved_meta = saved
+        content, saved_meta = saved
+        state = session_state_of(content, checkpoint.path)
         resumed = len(check_run_state(state, saved_meta, visits, checkpoint.path))
         session.load_state(state)
 
