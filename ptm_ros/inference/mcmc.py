@@ -171,8 +171,8 @@ class McmcConfig(Settings):
         1.0,
         gt=0,
         doc=(
-            "s [m] of the odometry merge weights ``exp(-d²/2s²)``; 1 m (about 2 σ_T) made fewer wrong merges "
-            "than 2–4 m on the 33-visit benchmark, so chains were trapped less often."
+            "s [m] of the odometry merge weights ``exp(-d²/2s²)``: about 2 σ_T, so that merges stay among "
+            "visits a place could hold and chains are trapped less often (``bench/mcmc.json``)."
         ),
     )
     appearance_strength: float = setting(10.0, ge=0, doc="λ of the appearance weights ``exp(∓λ sep)``.")
@@ -203,9 +203,8 @@ class McmcConfig(Settings):
         le=1,
         doc=(
             "inverse temperatures of MC³ (Alg. 5), ``1.0`` first, strictly decreasing; ``(1.0,)`` = one plain"
-            " chain. On the 33-visit benchmark a single chain was sometimes trapped for thousands of sweeps "
-            'in a "shifted loop" mode (1 run in 10 at s = 1 m, 2 in 3 at s = 2 m); with the default, one '
-            "replica at β = ½, every run (7 of 7) converged in the first round, for ~2× the evaluations."
+            ' chain. A single chain can stay trapped for thousands of sweeps in a "shifted loop" mode; one '
+            "replica at β = ½ lets it out, for about twice the evaluations (``bench/mcmc.json``)."
         ),
     )
     chains: int = setting(
@@ -237,8 +236,8 @@ class McmcConfig(Settings):
         40,
         ge=1,
         doc=(
-            'most visits for which "auto" starts from singletons (the simulated 33-visit world converges from'
-            " there in ~3 s)."
+            'most visits for which "auto" starts from singletons (short runs converge from there; longer '
+            "ones start from the particle filter's topologies)."
         ),
     )
     estimate: str = setting(

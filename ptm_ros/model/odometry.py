@@ -179,10 +179,9 @@ class OdometryConfig(Settings):
             "ε, probability that a registration passing its fitness tests between two visits of one place is "
             "nevertheless a false match, uniform over ``V_reg``: a symmetric alias (a crossing or corridor "
             "passed in opposite directions by a 180° laser matches best turned by π). 0 trusts every valid "
-            "registration (the Gaussian of eq. 49 alone). Default: 20 of 151 valid registrations of visits < "
-            "1.5 m apart were off the true relative pose by > 0.5 m or > 0.3 rad (Intel, ACES, MIT-CSAIL and "
-            "the simulated worlds' 7/20; laser-surprise visits; ``bench/fitness_loo.md``, where each run is "
-            "also scored with ε fitted on the other two)."
+            "registration (the Gaussian of eq. 49 alone). The default is the share of valid registrations "
+            "of one place found off their true relative pose on the shared runs (``bench/fitness_loo.md``, "
+            "also fitted leave one run out)."
         ),
     )
     n_samples: int = setting(

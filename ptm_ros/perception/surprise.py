@@ -961,8 +961,8 @@ class LaserSurpriseConfig(Settings):
         gt=0,
         doc=(
             "``k`` of the band ``mean + k·std`` of the predicted surprise. The predicted surprise is skewed "
-            "(about ``a + b·χ²_d``), so ``k = 3`` is exceeded by 2 % of the model's own draws; ``k = 5`` by "
-            "0.6–0.8 % (``d`` = 3, 1), and the simulated worlds lose nothing up to ``k = 6``."
+            "(about ``a + b·χ²_d``), so a band of a few ``std`` is exceeded by the model's own draws more "
+            "often than a Gaussian's (``bench/surprise.json``)."
         ),
     )
     samples: int = setting(
