@@ -103,9 +103,7 @@ class FilterInbox:
         self._last_stamp = -math.inf  # stamp of the latest visit in the map
         self._retired: dict[str, int] = {}  # finished detector sessions -> visits they had
         self._resumed: dict[str | None, int] = {}  # detector sessions -> visits restored from state_file
-        self._adopt = (
-            0  # visits restored from ptm-run's state: the detector session delivering them is adopted
-        )
+        self._adopt = 0  # visits restored from ptm-run's state, for the detector session delivering them
         self._unsaved = 0  # visits taken since the state was last saved
         self.dirty = False  # anything changed since the state was last saved (visits, end markers, resets)
 
@@ -389,9 +387,8 @@ class FilterInbox:
         mine = self.state_meta()
         offline = meta.get("tool") == RUN_STATE_TOOL  # ptm-run's state: the same session, no stream
         if meta.get("node") != NODE_NAME and not offline:
-            msg = (
-                f"the state was saved by {meta.get('node') or meta.get('tool')!r}, not {NODE_NAME} or ptm-run"
-            )
+            writer = meta.get("node") or meta.get("tool")
+            msg = f"the state was saved by {writer!r}, not {NODE_NAME} or {RUN_STATE_TOOL}"
             raise DataError(msg)
         for key in ("config",) if offline else ("config", "refit_max_visits"):
             if meta.get(key) != mine[key]:
