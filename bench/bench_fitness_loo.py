@@ -153,7 +153,7 @@ def score(
     if code != 0:
         return {"error": log.getvalue()[-1000:]}
     from ptm_ros.model.ptm import load_ptm
-    from ptm_ros.tools.pipeline import score_against
+    from ptm_ros.tools.outputs import score_against
 
     s = score_against(load_ptm(out / "ptm.json"), truth).as_dict(per_topology=False)
     return {k: s[k] for k in ("map_f1", "map_precision", "map_recall")}

@@ -70,13 +70,8 @@ def one_run(bag: Path, truth_path: Path, window: float) -> dict[str, Any]:
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.session import FilterSession, filter_visits
-    from ptm_ros.tools.pipeline import (
-        corrected_odometry,
-        detect_visits,
-        run_extractor,
-        run_odometry,
-        run_sensors,
-    )
+    from ptm_ros.tools.outputs import run_odometry
+    from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor, run_sensors
 
     run = read_run(bag)
     config = with_detector_kind(PtmConfig(), **run_sensors(run))

@@ -59,7 +59,7 @@ from ptm_ros.maps.map_quality import leaked_cells, map_quality  # noqa: E402
 from ptm_ros.maps.mapping import grid_along  # noqa: E402
 from ptm_ros.maps.occupancy import grid_traversal, save_png, scan_beams  # noqa: E402
 from ptm_ros.tools.calibrate import calibrate_run  # noqa: E402
-from ptm_ros.tools.pipeline import class_grid, reference_classes  # noqa: E402
+from ptm_ros.tools.outputs import class_grid, reference_classes  # noqa: E402
 
 QUALITY = ("leak", "free_area_ratio", "wall_precision", "wall_recall")
 MAPS_TMP = Path(tempfile.gettempdir()) / f"bench_maps_{os.getpid()}.png"  # full size, before copy_map

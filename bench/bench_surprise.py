@@ -1,5 +1,5 @@
-"""Benchmark of the Bayesian-surprise landmark detectors (:mod:`ptm_ros.perception.surprise`, thesis Ch.
-4.6–4.8).
+"""Benchmark of the Bayesian-surprise landmark detectors (:mod:`ptm_ros.perception.laser_surprise`,
+:mod:`ptm_ros.perception.appearance_surprise` over :mod:`ptm_ros.perception.surprise`, thesis Ch. 4.6–4.8).
 
 1. Throughput: the laser detector on a simulated run (scans/s, target >= 200) and the SIFT bag-of-words
    appearance detector on 64 x 512 panoramas (SIFT + words + EDCM surprise, panoramas/s, target >= 10).
@@ -37,13 +37,8 @@ import numpy as np
 from ptm_ros.io.simulator import CameraConfig, LaserConfig, SimConfig, SimRun, simulate
 from ptm_ros.io.worlds import WORLDS, get_world
 from ptm_ros.model.vocabulary import Vocabulary, sift_descriptors
-from ptm_ros.perception.surprise import (
-    STATISTICS,
-    AppearanceSurpriseConfig,
-    AppearanceSurpriseDetector,
-    LaserSurpriseConfig,
-    LaserSurpriseDetector,
-)
+from ptm_ros.perception.appearance_surprise import AppearanceSurpriseConfig, AppearanceSurpriseDetector
+from ptm_ros.perception.laser_surprise import STATISTICS, LaserSurpriseConfig, LaserSurpriseDetector
 
 BENCH = Path(__file__).resolve().parent
 DATASETS = BENCH.parent.parent / "shared" / "datasets"

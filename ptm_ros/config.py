@@ -16,16 +16,17 @@ from typing import Any
 from ptm_ros.configio import from_dict, load_yaml, to_dict
 from ptm_ros.errors import ConfigError
 from ptm_ros.inference.mcmc import McmcConfig
-from ptm_ros.inference.rbpf import RESAMPLE_METHODS
+from ptm_ros.inference.resampling import RESAMPLE_METHODS
 from ptm_ros.maps.mapping import MappingConfig
 from ptm_ros.maps.occupancy import OccupancyConfig
 from ptm_ros.maps.refinement import RefinementConfig
 from ptm_ros.maps.routes import RouteConfig
 from ptm_ros.model.posterior import ModelConfig
+from ptm_ros.perception.appearance_surprise import AppearanceSurpriseConfig
 from ptm_ros.perception.detectors import EquidistantConfig, PlacedLandmarksConfig
 from ptm_ros.perception.laser import LaserConfig
 from ptm_ros.perception.laser_odometry import LaserOdometryConfig
-from ptm_ros.perception.surprise import AppearanceSurpriseConfig, LaserSurpriseConfig
+from ptm_ros.perception.laser_surprise import LaserSurpriseConfig
 from ptm_ros.settings import Settings, commented_yaml, json_schema, setting
 
 METHODS = ("exact", "rbpf", "mcmc")

@@ -45,8 +45,8 @@ def with_detector_kind(config: PtmConfig, *, has_scans: bool, has_images: bool) 
 
 def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None = None) -> Detector:
     """The streaming detector object of a kind (:mod:`ptm_ros.perception.detectors`,
-    :mod:`ptm_ros.perception.surprise`); ``ground-truth`` fires at the ``schedule`` stamps (landmarks fixed
-    along the true path) and needs them.
+    :mod:`ptm_ros.perception.laser_surprise`, :mod:`ptm_ros.perception.appearance_surprise`);
+    ``ground-truth`` fires at the ``schedule`` stamps (landmarks fixed along the true path) and needs them.
 
     Raises:
         ConfigError: ``ground-truth`` without a schedule, or ``words`` appearance without a vocabulary.
@@ -61,12 +61,12 @@ def make_detector(kind: str, config: PtmConfig, schedule: Sequence[float] | None
             raise ConfigError(msg)
         return ScheduledDetector(schedule)
     if kind == "laser-surprise":
-        from ptm_ros.perception.surprise import LaserSurpriseDetector
+        from ptm_ros.perception.laser_surprise import LaserSurpriseDetector
 
         return LaserSurpriseDetector(det.laser_surprise)
     if kind == "appearance-surprise":
         from ptm_ros.model.vocabulary import Vocabulary
-        from ptm_ros.perception.surprise import AppearanceSurpriseDetector
+        from ptm_ros.perception.appearance_surprise import AppearanceSurpriseDetector
 
         vocabulary = Vocabulary.load(det.vocabulary) if det.vocabulary else None
         if det.appearance_surprise.model == "words" and vocabulary is None:

@@ -790,9 +790,9 @@ def _json_state(state: Any) -> Any:
 
 def cold_chain_details(res: Any) -> dict[str, Any]:
     """The cold-chain states of an MCMC result for the report's SRQ plot
-    (``ptm_ros.reporting.report.SRQ_KEY``), one list per chain, their thinning stride and the topology of each
-    state id (when known); nothing when the result holds none. ``ptm-run`` keeps only their summary in
-    ptm.json (:func:`ptm_ros.reporting.report.split_chain_trace`)."""
+    (``ptm_ros.reporting.chain_trace.SRQ_KEY``), one list per chain, their thinning stride and the topology
+    of each state id (when known); nothing when the result holds none. ``ptm-run`` keeps only their summary
+    in ptm.json (:func:`ptm_ros.reporting.chain_trace.split_chain_trace`)."""
     chains = [list(c) for c in getattr(res, "cold_states", ()) if len(c)]
     if not chains:
         return {}

@@ -1,4 +1,5 @@
-"""Tests of ptm_ros.perception.laser: scans to points, patches, registration (thesis Ch. 3.10.4, Fig. 48).
+"""Tests of ptm_ros.perception.patches (scans to points, patches) and ptm_ros.perception.laser
+(registration) (thesis Ch. 3.10.4, Fig. 48).
 
 Synthetic worlds are wall segments; scans are ray-cast against them exactly, so every patch point has a
 known wall and every registration a known answer.
@@ -20,16 +21,18 @@ from ptm_ros.model.geometry import RelativePose, between, compose, inverse, tran
 from ptm_ros.perception.laser import (
     FLAT_OPTIMUM,
     LaserConfig,
+    register_patches,
+    to_relative_pose,
+    voxel_downsample,
+)
+from ptm_ros.perception.patches import (
     PatchBuilder,
     build_patch,
     keyframes,
     passage_patch,
     passage_slice,
     refine_scan_poses,
-    register_patches,
     scan_to_points,
-    to_relative_pose,
-    voxel_downsample,
 )
 
 # ------------------------------------------------------------------------------------------ worlds

@@ -20,7 +20,6 @@ from ptm_ros.model.geometry import (
     transform_points,
     wrap_angle,
 )
-from ptm_ros.perception.laser import scan_to_points
 from ptm_ros.perception.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
@@ -34,6 +33,7 @@ from ptm_ros.perception.laser_odometry import (
     scan_time_poses,
     time_offset_scores,
 )
+from ptm_ros.perception.patches import scan_to_points
 
 
 @pytest.fixture(scope="module")

@@ -14,13 +14,8 @@ from ptm_ros.factories import cached, make_registrar
 from ptm_ros.maps.mapping import KeyframeStream, MappingConfig, OnlineMap
 from ptm_ros.maps.occupancy import aligned_windows as aligned
 from ptm_ros.model.visits import Visit
-from ptm_ros.tools.pipeline import (
-    detect_visits,
-    map_trajectory,
-    merged_messages,
-    occupancy_grid,
-    run_extractor,
-)
+from ptm_ros.tools.outputs import occupancy_grid
+from ptm_ros.tools.pipeline import detect_visits, map_trajectory, merged_messages, run_extractor
 
 
 @pytest.fixture(scope="module")

@@ -31,9 +31,15 @@ from scipy.stats import norm
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.inference.mcmc import (
-    AppearanceProposal,
     McmcConfig,
     McmcSampler,
+    pair_marginal_change,
+    run_mcmc,
+    starts_from_filter,
+    thesis_ladder,
+)
+from ptm_ros.inference.proposals import (
+    AppearanceProposal,
     MixtureProposal,
     Move,
     OdometryProposal,
@@ -41,10 +47,6 @@ from ptm_ros.inference.mcmc import (
     SplitMergeProposal,
     bhattacharyya_similarity,
     make_proposal,
-    pair_marginal_change,
-    run_mcmc,
-    starts_from_filter,
-    thesis_ladder,
 )
 from ptm_ros.model.appearance import AppearanceConfig
 from ptm_ros.model.geometry import compose

@@ -26,28 +26,14 @@ from ptm_ros.maps.routes import RouteConfig, crossing_segments
 from ptm_ros.model.geometry import between, compose
 from ptm_ros.model.partitions import bell, canonical, num_places
 from ptm_ros.model.ptm import Landmark, Ptm, from_json_dict, load_ptm, make_ptm, ptm_schema, to_json_dict
-from ptm_ros.reporting.report import (
-    CHAINS_KEY,
-    MAP_COMPARISON,
-    REFERENCE_CAPTION,
-    ROUTES_CAPTION,
-    SRQ,
-    SRQ_KEY,
-    SURPRISE,
-    TRACE,
-    find_chain_trace,
-)
+from ptm_ros.reporting.chain_trace import CHAINS_KEY, SRQ_KEY, TRACE, find_chain_trace
+from ptm_ros.reporting.report import MAP_COMPARISON, REFERENCE_CAPTION, ROUTES_CAPTION, SRQ, SURPRISE
 from ptm_ros.session import cold_chain_details
 from ptm_ros.tools import run as run_cli
 from ptm_ros.tools.evaluate import main as eval_main
-from ptm_ros.tools.pipeline import (
-    RegistrationPool,
-    detect_visits,
-    inference_notes,
-    route_notes,
-    run_offline,
-    write_route_graph,
-)
+from ptm_ros.tools.outputs import inference_notes, route_notes, write_route_graph
+from ptm_ros.tools.pipeline import detect_visits, run_offline
+from ptm_ros.tools.workers import RegistrationPool
 
 
 @pytest.fixture(scope="module")
@@ -580,7 +566,7 @@ def test_the_summary_prints_how_the_mass_moved_and_the_greedy_answer_beside_it()
     """Issue #25: a row per visit (the truth's mass, whether the greedy answer so far is right, the most
     probable topologies marked * true and g greedy), then the greedy answer and where it went wrong; a
     long timeline keeps the visits where the mass moved; without a truth, only the marks of greedy."""
-    from ptm_ros.tools.pipeline import greedy_notes
+    from ptm_ros.tools.outputs import greedy_notes
     from ptm_ros.tools.run import TIMELINE_ROWS, eventful, timeline_lines
 
     ptm, truth = demo_like_ptm()

@@ -12,17 +12,9 @@ import pytest
 from scipy.special import logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError
-from ptm_ros.inference.rbpf import (
-    FilterState,
-    RbpfConfig,
-    TopologyFilter,
-    _separation_update,
-    batch_log_predictive,
-    block_log_predictives,
-    optimal_resample,
-    run_filter,
-    top_resample,
-)
+from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
+from ptm_ros.inference.rbpf import FilterState, RbpfConfig, TopologyFilter, _separation_update, run_filter
+from ptm_ros.inference.resampling import optimal_resample, top_resample
 from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
 from ptm_ros.model.appearance import (
     AppearanceConfig,

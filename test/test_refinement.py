@@ -149,7 +149,7 @@ def test_inputs_are_checked(multi_loop_run):
 def test_worker_processes_refine_exactly_as_one(multi_loop_run):
     """The registrations of a round are independent: a pool of worker processes (ptm-run --jobs) gives the
     same refinement, bit for bit, as one after the other."""
-    from ptm_ros.tools.pipeline import RegistrationPool
+    from ptm_ros.tools.workers import RegistrationPool
 
     run, config, visits, odom, labels, _ = multi_loop_run
     stamps, points = scan_points(run.scans, config.laser)

@@ -1,4 +1,5 @@
-"""Tests of ptm_ros.reporting.report: figures, report.md and report.html of a PTM."""
+"""Tests of ptm_ros.reporting.report and the modules it draws with (plots, topology_plots, map_plots,
+surprise_plots, timeline_plots, srq_plots, chain_trace): figures, report.md and report.html of a PTM."""
 
 from __future__ import annotations
 
@@ -18,9 +19,25 @@ from matplotlib.image import imread
 from ptm_ros.errors import ConfigError, DataError, ModelError
 from ptm_ros.inference.convergence import srq_deviation, srq_points
 from ptm_ros.model.ptm import Landmark, Ptm, Topology, load_ptm, make_ptm, save_ptm
-from ptm_ros.perception.surprise import LaserSurpriseConfig, LaserSurpriseDetector, SurpriseTrace
-from ptm_ros.reporting.report import (
+from ptm_ros.perception.laser_surprise import LaserSurpriseConfig, LaserSurpriseDetector
+from ptm_ros.perception.surprise import SurpriseTrace
+from ptm_ros.reporting.chain_trace import (
     CHAINS_KEY,
+    SRQ_KEY,
+    SRQ_LABELS_KEY,
+    SRQ_THIN_KEY,
+    TRACE,
+    TRACE_SCHEMA,
+    chain_srq,
+    chain_states,
+    find_chain_trace,
+    load_chain_trace,
+    save_chain_trace,
+    split_chain_trace,
+)
+from ptm_ros.reporting.map_plots import MapComparison, draw_map_comparison, draw_route_graph
+from ptm_ros.reporting.plots import ReportConfig, label_string
+from ptm_ros.reporting.report import (
     CONSISTENT_MASS_MEANING,
     HISTOGRAM,
     MAP_CAPTION,
@@ -31,34 +48,14 @@ from ptm_ros.reporting.report import (
     ROUTES_CAPTION,
     SCORES,
     SRQ,
-    SRQ_KEY,
-    SRQ_LABELS_KEY,
-    SRQ_THIN_KEY,
     SURPRISE,
     TOPOLOGIES,
-    TRACE,
-    TRACE_SCHEMA,
-    MapComparison,
-    ReportConfig,
-    chain_srq,
-    chain_states,
-    draw_map_comparison,
-    draw_route_graph,
-    draw_srq,
-    find_chain_trace,
-    fired_indices,
     inference_line,
-    label_string,
-    load_chain_trace,
-    place_edges,
-    place_positions,
-    save_chain_trace,
-    split_chain_trace,
-    srq_figure,
-    surprise_figure,
-    trigger_indices,
     write_report,
 )
+from ptm_ros.reporting.srq_plots import draw_srq, srq_figure
+from ptm_ros.reporting.surprise_plots import fired_indices, surprise_figure, trigger_indices
+from ptm_ros.reporting.topology_plots import place_edges, place_positions
 from ptm_ros.scoring.evaluation import score_ptm
 
 # A square loop driven twice: corners A B C D A B C D (odometry drifts a little).
@@ -643,7 +640,8 @@ def test_timeline_figure_draws_the_mass_of_the_truth_and_of_the_greedy_answer(tm
     """Issue #25: per visit the most probable topology's mass (bars), the truth's and the greedy answer's
     (cut to the visits so far; an unlisted one at the most it can hold), and where greedy went wrong."""
     from ptm_ros.model.ptm import ptm_timeline
-    from ptm_ros.reporting.report import TIMELINE, timeline_figure
+    from ptm_ros.reporting.report import TIMELINE
+    from ptm_ros.reporting.timeline_plots import timeline_figure
 
     ptm = timeline_ptm()
     steps = ptm_timeline(ptm)

@@ -31,14 +31,9 @@ from ptm_ros.io.worlds import get_world
 from ptm_ros.nodes.filter_inbox import FilterInbox, Reaction
 from ptm_ros.nodes.messages import END_SCHEMA, visit_message
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import (
-    OUTPUT_FILES,
-    RunCheckpoint,
-    check_run_state,
-    detect_visits,
-    run_offline,
-    run_state_meta,
-)
+from ptm_ros.tools.checkpoint import RunCheckpoint, check_run_state, run_state_meta
+from ptm_ros.tools.outputs import OUTPUT_FILES
+from ptm_ros.tools.pipeline import detect_visits, run_offline
 
 REPO = Path(__file__).resolve().parents[1]
 # Equidistant visits every 1.5 m with laser patches (unrefined, no laser odometry: fast to detect), so

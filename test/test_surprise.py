@@ -14,15 +14,13 @@ from scipy import integrate, optimize, stats
 from scipy.special import digamma, gammaln
 
 from ptm_ros.errors import ConfigError, DataError, ModelError
+from ptm_ros.perception.appearance_surprise import AppearanceSurpriseConfig, AppearanceSurpriseDetector
+from ptm_ros.perception.laser_surprise import LaserSurpriseConfig, LaserSurpriseDetector, scan_statistic
 from ptm_ros.perception.surprise import (
-    AppearanceSurpriseConfig,
-    AppearanceSurpriseDetector,
     BandTrigger,
     EdcmPrior,
     EdcmStats,
     GaussianStats,
-    LaserSurpriseConfig,
-    LaserSurpriseDetector,
     Niw,
     NormalGamma,
     SurpriseStep,
@@ -38,7 +36,6 @@ from ptm_ros.perception.surprise import (
     niw_posterior,
     niw_surprise,
     normal_gamma_kl,
-    scan_statistic,
     surprise_trace,
     trace_from_dict,
     trace_to_dict,

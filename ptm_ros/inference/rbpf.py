@@ -149,14 +149,15 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.blas import dgemm
-from scipy.special import gammaln
 
 from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
+from ptm_ros.inference.resampling import RESAMPLE_METHODS, logsumexp, optimal_resample, top_resample
 from ptm_ros.model.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.model.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.model.odometry import OdometryConfig, odometry_covariances, place_area
 from ptm_ros.model.partitions import Labels
-from ptm_ros.model.priors import DirichletProcessPrior, OccupancyPrior, TopologyPrior, YuleSimonPrior
+from ptm_ros.model.priors import TopologyPrior
 from ptm_ros.model.ptm import Landmark, Ptm, make_ptm
 from ptm_ros.model.visits import Visit, visit_fields, visit_from_fields
 from ptm_ros.settings import Settings, setting
@@ -169,9 +170,6 @@ IntArray = NDArray[np.intp]
 #: Told the visit pairs ``(i, j)`` the filter is about to ask its registrar for (:class:`TopologyFilter`).
 Prefetch = Callable[[list[tuple[int, int]]], None]
 
-#: Resampling schemes: ``optimal`` (Fearnhead–Clifford, unbiased) or ``top`` (keep the heaviest children,
-#: a deterministic beam; biased, a baseline).
-RESAMPLE_METHODS = ("optimal", "top")
 
 #: Schema tag of :meth:`TopologyFilter.state_dict`.
 STATE_SCHEMA = "ptm_ros.rbpf/1"
@@ -223,218 +221,6 @@ class FilterState:
     log_evidence_increment: float
     update_s: float
     top: tuple[tuple[Labels, float], ...] = ()
-
-
-# ------------------------------------------------------------------------------------------ resampling
-
-
-def logsumexp(a: ArrayLike) -> float:
-    """``log Σ exp(a)`` of a 1-D array, stable (max subtracted); ``-inf`` when every entry is ``-inf``.
-
-    A lean stand-in for :func:`scipy.special.logsumexp`, whose per-call overhead (~0.1 ms) would be a
-    noticeable share of a filter step.
-    """
-    x = np.asarray(a, dtype=float)
-    top = float(np.max(x))
-    if not math.isfinite(top):
-        return top
-    return top + math.log(float(np.sum(np.exp(x - top))))
-
-
-def _fc_threshold(w_sorted: FloatArray, n: int) -> tuple[int, float]:
-    """``(A, c)`` with ``Σ min(w/c, 1) = n``: the ``A`` largest weights are ``≥ c`` (weights sorted
-    descending, all > 0, more than ``n`` of them)."""
-    tail = np.cumsum(w_sorted[::-1])[::-1]  # tail[a] = Σ_{i ≥ a} w_i
-    a = np.arange(n)
-    c = tail[:n] / (n - a)
-    below = np.flatnonzero(w_sorted[:n] < c)
-    # at a = n-1, c = tail > w_{n-1} in exact arithmetic; when the rest is below rounding, a = n-1 anyway
-    first = int(below[0]) if len(below) else n - 1
-    return first, float(c[first])
-
-
-def optimal_resample(log_weights: ArrayLike, n: int, rng: np.random.Generator) -> tuple[IntArray, FloatArray]:
-    """Fearnhead–Clifford optimal resampling of distinct discrete states (JRSS B 65, 2003).
-
-    With normalised weights ``w`` (from ``log_weights``, ``(K,)``) and ``K > n`` states of positive
-    weight, ``c`` solves ``Σ_i min(w_i / c, 1) = n``. States with ``w_i ≥ c`` are kept with their weight;
-    the others are resampled systematically (one uniform ``u ~ U[0, c)``, points ``u + j c``) so that
-    each is kept with probability ``w_i / c`` (its interval is shorter than ``c``: at most one point
-    falls in it, hence no duplicates) and then carries weight ``c``. So ``E[new weight_i] = w_i``
-    (unbiased) and the new weights sum to exactly 1. With ``K ≤ n`` every state of positive weight is kept.
-
-    Returns:
-        ``(indices, log_new_weights)``: kept indices into ``log_weights`` (ascending) and their
-        normalised log weights.
-
-    Raises:
-        ModelError: ``n < 1``, NaN or ``+inf`` weights, or no weight > 0.
-    """
-    lw = _check_log_weights(log_weights, n)
-    lw = lw - logsumexp(lw)
-    w = np.exp(lw)
-    live = np.flatnonzero(w > 0.0)
-    if len(live) <= n:
-        return live, lw[live]
-    order = live[np.argsort(-w[live], kind="stable")]
-    kept_count, _ = _fc_threshold(w[order], n)
-    kept = order[:kept_count]
-    rest = np.sort(order[kept_count:])
-    m = n - kept_count
-    cum = np.cumsum(w[rest])
-    c = float(cum[-1]) / m  # the threshold, recomputed from the same sums the grid walks
-    points = rng.uniform(0.0, c) + c * np.arange(m)
-    pos = np.minimum(np.searchsorted(cum, points, side="right"), len(rest) - 1)
-    chosen = rest[np.unique(pos)]
-    idx = np.concatenate([kept, chosen])
-    new_lw = np.concatenate([lw[kept], np.full(len(chosen), math.log(c))])
-    order_out = np.argsort(idx)
-    return idx[order_out], new_lw[order_out]
-
-
-def top_resample(log_weights: ArrayLike, n: int) -> tuple[IntArray, FloatArray]:
-    """Keep the ``n`` heaviest states (ties by index), renormalised: a deterministic, biased beam."""
-    lw = _check_log_weights(log_weights, n)
-    live = np.flatnonzero(lw > -np.inf)
-    idx = np.sort(live[np.argsort(-lw[live], kind="stable")[:n]])
-    return idx, lw[idx] - logsumexp(lw[idx])
-
-
-def _check_log_weights(log_weights: ArrayLike, n: int) -> FloatArray:
-    lw = np.asarray(log_weights, dtype=float)
-    if lw.ndim != 1 or lw.size == 0:
-        msg = f"log weights must be a non-empty 1-D array, got shape {lw.shape}"
-        raise ModelError(msg)
-    if np.any(np.isnan(lw)) or np.any(lw == np.inf):
-        msg = "log weights must not be NaN or +inf"
-        raise ModelError(msg)
-    if not np.any(np.isfinite(lw)):
-        msg = "every state has weight 0"
-        raise ModelError(msg)
-    if isinstance(n, bool) or n < 1:
-        msg = f"the number of states to keep must be >= 1, got {n}"
-        raise ModelError(msg)
-    return lw
-
-
-# ----------------------------------------------------------------------------------------------- prior
-
-
-def batch_log_predictive(
-    prior: TopologyPrior, counts: ArrayLike, n_places: ArrayLike
-) -> tuple[FloatArray, FloatArray]:
-    """``log P(L_n = k | L^{n-1})`` (eq. 39, 42) for many label histories at once.
-
-    Args:
-        prior: the prior over topologies.
-        counts: ``(P, cap)`` visits per place of each history (zero-padded beyond its places).
-        n_places: ``(P,)`` places of each history (``M_i ≥ 1``).
-
-    Returns:
-        ``(P, cap)`` revisit terms (``-inf`` beyond ``M_i``) and ``(P,)`` new-place terms. The priors of
-        :mod:`ptm_ros.model.priors` use their closed forms vectorised (equal to their ``log_predictive``); any
-        other prior is asked history by history (cached by counts).
-    """
-    c = np.asarray(counts, dtype=np.intp)
-    m = np.asarray(n_places, dtype=np.intp)
-    n_hist, cap = c.shape
-    valid = np.arange(cap)[None, :] < m[:, None]
-    rev = np.full((n_hist, cap), -np.inf)
-    if type(prior) is DirichletProcessPrior:  # revisit ∝ visits so far, new ∝ α (eq. 10)
-        log_den = np.log(prior.alpha + c.sum(axis=1))
-        rev[valid] = (np.log(np.where(valid, c, 1)) - log_den[:, None])[valid]
-        return rev, math.log(prior.alpha) - log_den
-    if type(prior) is YuleSimonPrior:  # new with probability u, else a known place uniformly (eq. 12)
-        rev[valid] = np.broadcast_to(math.log1p(-prior.u) - np.log(m)[:, None], rev.shape)[valid]
-        return rev, np.full(n_hist, math.log(prior.u))
-    new = np.empty(n_hist)
-    cache: dict[object, FloatArray] = {}
-    occupancy = type(prior) is OccupancyPrior  # depends on (n, M) only
-    totals = c.sum(axis=1)
-    for i in range(n_hist):
-        key = (totals[i], m[i]) if occupancy else c[i, : m[i]].tobytes()
-        pred = cache.get(key)
-        if pred is None:
-            pred = np.asarray(prior.log_predictive(c[i, : m[i]]), dtype=float)
-            if pred.shape != (m[i] + 1,):
-                msg = f"the prior's log_predictive returned shape {pred.shape} for {m[i]} places"
-                raise ModelError(msg)
-            cache[key] = pred
-        rev[i, : m[i]] = pred[: m[i]]
-        new[i] = pred[m[i]]
-    return rev, new
-
-
-# ------------------------------------------------------------------------------------------ appearance
-
-
-def block_log_predictives(
-    new: int, blocks: Sequence[tuple[int, ...]], visits: Sequence[Visit], model: AppearanceModel
-) -> FloatArray:
-    """``log p(a_new | a_block)`` (eq. 46) for many non-empty blocks at once, ``(B,)``.
-
-    Equal to :func:`~ptm_ros.model.appearance.appearance_log_predictive` block by block (tested), vectorised
-    over the blocks with the same closed forms: the NIG Student-t predictive (eq. 25–28 corrected, see
-    :func:`~ptm_ros.model.appearance.log_predictive_nig`) and the Pólya predictive of word counts (eq. 54–57,
-    :func:`~ptm_ros.model.appearance.log_predictive_dcm`). Block sufficient statistics come from one
-    ``np.add.reduceat`` over the concatenated blocks; visits without a measurement (missing) add
-    nothing, and a visit ``new`` without one gets 0. The measurements of visit ``new`` must have been
-    validated (e.g. by ``appearance_log_predictive(new, (), …)``); earlier visits' were when they arrived.
-    """
-    if not blocks:
-        return np.zeros(0)
-    sizes = np.array([len(b) for b in blocks], dtype=np.intp)
-    if np.any(sizes == 0):
-        msg = "block_log_predictives needs non-empty blocks (a new place: appearance_log_predictive)"
-        raise ModelError(msg)
-    flat = np.fromiter((i for b in blocks for i in b), dtype=np.intp, count=int(sizes.sum()))
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    out = np.zeros(len(blocks))
-    if model.nig is not None and visits[new].signature is not None:
-        prior = model.nig
-        have = np.array([visits[i].signature is not None for i in flat])
-        zero = np.zeros(prior.dim)
-        sigs = [visits[i].signature for i in flat]
-        rows = np.array([zero if g is None else np.asarray(g, dtype=float) for g in sigs])
-        rows = rows.reshape(len(flat), -1)
-        a = np.asarray(visits[new].signature, dtype=float)
-        total = np.add.reduceat(rows, starts, axis=0)
-        total_sq = np.add.reduceat(rows * rows, starts, axis=0)
-        cnt = np.add.reduceat(have.astype(float), starts)[:, None]  # visits with a signature per block
-        kappa_n = prior.kappa + cnt
-        alpha_n = prior.alpha + 0.5 * cnt
-        mean = np.divide(total, cnt, out=np.zeros_like(total), where=cnt > 0)
-        scatter = np.maximum(total_sq - total * mean, 0.0)
-        beta_n = prior.beta + 0.5 * (scatter + prior.kappa * cnt / kappa_n * np.square(mean - prior.mu))
-        mu_n = (prior.kappa * prior.mu + total) / kappa_n
-        nu = 2.0 * alpha_n
-        scale_sq = beta_n * (kappa_n + 1.0) / (alpha_n * kappa_n)
-        out += np.sum(
-            gammaln(0.5 * (nu + 1.0))
-            - gammaln(0.5 * nu)
-            - 0.5 * np.log(nu * np.pi * scale_sq)
-            - 0.5 * (nu + 1.0) * np.log1p(np.square(a - mu_n) / (nu * scale_sq)),
-            axis=1,
-        )
-    if model.dcm_alpha is not None and visits[new].words is not None:
-        alpha = model.dcm_alpha
-        x = np.asarray(visits[new].words, dtype=float)
-        none = np.zeros(alpha.size)
-        words = np.array(
-            [none if visits[i].words is None else np.asarray(visits[i].words, dtype=float) for i in flat]
-        ).reshape(len(flat), -1)
-        post = alpha + np.add.reduceat(words, starts, axis=0)  # (B, V)
-        nz = x > 0
-        m = float(x.sum())
-        a_sum = post.sum(axis=1)
-        out += (
-            gammaln(m + 1.0)
-            - float(np.sum(gammaln(x[nz] + 1.0)))
-            + gammaln(a_sum)
-            - gammaln(m + a_sum)
-            + np.sum(gammaln(x[nz] + post[:, nz]) - gammaln(post[:, nz]), axis=1)
-        )
-    return out
 
 
 # ------------------------------------------------------------------------------------------- particles

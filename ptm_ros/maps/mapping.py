@@ -44,7 +44,8 @@ from ptm_ros.maps.smoothing import smooth_topology
 from ptm_ros.model.geometry import FloatArray, Registrar, RelativePose, interpolate_poses, moved
 from ptm_ros.model.posterior import ModelConfig, chained_registrations, split_aliases
 from ptm_ros.model.visits import Visit
-from ptm_ros.perception.laser import LaserConfig, usable_points
+from ptm_ros.perception.laser import LaserConfig
+from ptm_ros.perception.patches import usable_points
 from ptm_ros.settings import Settings, setting
 
 TELEPORT_SLACK_M = 1.0  # m added to max_speed · Δt before an odometry step counts as a teleport
@@ -151,7 +152,7 @@ def topology_trajectory(
 
 def scan_points(scans: ScanLog, laser: LaserConfig) -> tuple[FloatArray, list[FloatArray]]:
     """The scans' stamps (increasing) and points in the robot frame
-    (:func:`ptm_ros.perception.laser.usable_points`, beams beyond ``laser.max_range`` dropped); a malformed
+    (:func:`ptm_ros.perception.patches.usable_points`, beams beyond ``laser.max_range`` dropped); a malformed
     scan has no points."""
     st = np.asarray(scans.stamps, dtype=float).reshape(-1)
     order = np.argsort(st, kind="stable")

@@ -269,7 +269,7 @@ def refine_trajectory(  # noqa: PLR0917 - the smoothing's inputs plus the scans
 
     ``odom_poses`` are the poses the visits' poses come from (the visits sit on odometry samples);
     ``scan_points`` are the scans' points in the robot frame
-    (:func:`ptm_ros.perception.laser.scan_to_points`), taken at ``scan_stamps`` (increasing); ``labels``,
+    (:func:`ptm_ros.perception.patches.scan_to_points`), taken at ``scan_stamps`` (increasing); ``labels``,
     ``visits``, ``odometry`` and ``loops`` are those of
     :func:`ptm_ros.maps.smoothing.robust_visit_poses`. ``mapper`` runs each round's registrations
     (:class:`Mapper`).

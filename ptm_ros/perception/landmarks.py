@@ -20,7 +20,7 @@ passage through its patch radius and ``image_max_dt`` after it: the patch = scan
 robot's odometry stays within ``laser.patch_radius`` of the visit pose (the contiguous run around the
 visit, at most ``max_passage_s`` long), placed with odometry interpolated at the scan stamps; the
 signature = the panorama nearest in time within ``image_max_dt``. The patch is
-:func:`ptm_ros.perception.laser.passage_patch` over the buffered scans (the passage's keyframes with their
+:func:`ptm_ros.perception.patches.passage_patch` over the buffered scans (the passage's keyframes with their
 odometry corrected by scan matching); it only depends on the scans up to the completion stamp, which is
 itself fixed by the canonical sequence.
 
@@ -48,14 +48,7 @@ from ptm_ros.model.appearance import AppearanceConfig, panorama_signature
 from ptm_ros.model.geometry import FloatArray, interpolate_poses, wrap_angle
 from ptm_ros.model.visits import MAX_COORDINATE, Visit, visit_fields, visit_from_fields
 from ptm_ros.perception.detectors import Detector, EquidistantDetector
-from ptm_ros.perception.laser import (
-    LaserConfig,
-    ScanPoints,
-    WorkerPool,
-    passage_patch,
-    passage_slice,
-    usable_points,
-)
+from ptm_ros.perception.laser import LaserConfig, WorkerPool
 from ptm_ros.perception.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
@@ -63,6 +56,7 @@ from ptm_ros.perception.laser_odometry import (
     RunInput,
     learn_time_offset,
 )
+from ptm_ros.perception.patches import ScanPoints, passage_patch, passage_slice, usable_points
 
 ODOM, SCAN, IMAGE = 0, 1, 2  # topic priority for equal stamps: odometry first
 #: The reasons (keys of ``ExtractorDiagnostics.skipped``) for which a landmark the detector declared
@@ -557,7 +551,7 @@ class VisitExtractor:
         return _Finished(v, patch, signature, spread)
 
     def _patch(self, v: _Pending) -> FloatArray | Future[FloatArray] | None:
-        """The patch of visit ``v`` (:func:`~ptm_ros.perception.laser.passage_patch` of its passage), built
+        """The patch of visit ``v`` (:func:`~ptm_ros.perception.patches.passage_patch` of its passage), built
         here or submitted to :attr:`patches`."""
         stamps = np.array([s for s, _ in self._scans])
         poses = interpolate_poses(self._odom_t, self._odom_p, stamps)

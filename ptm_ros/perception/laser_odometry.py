@@ -59,7 +59,8 @@ from ptm_ros.model.geometry import (
     transform_points,
     wrap_angle,
 )
-from ptm_ros.perception.laser import LaserConfig, ScanMap, voxel_downsample
+from ptm_ros.perception.laser import LaserConfig, voxel_downsample
+from ptm_ros.perception.patches import ScanMap
 from ptm_ros.settings import Settings, setting
 
 

@@ -20,7 +20,7 @@ and then the occupancy map it drew online along the MAP topology's smoothed traj
 (``/map_publisher/save_map``: ``DIR/map.yaml``, ``map.pgm``, ``map.png``), and takes that trajectory
 (``ptm_trajectory``) and the detector's surprise trace (``/landmark_detector/surprise_trace``) before
 the nodes stop. From these and the bag's odometry and scans it then writes what ``ptm-run`` writes, with
-``ptm-run``'s own writers (:func:`ptm_ros.tools.pipeline.write_outputs`, issue #24): ``ptm.json`` gains
+``ptm-run``'s own writers (:func:`ptm_ros.tools.outputs.write_outputs`, issue #24): ``ptm.json`` gains
 ``bag``, ``detector``, the input messages skipped and why (``diagnostics``: the landmark detector's
 counts from its final ``/diagnostics`` status under ``ptm-run``'s keys, ``skipped`` and
 ``read_skipped`` among them, with the extractor's counters; the same warning line as ``ptm-run``) and,
@@ -336,8 +336,9 @@ def make_plan(args: argparse.Namespace) -> Plan:
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.maps.mapping import every_sample
     from ptm_ros.nodes.bag_player import bag_topics
+    from ptm_ros.tools.outputs import run_odometry
     from ptm_ros.tools.paths import output_dir
-    from ptm_ros.tools.pipeline import check_ground_truth_of_run, find_ground_truth, run_odometry
+    from ptm_ros.tools.pipeline import check_ground_truth_of_run, find_ground_truth
 
     config, params_is_ros = load_parameters(args.params)
     t = config.topics
@@ -413,7 +414,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
 @dataclass(frozen=True)
 class NodeOutputs:
     """What the nodes made beside ptm.json, collected before they stop: the map publisher's map files
-    (keys of ``pipeline.OUTPUT_FILES``) and the trajectory it drew them along (``(stamps, poses)``), the
+    (keys of ``outputs.OUTPUT_FILES``) and the trajectory it drew them along (``(stamps, poses)``), the
     detector's surprise trace (None: none) and its input counts (its final ``/diagnostics`` values as
     ``ptm-run``'s ptm.json ``diagnostics``: :func:`ptm_ros.nodes.landmark_detector.input_counts`)."""
 
@@ -723,7 +724,7 @@ def _note(note: str) -> None:
 
 
 def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
-    """After a bag: ``ptm-run``'s outputs from what the nodes made (``pipeline.write_outputs`` on the map
+    """After a bag: ``ptm-run``'s outputs from what the nodes made (``outputs.write_outputs`` on the map
     publisher's ptm.json, map and trajectory, the detector's surprise trace and the bag's odometry and
     scans): ptm.json with the trajectory errors and the map's quality when a ground truth is known,
     config.yaml, route_graph.geojson and (unless ``--no-report``) the report; returns ``ptm-run``'s
@@ -731,7 +732,7 @@ def finish(args: argparse.Namespace, plan: Plan, outputs: NodeOutputs) -> str:
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.model.ptm import load_ptm
-    from ptm_ros.tools.pipeline import OUTPUT_FILES, provenance, saved_map, write_outputs
+    from ptm_ros.tools.outputs import OUTPUT_FILES, provenance, saved_map, write_outputs
     from ptm_ros.tools.run import format_summary, skipped_warning
 
     ptm = load_ptm(plan.out / OUTPUT_FILES["ptm"])

@@ -245,13 +245,13 @@ def map_quality_of_run(
     """The quality of a run's occupancy map (``map_yaml``, default ``map.yaml`` beside ``ptm_path``)
     against the scans of the run's bag (``ptm.json``'s ``bag``) at the ground truth's poses, carried by
     the alignment ``ptm-run`` recorded (``trajectory_error.alignment``: the map's trajectory onto the
-    ground truth), with the run's ``config.yaml`` (:func:`ptm_ros.tools.pipeline.map_quality_against`).
+    ground truth), with the run's ``config.yaml`` (:func:`ptm_ros.tools.outputs.map_quality_against`).
     None when the map, the bag, its scans or the alignment is missing."""
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
     from ptm_ros.maps.map_quality import ClassGrid
     from ptm_ros.maps.occupancy import load_map
-    from ptm_ros.tools.pipeline import TRAJECTORY_ERROR_KEY, map_quality_against
+    from ptm_ros.tools.outputs import TRAJECTORY_ERROR_KEY, map_quality_against
 
     yml = map_yaml if map_yaml is not None else ptm_path.parent / "map.yaml"
     alignment = (ptm.extra.get(TRAJECTORY_ERROR_KEY) or {}).get("alignment")
@@ -436,8 +436,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise DataError(f"{problem} (--force scores it anyway)")
         quality = map_quality_of_run(args.ptm, ptm, truth, map_yaml=args.map)
         if args.report is not None:
-            from ptm_ros.reporting.report import find_chain_trace, write_report
-            from ptm_ros.tools.pipeline import inference_notes
+            from ptm_ros.reporting.chain_trace import find_chain_trace
+            from ptm_ros.reporting.report import write_report
+            from ptm_ros.tools.outputs import inference_notes
 
             write_report(
                 args.report,

@@ -4,7 +4,7 @@ Writes ``DIR/ptm.json`` (CONTRACT.md schema), ``DIR/config.yaml`` (the parameter
 ``DIR/route_graph.geojson`` (nav2 route graph, its edges kept off the map's walls), for a bag with scans
 the occupancy map ``DIR/map.pgm`` + ``DIR/map.yaml`` (nav2 map_server) and ``DIR/map.png`` (unless
 ``--no-map``), and ``DIR/report.{md,html}`` with figures (unless ``--no-report``); see
-:mod:`ptm_ros.tools.pipeline`.
+:mod:`ptm_ros.tools.pipeline` and :mod:`ptm_ros.tools.outputs`.
 Prints the most probable topologies and, when the bag carries a ground truth (``BAG/ground_truth.json``)
 or ``--ground-truth`` is given, their score and the absolute trajectory errors of the smoothed MAP
 trajectory and of the raw odometry (also in ``ptm.json`` under ``trajectory_error``), and the map's
@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from ptm_ros.model.partitions import Labels
     from ptm_ros.model.ptm import Ptm, TimelineStep
-    from ptm_ros.tools.pipeline import RunCheckpoint
+    from ptm_ros.tools.checkpoint import RunCheckpoint
 
 PROG = "ptm-run"
 
@@ -170,13 +170,14 @@ def jobs_of(args: argparse.Namespace) -> int:
 
 
 def checkpoint_of(args: argparse.Namespace) -> RunCheckpoint | None:
-    """The :class:`~ptm_ros.tools.pipeline.RunCheckpoint` of ``--autosave/--resume/--state-file``, or None.
+    """The :class:`~ptm_ros.tools.checkpoint.RunCheckpoint` of ``--autosave/--resume/--state-file``, or None.
 
     Raises:
         ConfigError: ``--autosave`` below 1, or ``--state-file`` without ``--autosave``/``--resume``.
     """
     from ptm_ros.errors import ConfigError
-    from ptm_ros.tools.pipeline import OUTPUT_FILES, RunCheckpoint
+    from ptm_ros.tools.checkpoint import RunCheckpoint
+    from ptm_ros.tools.outputs import OUTPUT_FILES
 
     if args.autosave is not None and args.autosave < 1:
         msg = f"--autosave N needs N >= 1 (visits between saves), got {args.autosave}"
@@ -215,7 +216,7 @@ def timeline_lines(ptm: Ptm, truth: Labels | None = None) -> list[str]:
     ``truth``, its mass and whether the greedy answer so far is right; at most :data:`TIMELINE_ROWS` rows
     (the :func:`eventful` ones when more); no lines without a timeline in ptm.json."""
     from ptm_ros.model.ptm import ptm_greedy, ptm_timeline
-    from ptm_ros.reporting.report import label_string
+    from ptm_ros.reporting.plots import label_string
     from ptm_ros.scoring.evaluation import cut, first_wrong_visit, timeline_masses, unlisted_bound
 
     steps = ptm_timeline(ptm)
@@ -263,8 +264,9 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
     (``total_s``) the run's whole wall time with its phases."""
     from ptm_ros.perception.landmarks import landmark_accounting
     from ptm_ros.reporting.doubts import doubt_lines, find_doubts
-    from ptm_ros.reporting.report import CONSISTENT_MASS_MEANING, inference_line, label_string
-    from ptm_ros.tools.pipeline import MAP_QUALITY_KEY, greedy_notes, inference_notes, map_quality_notes
+    from ptm_ros.reporting.plots import label_string
+    from ptm_ros.reporting.report import CONSISTENT_MASS_MEANING, inference_line
+    from ptm_ros.tools.outputs import MAP_QUALITY_KEY, greedy_notes, inference_notes, map_quality_notes
 
     ptm = result.ptm
     lines = [f"{len(ptm.landmarks)} landmark visits, {ptm.timing.get('wall_s', 0.0):.2f} s to the PTM"]
