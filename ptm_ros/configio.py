@@ -62,10 +62,15 @@ def _convert(value: Any, hint: Any, where: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             msg = f"{where}: expected a number, got {value!r}"
             raise ConfigError(msg)
-        if math.isnan(float(value)):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond the floats (YAML reads any number of digits)
+            msg = f"{where}: an integer of {len(str(abs(value)))} digits is beyond the range of a number"
+            raise ConfigError(msg) from None
+        if math.isnan(number):
             msg = f"{where}: NaN is not a valid value"
             raise ConfigError(msg)
-        return float(value)
+        return number
     if hint is str:
         if not isinstance(value, str):
             msg = f"{where}: expected a string, got {value!r}"

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import reprlib
 import textwrap
 import types
 import typing
@@ -31,6 +32,9 @@ from ptm_ros.errors import ConfigError
 
 T = TypeVar("T")
 
+#: How a rejected value is shown (an integer of 400 digits, a long list: their ends).
+_SHORT = reprlib.Repr()
+_SHORT.maxlong, _SHORT.maxstring, _SHORT.maxother, _SHORT.maxlist, _SHORT.maxtuple = 24, 80, 80, 8, 8
 #: Key of a field's :class:`Spec` in its ``dataclasses.Field.metadata``.
 SPEC = "ptm_ros.setting"
 
@@ -185,7 +189,7 @@ def _check(owner: str, name: str, value: Any, hint: Any, spec: Spec) -> None:
         return
     problem = _problem(value, hint, spec)
     if problem is not None:
-        msg = f"{owner}.{name} must be {problem}{' (or None)' if optional else ''}, got {value!r}"
+        msg = f"{owner}.{name} must be {problem}{' (or None)' if optional else ''}, got {_SHORT.repr(value)}"
         raise ConfigError(msg)
 
 
@@ -206,9 +210,14 @@ def _problem(value: Any, hint: Any, spec: Spec) -> str | None:
         ok = isinstance(value, numbers.Integral) and not isinstance(value, bool) and spec.admits(int(value))
         return None if ok else admitted(hint, spec)
     if hint is float:
-        ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
-        ok = ok and (math.isfinite(value) or (not spec.finite and not math.isnan(value)))
-        return None if ok and spec.admits(float(value)) else admitted(hint, spec)
+        if not isinstance(value, numbers.Real) or isinstance(value, bool):
+            return admitted(hint, spec)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond the floats
+            return admitted(hint, spec)
+        ok = math.isfinite(number) or (not spec.finite and not math.isnan(number))
+        return None if ok and spec.admits(number) else admitted(hint, spec)
     if hint is str:
         return None if isinstance(value, str) else admitted(hint, spec)
     if isinstance(hint, type) and not isinstance(value, hint):

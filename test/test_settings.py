@@ -64,6 +64,7 @@ class Toy(Settings):
         ({"scale": math.nan}, "Toy.scale must be a finite number, got nan"),
         ({"scale": math.inf}, "Toy.scale must be a finite number, got inf"),
         ({"scale": "1"}, "Toy.scale must be a finite number, got '1'"),
+        ({"scale": 10**400}, r"Toy.scale must be a finite number, got 1000000000\.\.\.0+$"),
         ({"limit": 0.0}, "Toy.limit must be a number > 0, got 0.0"),
         ({"limit": math.nan}, "Toy.limit must be a number > 0, got nan"),
         ({"mode": "c"}, r"Toy.mode must be one of \('a', 'b'\), got 'c'"),
@@ -180,3 +181,46 @@ def test_the_commented_yaml_loads_back_to_the_same_configuration():
     from ptm_ros.configio import from_dict
 
     assert from_dict(PtmConfig, yaml.safe_load("\n".join(lines))) == PtmConfig()
+
+
+PATHS = [path for path, _, _ in LEAVES]
+WILD = st.one_of(
+    VALUES,
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-(2**70), 2**70),
+    st.sampled_from([10**400, -(10**400)]),  # YAML reads integers of any length
+    st.dictionaries(st.sampled_from(["a", "kind", "x"]), st.integers(), max_size=2),
+)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(
+    st.lists(
+        st.tuples(st.sampled_from([*PATHS, "model.bogus", "inference", "detector.kind.deeper"]), WILD),
+        max_size=4,
+    )
+)
+def test_any_parameter_file_gives_a_configuration_or_one_config_error(items):
+    """Whatever a parameter file holds (values of any type, unknown keys, sections replaced by values),
+    loading it gives a configuration or one ConfigError of one line naming where: never another
+    exception (the nodes turn it into exit code 2, ``ptm-run`` into a one-line error)."""
+    from ptm_ros.config import load_config
+
+    doc: dict = {}
+    for path, value in items:
+        *parents, leaf = path.split(".")
+        node = doc
+        for part in parents:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                break
+            node = child
+        else:
+            node[leaf] = value
+    try:
+        config = load_config(None, doc)
+    except ConfigError as err:
+        text = str(err)
+        assert text and "\n" not in text, text
+    else:
+        assert isinstance(config, PtmConfig)
