@@ -75,3 +75,22 @@ def test_bad_odometry_and_scans_are_counted_not_mapped():
     box.scan(2.0, None, ("scan-empty", "no ranges"))
     assert box.counters["odometry_invalid"] == 2 and box.counters["scans_invalid"] == 2
     assert box.online.counters.poses == 1 and box.online.counters.scans == 0 and box.scans_received == 2
+
+
+def test_scans_that_wait_for_the_odometry_mark_the_map_changed_when_it_reaches_them():
+    """Over DDS the scans may arrive before the odometry of their stamps (two topics): they wait, and the
+    odometry sample that reaches them makes them keyframes. That must mark the inputs changed as a new
+    keyframe scan does, or ``~/save_map`` returns the map drawn before them (a stale map under load)."""
+    box = inbox()
+    scan = (np.full(90, 3.0, np.float32), -math.pi / 2, math.pi / 90, 0.1, 10.0)
+    box.odometry(0.0, (0.0, 0.0, 0.0))
+    box.scan(0.0, scan)  # reached at once: a keyframe
+    assert box.online.keyframes == 1 and box.dirty
+    box.dirty = False  # the map publisher took a snapshot and draws it
+    for k in range(1, 4):  # scans ahead of the odometry: held
+        box.scan(float(k), scan)
+    assert box.online.keyframes == 1 and not box.dirty
+    box.odometry(0.5, (0.5, 0.0, 0.0))  # reaches none of them
+    assert not box.dirty
+    box.odometry(3.0, (3.0, 0.0, 0.0))  # reaches all three
+    assert box.online.keyframes == 4 and box.dirty

@@ -135,8 +135,12 @@ class MapInbox:
             self.counters["odometry_invalid"] += 1
             self._log_once("odometry-invalid", "skipped a landmark_odom sample with a bad stamp or pose")
             return
+        before = self.online.keyframes
         if self.online.add_pose(stamp, pose):
             self._log_once("map-reset", "the visits' odometry restarted (new session): the map starts afresh")
+            self.dirty = True
+        # a sample that reaches scans held for it turns them into keyframes: the map has changed too
+        self.dirty = self.dirty or self.online.keyframes != before
 
     def scan(
         self, stamp: float | None, payload: ScanPayload | None, rejected: Rejection | None = None
