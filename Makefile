@@ -29,13 +29,14 @@ install: $(VENV)
 	$(PIP) install -q --no-deps --no-build-isolation .
 
 # Tests that do not use DDS run on PYTEST_WORKERS processes (pytest-xdist, one per core by default);
-# the DDS tests (marker dds: rclpy nodes, child processes, per-test domains) run one at a time after them.
+# the DDS tests (marker dds: rclpy nodes, child processes, per-test domains, a domain range per worker) run
+# after them, on as many workers.
 PYTEST_WORKERS ?= auto
 
 # The whole suite, after the lint (formatting, ruff, the import layers of .importlinter, mypy.ini's types).
 test: lint install
 	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 -n $(PYTEST_WORKERS) -m "not dds" test
-	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 -m dds test
+	$(ROS_ENV) $(PY) -m pytest -q -p no:cacheprovider --durations=15 -n $(PYTEST_WORKERS) -m dds test
 
 # The fast subset, after the lint: no test marked slow (many seconds) or dds (rclpy nodes over DDS).
 check: lint install

@@ -30,8 +30,13 @@ _DOMAINS = itertools.count()
 
 
 def next_domain_id() -> int:
-    """A ROS domain id in 20..229 for one test, distinct within this process and spread across pids."""
-    return 20 + (os.getpid() * 7 + 37 * next(_DOMAINS)) % 210
+    """A ROS domain id in 20..229 for one test: distinct within this process, spread across pids, and in a
+    range of its own for each pytest-xdist worker (``gw0``, ``gw1``: concurrent tests never share one)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    workers = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), 1)
+    span = 210 // workers
+    base = 20 + (int(worker) % workers if worker.isdigit() else 0) * span
+    return base + (os.getpid() * 7 + 37 * next(_DOMAINS)) % span
 
 
 def dds_env(domain_id: int, base: dict[str, str] | None = None) -> dict[str, str]:
