@@ -152,7 +152,13 @@ from scipy.linalg.blas import dgemm
 
 from ptm_ros.errors import ConfigError, ModelError
 from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
-from ptm_ros.inference.resampling import RESAMPLE_METHODS, logsumexp, optimal_resample, top_resample
+from ptm_ros.inference.resampling import (
+    RESAMPLE_METHODS,
+    IntArray,
+    logsumexp,
+    optimal_resample,
+    top_resample,
+)
 from ptm_ros.model.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.model.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.model.odometry import OdometryConfig, odometry_covariances, place_area
@@ -161,8 +167,6 @@ from ptm_ros.model.priors import TopologyPrior
 from ptm_ros.model.ptm import Landmark, Ptm, make_ptm
 from ptm_ros.model.visits import Visit, visit_fields, visit_from_fields
 from ptm_ros.settings import Settings, setting
-
-IntArray = NDArray[np.intp]
 
 #: A registrar returns the laser measurement of ``between(x_i, x_j)`` for visits ``i < j``, or None
 #: (registration failed its fitness test: no information). Same contract as ``ptm_ros.model.posterior``.

@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from ptm_ros.errors import ModelError
 from ptm_ros.model.geometry import FloatArray
 
+#: Indices into the children (and the filter's index arrays).
 IntArray = NDArray[np.intp]
 
 #: Resampling schemes: ``optimal`` (Fearnhead–Clifford, unbiased) or ``top`` (keep the heaviest children,
