@@ -129,6 +129,15 @@ class InferenceConfig(Settings):
         choices=RESAMPLE_METHODS,
         doc="RBPF: ``optimal`` (Fearnhead-Clifford) or ``top`` (the N heaviest children, biased).",
     )
+    reweight: bool = setting(
+        True,
+        doc=(
+            "rbpf: weigh the topologies the filter keeps with the batch model's metric evidence, an "
+            "importance-sampling integral over the whole trajectory, instead of the filter's sequential EKF "
+            "estimate, which linearises each heading error where the robot drove; applies while the batch "
+            "evidence is sampled (up to ``model.odometry.max_sampled_visits`` visits)."
+        ),
+    )
     seed: int = setting(
         0,
         ge=0,

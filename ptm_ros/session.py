@@ -518,12 +518,19 @@ def rbpf_config(config: PtmConfig) -> RbpfConfig:
     """The particle filter's settings: ``inference.particles`` and ``resample``, and ``inference.timeline``
     topologies recorded after each visit."""
     inf = config.inference
-    return RbpfConfig(particles=inf.particles, resample=inf.resample, record_top=inf.timeline)
+    return RbpfConfig(
+        particles=inf.particles,
+        resample=inf.resample,
+        record_top=inf.timeline,
+        reweight=inf.reweight,
+    )
 
 
 def filter_timeline(history: Sequence[FilterState]) -> tuple[TimelineStep, ...]:
-    """The PTM after each visit, as the filter recorded it (:attr:`ptm_ros.inference.rbpf.FilterState.top`):
-    the posterior of thesis Algorithm 8 over the topologies of the visits so far; empty when none recorded."""
+    """The PTM after each visit, as the filter recorded it (:attr:`ptm_ros.inference.rbpf.FilterState.top`,
+    by its sequential weights): the posterior of thesis Algorithm 8 over the topologies of the visits so
+    far; empty when none recorded. (:func:`rbpf_inference` replaces the last step by the PTM's own top,
+    which the batch evidence may have reweighted.)"""
     if not any(h.top for h in history):
         return ()
     return tuple(TimelineStep(h.n_visits, h.top) for h in history)
@@ -537,9 +544,12 @@ def rbpf_inference(
     inf = config.inference
     probs = flt.ptm_weights()
     logw = flt.log_weights()
+    rw = flt.reweighted()
     ranked = dict(top_k(probs, inf.top))
     updates = np.array([h.update_s for h in flt.history])
     timeline = filter_timeline(flt.history)
+    if timeline and rw is not None:  # the last step is the PTM itself, reweighted
+        timeline = (*timeline[:-1], TimelineStep(timeline[-1].visits, tuple(top_k(probs, inf.timeline))))
     return Inference(
         probabilities=ranked,
         positions={lab: flt.place_positions(lab) for lab in ranked},
@@ -551,6 +561,8 @@ def rbpf_inference(
             "log_evidence": flt.log_evidence,
             "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
             "update_ms_p95": float(np.percentile(updates, 95) * 1e3) if len(updates) else 0.0,
+            "reweighted": rw is not None,
+            "reweight_ms": rw.seconds * 1e3 if rw is not None else 0.0,
             **({TIMELINE_KEY: timeline_list(timeline)} if timeline else {}),
             **details,
         },

@@ -602,7 +602,7 @@ def test_the_summary_prints_how_the_mass_moved_and_the_greedy_answer_beside_it()
     assert lines[3] == "  … 3 visits with one topology holding >= 0.95 of the mass"
 
 
-TIMINGS = {"timing", "wall_s", "update_ms_median", "update_ms_p95"}
+TIMINGS = {"timing", "wall_s", "update_ms_median", "update_ms_p95", "reweight_ms"}
 
 
 def _without_timings(doc):

@@ -47,7 +47,7 @@ PARAMS_YAML = (
     "detector: {kind: equidistant, equidistant: {spacing: 1.5}}\n"
     "laser_odometry: {enabled: false}\nlaser: {refine: false}\n"
 )
-TIMING_KEYS = ("update_ms_median", "update_ms_p95")  # wall times inside ``inference``
+TIMING_KEYS = ("update_ms_median", "update_ms_p95", "reweight_ms")  # wall times inside ``inference``
 
 
 def simulated_bag(path: Path, visits: int, seed: int) -> Path:

@@ -76,7 +76,11 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    (a split place whose next visit is split too: the first penalty pushes both apart), hence the ADF
    update.
 6. The PTM is the normalised particle weights; the effective sample size ``1/Σ w²`` and the number of
-   distinct topologies are reported per step (:class:`FilterState`).
+   distinct topologies are reported per step (:class:`FilterState`). Each particle also carries its
+   sequential metric log evidence (the terms above but the prior and appearance), so that the PTM can be
+   weighed with the batch model's instead (:mod:`ptm_ros.inference.reweighting`, :meth:`reweighted`):
+   resampling uses the sequential weights, :meth:`ptm_weights` the reweighted ones where the batch
+   evidence is sampled.
 
 For a model linear in the poses these steps are the chain rule of the batch integral
 :math:`\int f_G\,dX` (the product over steps of the predictive densities), so the particles' weights equal
@@ -92,8 +96,9 @@ topology is distorted (``bench/bench_rbpf.py``'s 6×6 world, ``bench/rbpf.json``
 revisits score too low; a wrong topology that avoided the closure can then overtake it. A smoothing
 back-end, or re-optimising a particle's poses after a large innovation, would remove this.
 
-Against ``ptm-run --method exact`` (``bench/bench_exact.py``, figures in ``bench/exact.json``) two
-differences remain:
+Against ``ptm-run --method exact`` (``bench/bench_exact.py``, figures in ``bench/exact.md``) the
+sequential weights differ in two ways; the reweighting removes both where it applies (the batch evidence
+is the reference's), and the filter's choice of which topologies to keep remains:
 
 * the EKF linearisation above, also for moderate closures: a closure several metres off the odometry at
   tens of metres from the pivoting headings is scored with the straight-line (linearised) image of the
@@ -143,7 +148,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, cast
 
 import numpy as np
@@ -159,10 +164,12 @@ from ptm_ros.inference.resampling import (
     optimal_resample,
     top_resample,
 )
+from ptm_ros.inference.reweighting import Reweighted, reweigh, sampled_evidence
 from ptm_ros.model.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.model.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose, wrap_angle
 from ptm_ros.model.odometry import OdometryConfig, odometry_covariances, place_area
 from ptm_ros.model.partitions import Labels
+from ptm_ros.model.posterior import ModelConfig, PosteriorModel
 from ptm_ros.model.priors import TopologyPrior
 from ptm_ros.model.ptm import Landmark, Ptm, make_ptm
 from ptm_ros.model.visits import Visit, visit_fields, visit_from_fields
@@ -176,7 +183,7 @@ Prefetch = Callable[[list[tuple[int, int]]], None]
 
 
 #: Schema tag of :meth:`TopologyFilter.state_dict`.
-STATE_SCHEMA = "ptm_ros.rbpf/1"
+STATE_SCHEMA = "ptm_ros.rbpf/2"
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _INITIAL_CAPACITY = 4  # place slots allocated at first; grown with slack when a child needs more
@@ -200,7 +207,14 @@ class RbpfConfig(Settings):
         ge=0,
         doc=(
             "the most probable topologies each update records in its FilterState (``top``: the PTM after "
-            "that visit, eq. 38–39); 0 records none"
+            "that visit, eq. 38–39, by the sequential weights); 0 records none"
+        ),
+    )
+    reweight: bool = setting(
+        True,
+        doc=(
+            "weigh the topologies held with the batch metric evidence (importance sampling, eq. 18) "
+            "instead of the EKF's sequential one, where it is sampled (:mod:`ptm_ros.inference.reweighting`)"
         ),
     )
 
@@ -249,6 +263,7 @@ class _Particles:
     n_places: IntArray
     blocks: tuple[tuple[tuple[int, ...], ...], ...] | None  # per particle, per place (appearance only)
     penalty: FloatArray  # (P,) separation penalty charged so far [nats] (_separation_update)
+    metric: FloatArray  # (P,) sequential metric log evidence, separation prior included (reweighting)
 
 
 def _place_cols(stride: int, places: ArrayLike, offset: int, width: int) -> IntArray:
@@ -568,10 +583,12 @@ class TopologyFilter:
     Args:
         config: number of particles and resampling scheme.
         prior: the prior over topologies (its sequential ``log_predictive`` is used, eq. 39, 42).
-        odometry: the metric model's parameters (only the Laplace part is used; ``n_samples`` is ignored).
+        odometry: the metric model's parameters (the sequential weights use its Gaussian part; the batch
+            reweighting, :mod:`ptm_ros.inference.reweighting`, all of it, importance sampling included).
         appearance: a fitted appearance model, or None to ignore appearance (eq. 46).
         registrar: laser measurements between visits ``(i, j)``, ``i < j``, cached per pair; None: no laser.
-        seed: seeds ``np.random.default_rng``; resampling is the only randomness.
+        seed: seeds ``np.random.default_rng`` for resampling, and the batch evidence's importance samples
+            (as :class:`~ptm_ros.model.posterior.PosteriorModel`'s).
         prefetch: told, before a visit's registrations are asked for one by one, the pairs not asked for
             before (e.g. to register them in parallel and cache them behind ``registrar``).
     """
@@ -600,6 +617,7 @@ class TopologyFilter:
         self.registrar = registrar
         self.prefetch = prefetch
         self._stride = 5 if registrar is not None else 2
+        self._seed = int(seed)
         self._rng = np.random.default_rng(seed)
         self._visits: list[Visit] = []
         self._pairs: dict[tuple[int, int], RelativePose | NoMatch | None] = {}
@@ -607,6 +625,7 @@ class TopologyFilter:
         self._history: list[FilterState] = []
         self._log_evidence = 0.0
         self._index: dict[Labels, int] | None = None
+        self._reweighted: Reweighted | None = None
 
     # ----------------------------------------------------------------------------------- public API
 
@@ -631,17 +650,61 @@ class TopologyFilter:
         return 0 if self._particles is None else len(self._particles.labels)
 
     def ptm_weights(self) -> dict[Labels, float]:
-        """The PTM: normalised weight of every topology held (empty before the first visit)."""
+        """The PTM: normalised weight of every topology held (empty before the first visit), reweighted
+        with the batch metric evidence when ``config.reweight`` (:meth:`reweighted`)."""
         if self._particles is None:
             return {}
-        w = np.exp(self._particles.log_w)
+        w = np.exp(self._log_w())
         return dict(zip(self._particles.labels, w.tolist(), strict=True))
 
     def log_weights(self) -> dict[Labels, float]:
-        """Normalised log weights of the topologies held."""
+        """Normalised log weights of the topologies held (those of :meth:`ptm_weights`)."""
         if self._particles is None:
             return {}
-        return dict(zip(self._particles.labels, self._particles.log_w.tolist(), strict=True))
+        return dict(zip(self._particles.labels, self._log_w().tolist(), strict=True))
+
+    def sequential_weights(self) -> dict[Labels, float]:
+        """The particles' own weights, the EKF's sequential evidence (what resampling uses)."""
+        if self._particles is None:
+            return {}
+        return dict(zip(self._particles.labels, np.exp(self._particles.log_w).tolist(), strict=True))
+
+    def reweighted(self) -> Reweighted | None:
+        """The particle set weighed with the batch metric evidence (:mod:`ptm_ros.inference.reweighting`),
+        computed once per visit; None when ``config.reweight`` is off, before a second visit, or where the
+        batch evidence is not an importance-sampling integral (``odometry.n_samples`` 0, or more than
+        ``odometry.max_sampled_visits`` visits: see the module)."""
+        st = self._particles
+        if not self.config.reweight or st is None or not sampled_evidence(len(self._visits), self.odometry):
+            return None
+        if self._reweighted is None:
+            start = time.perf_counter()
+            model = PosteriorModel(
+                self._visits,
+                ModelConfig(
+                    odometry=self.odometry,
+                    use_appearance=False,
+                    use_laser=self.registrar is not None,
+                ),
+                registrar=self._cached_registration if self.registrar is not None else None,
+                seed=self._seed,
+            )
+            self._reweighted = reweigh(
+                st.log_w,
+                st.labels,
+                st.metric,
+                lambda labels: model.terms(labels).metric,
+            )
+            self._reweighted = replace(self._reweighted, seconds=time.perf_counter() - start)
+        return self._reweighted
+
+    def _log_w(self) -> FloatArray:
+        assert self._particles is not None
+        rw = self.reweighted()
+        return self._particles.log_w if rw is None else rw.log_w
+
+    def _cached_registration(self, i: int, j: int) -> RelativePose | NoMatch | None:
+        return self._registration(i, j, self._pairs)
 
     def place_positions(self, labels: Sequence[int]) -> FloatArray:
         """``(M, 2)`` posterior means of the place points ``p_s`` of a topology held by the filter."""
@@ -706,6 +769,7 @@ class TopologyFilter:
         self._pairs = pairs
         self._visits.append(visit)
         self._index = None
+        self._reweighted = None
         self._log_evidence += increment
         w = np.exp(new.log_w)
         update_s = time.perf_counter() - start
@@ -755,6 +819,7 @@ class TopologyFilter:
             n_places=np.ones(1, dtype=np.intp),
             blocks=(((0,),),) if self.appearance is not None else None,
             penalty=np.zeros(1),
+            metric=np.array([-math.log(place_area(visits[:1], self.odometry))]),
         )
         return particles, increment
 
@@ -805,6 +870,7 @@ class TopologyFilter:
         area_old, area = place_area(visits[:-1], cfg), place_area(visits, cfg)
         log_w = st.log_w + st.n_places * (math.log(area_old) - math.log(area))
         ll_new = np.full(n_part, -math.log(area))
+        coincidence_rev, coincidence_new = ll_rev.copy(), ll_new.copy()  # before the selection proxy
         proxy_rev = np.zeros((n_part, cap))  # separation penalty of the new pairs (i, n), for selection
         proxy_new = np.zeros(n_part)
         lp_rev, lp_new = self._discrete_terms(st, visits)
@@ -951,6 +1017,9 @@ class TopologyFilter:
         mean[:, 2] = wrap_angle(mean[:, 2])
         penalty = st.penalty[par] - log_sep
         lw = sel_lw + laser_ll + fitness + proxy + log_sep  # the proxy (selection only) was in sel_lw
+        coincidence = np.where(is_new, coincidence_new[par], coincidence_rev[par, np.minimum(kk, cap - 1)])
+        area_shift = st.n_places[par] * (math.log(area_old) - math.log(area))
+        metric = st.metric[par] + area_shift + coincidence + laser_ll + fitness + log_sep
         lse = float(logsumexp(lw))
         increment = lse_children + lse
         labels = tuple(st.labels[p] + (int(k),) for p, k in zip(par.tolist(), kk.tolist(), strict=True))
@@ -970,6 +1039,7 @@ class TopologyFilter:
             n_places=st.n_places[par] + is_new,
             blocks=blocks,
             penalty=penalty,
+            metric=metric,
         )
         return particles, increment
 
@@ -1040,6 +1110,7 @@ class TopologyFilter:
                 last=st.last.copy(),
                 n_places=st.n_places.copy(),
                 penalty=st.penalty.copy(),
+                metric=st.metric.copy(),
             )
         return out
 
@@ -1088,6 +1159,7 @@ class TopologyFilter:
                 n_places=np.asarray(state["n_places"], dtype=np.intp).copy(),
                 blocks=blocks,
                 penalty=np.asarray(state["penalty"], dtype=float).copy(),
+                metric=np.asarray(state["metric"], dtype=float).copy(),
             )
             if len(flt._visits) != len(labels[0]):
                 msg = f"state holds {len(flt._visits)} visits but topologies of {len(labels[0])}"
