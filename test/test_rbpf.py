@@ -388,7 +388,7 @@ def test_the_reweighted_filter_is_the_batch_posterior_where_the_ekf_errs(heading
     enumeration are far off (measured TV 0.48 and 0.61 for seeds 0 and 3); reweighted with the batch metric
     evidence (:mod:`ptm_ros.inference.reweighting`) the PTM is the batch posterior itself, to rounding."""
     visits, ex = heading_case
-    config = RbpfConfig(particles=bell(len(visits)))
+    config = RbpfConfig(particles=bell(len(visits)), reweight=True)
     flt = run_filter(visits, config, make_prior(PRIOR), ODO_HEADING)
     assert max(ex.values()) < 0.9  # an open posterior
     assert total_variation(ex, flt.sequential_weights()) > 0.3
@@ -404,7 +404,9 @@ def test_few_reweighted_particles_are_close_to_the_batch_posterior(heading_case)
     are kept, the batch evidence weighs them. Measured TV 0.004–0.010 (sequential weights: 0.48–0.61)."""
     visits, ex = heading_case
     for seed in range(3):
-        flt = run_filter(visits, RbpfConfig(particles=30), make_prior(PRIOR), ODO_HEADING, seed=seed)
+        flt = run_filter(
+            visits, RbpfConfig(particles=30, reweight=True), make_prior(PRIOR), ODO_HEADING, seed=seed
+        )
         assert total_variation(ex, flt.ptm_weights()) <= 0.05
 
 
@@ -413,7 +415,8 @@ def test_the_sequential_metric_evidence_is_the_batch_one_where_both_are_exact(od
     visit, odometry normalisers): a topology without a loop, linear in its relative poses and without a
     separation penalty, is integrated exactly by both, so its reweighting shift is 0."""
     visits, _, _ = odometry_case
-    flt = full_filter(visits, replace(ODO, n_samples=200, penalty_max=0.0))
+    odo = replace(ODO, n_samples=200, penalty_max=0.0)
+    flt = run_filter(visits, RbpfConfig(particles=bell(len(visits)), reweight=True), make_prior(PRIOR), odo)
     rw = flt.reweighted()
     assert rw is not None
     assert abs(rw.shift[flt._lookup(tuple(range(len(visits))))]) <= 1e-9
@@ -422,14 +425,16 @@ def test_the_sequential_metric_evidence_is_the_batch_one_where_both_are_exact(od
 
 def test_reweighting_stops_where_the_batch_evidence_is_not_sampled(odometry_case):
     """Beyond ``max_sampled_visits`` (and without importance samples) the batch model is Laplace's
-    estimate: the filter keeps its own weights (module ``reweighting``)."""
+    estimate: the filter keeps its own weights (module ``reweighting``); so it does by default."""
     visits, _, _ = odometry_case
+    config = RbpfConfig(particles=bell(len(visits)), reweight=True)
     for odo in (replace(ODO, n_samples=200, max_sampled_visits=5), ODO):
-        flt = full_filter(visits, odo)
+        flt = run_filter(visits, config, make_prior(PRIOR), odo)
         assert flt.reweighted() is None
         assert flt.ptm_weights() == flt.sequential_weights()
-    flt = full_filter(visits[:5], replace(ODO, n_samples=200, max_sampled_visits=5))
+    flt = run_filter(visits[:5], config, make_prior(PRIOR), replace(ODO, n_samples=200, max_sampled_visits=5))
     assert flt.reweighted() is not None
+    assert full_filter(visits[:5], replace(ODO, n_samples=200)).reweighted() is None  # off by default
 
 
 def test_place_positions_match_the_batch_optimum(odometry_case):

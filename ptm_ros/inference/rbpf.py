@@ -80,7 +80,7 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    sequential metric log evidence (the terms above but the prior and appearance), so that the PTM can be
    weighed with the batch model's instead (:mod:`ptm_ros.inference.reweighting`, :meth:`reweighted`):
    resampling uses the sequential weights, :meth:`ptm_weights` the reweighted ones where the batch
-   evidence is sampled.
+   evidence is sampled, when ``RbpfConfig.reweight`` (off by default: see that module).
 
 For a model linear in the poses these steps are the chain rule of the batch integral
 :math:`\int f_G\,dX` (the product over steps of the predictive densities), so the particles' weights equal
@@ -96,9 +96,9 @@ topology is distorted (``bench/bench_rbpf.py``'s 6×6 world, ``bench/rbpf.json``
 revisits score too low; a wrong topology that avoided the closure can then overtake it. A smoothing
 back-end, or re-optimising a particle's poses after a large innovation, would remove this.
 
-Against ``ptm-run --method exact`` (``bench/bench_exact.py``, figures in ``bench/exact.md``) the
-sequential weights differ in two ways; the reweighting removes both where it applies (the batch evidence
-is the reference's), and the filter's choice of which topologies to keep remains:
+Against ``ptm-run --method exact`` (``bench/bench_exact.py``, figures in ``bench/reweighting.md``) the
+sequential weights differ in two ways; the (optional) reweighting removes both where it applies (the
+batch evidence is the reference's), and the filter's choice of which topologies to keep remains:
 
 * the EKF linearisation above, also for moderate closures: a closure several metres off the odometry at
   tens of metres from the pivoting headings is scored with the straight-line (linearised) image of the
@@ -211,7 +211,7 @@ class RbpfConfig(Settings):
         ),
     )
     reweight: bool = setting(
-        True,
+        False,
         doc=(
             "weigh the topologies held with the batch metric evidence (importance sampling, eq. 18) "
             "instead of the EKF's sequential one, where it is sampled (:mod:`ptm_ros.inference.reweighting`)"

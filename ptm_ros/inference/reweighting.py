@@ -7,7 +7,7 @@ error where the robot was when it drove, never where the closed loop puts it; th
 (:func:`ptm_ros.model.odometry.metric_log_likelihood`: Laplace's method at the optimum of the whole
 topology, importance sampling on small runs) integrates the same metric likelihood
 :math:`m(L) = \log p(O, S \mid L)`. Where a loop closes a heading error of a few degrees the two
-differ enough to move a tenth of the mass (``bench/exact.md``).
+differ enough to move a tenth of the mass (``bench/reweighting.md``).
 
 A particle's weight after optimal resampling is its sequential target times the product of its
 resampling factors, :math:`w_i = \hat\pi(L_i) R_i`. Since :math:`\hat\pi` and the batch target
@@ -28,10 +28,18 @@ importance-sampling integral (eq. 18; ``odometry.n_samples`` > 0 and at most
 falls back on Laplace's method at the optimum, another Gaussian approximation of the same integral, with
 the separation prior (eq. 15–16) evaluated at the optimum's point where the filter integrates it over the
 visits' uncertainty; there the filter's own estimate is kept (the Laplace reweighting, measured on the
-real runs, made a wrong merge the MAP: ``bench/exact.md``).
+real runs, made a wrong merge the MAP: ``bench/reweighting.md``).
 
 Every topology held is evaluated: the sequential weights cannot tell which ones the batch model would
 weigh differently (where the EKF is far off, a topology it nearly dropped can be the batch MAP).
+
+Off by default (``inference.reweight``). Reweighted, the filter equals exact enumeration on small runs, but
+the batch model is the less calibrated of the two on the simulated aliased worlds (``bench/reweighting.md``):
+in a ring of identical sections, a topology that closes the ring one section early is geometrically
+consistent, and each of its aliased laser registrations counts as independent evidence of the merge; the
+EKF, which scores those registrations against a linearised, drifted state, gives them less. Matching the
+batch model there would move the filter from the truth to a confident wrong ring. It serves to see the
+batch model's posterior over the filter's topologies (e.g. where MCMC cannot reach a distant mode).
 """
 
 from __future__ import annotations
