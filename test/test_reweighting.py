@@ -77,3 +77,34 @@ def test_the_result_is_the_normalised_product_for_any_weights(rows):
     want = np.exp(want - want.max())
     np.testing.assert_allclose(np.exp(got.log_w), want / want.sum(), rtol=1e-9, atol=1e-15)
     assert math.isclose(float(np.exp(got.log_w).sum()), 1.0, rel_tol=1e-12)
+
+
+@pytest.mark.slow
+def test_the_default_weights_keep_an_aliased_ring_the_batch_model_closes_too_early(tmp_path):
+    """Why ``inference.reweight`` is off by default (``bench/reweighting.md``): on an aliased ring with
+    odometry noise twice the model's (the calibration bench's ``aliased-ring``, ``twice-model``, seed 0;
+    14 visits, 12 places), the batch model prefers a ring closed after 9 places by 8 nats, its four
+    aliased registrations counted as independent evidence. The filter's sequential weights give the true
+    topology 0.93; reweighted to the batch model, the wrong ring takes 0.998."""
+    from ptm_ros.io.simulator import OdometryNoiseConfig, SimConfig, simulate, write_run
+    from ptm_ros.io.worlds import get_world
+    from ptm_ros.model.ptm import load_ptm
+    from ptm_ros.tools import run as run_cli
+    from ptm_ros.tools.evaluate import calibration_record
+
+    noise = OdometryNoiseConfig(trans=0.1, rot=0.04, turn=0.1, bias_init=1e-3, bias_walk=2e-4)
+    sim = simulate(get_world("aliased-ring"), SimConfig(odometry=noise), np.random.default_rng(0))
+    bag = write_run(sim, tmp_path / "bag")
+    reweighted = tmp_path / "reweight.yaml"
+    reweighted.write_text("inference:\n  reweight: true\n")
+    records = {}
+    for name, extra in (("default", []), ("reweighted", ["--params", str(reweighted)])):
+        out = tmp_path / name
+        argv = [str(bag), "--out", str(out), "--no-map", "--no-report", "--quiet", *extra]
+        assert run_cli.main(argv) == 0
+        ptm = load_ptm(out / "ptm.json")
+        assert ptm.inference["reweighted"] == (name == "reweighted")
+        records[name] = calibration_record(ptm, bag / "ground_truth.json")
+    assert records["default"]["map_right"] and records["default"]["map_probability"] > 0.8
+    assert not records["reweighted"]["map_right"] and records["reweighted"]["map_probability"] > 0.95
+    assert records["reweighted"]["overconfident_failure"]
