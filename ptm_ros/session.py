@@ -562,6 +562,7 @@ def rbpf_inference(
             "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
             "update_ms_p95": float(np.percentile(updates, 95) * 1e3) if len(updates) else 0.0,
             "reweighted": rw is not None,
+            **({"reweight_failure": flt.reweight_failure} if flt.reweight_failure is not None else {}),
             "reweight_ms": rw.seconds * 1e3 if rw is not None else 0.0,
             **({TIMELINE_KEY: timeline_list(timeline)} if timeline else {}),
             **details,

@@ -437,6 +437,26 @@ def test_reweighting_stops_where_the_batch_evidence_is_not_sampled(odometry_case
     assert full_filter(visits[:5], replace(ODO, n_samples=200)).reweighted() is None  # off by default
 
 
+def test_a_batch_model_failure_keeps_the_sequential_weights(odometry_case, monkeypatch):
+    """Should the batch model fail on the visits (ModelError), the PTM keeps the sequential weights and
+    says why, rather than the filter (or the node around it) failing."""
+    import ptm_ros.inference.rbpf as rbpf_module
+
+    def broken(*args, **kwargs):
+        msg = "the optimiser did not converge"
+        raise ModelError(msg)
+
+    visits, _, _ = odometry_case
+    odo = replace(ODO, n_samples=200)
+    flt = run_filter(visits, RbpfConfig(particles=bell(len(visits)), reweight=True), make_prior(PRIOR), odo)
+    monkeypatch.setattr(rbpf_module, "reweigh", broken)
+    assert flt.reweighted() is None and flt.ptm_weights() == flt.sequential_weights()
+    assert flt.reweight_failure == "visit 5: the optimiser did not converge"
+    monkeypatch.undo()
+    flt.update(replace(visits[-1], index=len(visits)))  # a new visit: the batch model is asked again
+    assert flt.reweight_failure is None and flt.reweighted() is not None
+
+
 def test_place_positions_match_the_batch_optimum(odometry_case):
     visits, _, _ = odometry_case
     flt = full_filter(visits, ODO)

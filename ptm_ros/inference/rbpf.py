@@ -626,6 +626,9 @@ class TopologyFilter:
         self._log_evidence = 0.0
         self._index: dict[Labels, int] | None = None
         self._reweighted: Reweighted | None = None
+        #: Why the PTM after the latest visit kept its sequential weights though ``config.reweight``
+        #: (the batch model failed on the visits), else None.
+        self.reweight_failure: str | None = None
 
     # ----------------------------------------------------------------------------------- public API
 
@@ -673,9 +676,12 @@ class TopologyFilter:
         """The particle set weighed with the batch metric evidence (:mod:`ptm_ros.inference.reweighting`),
         computed once per visit; None when ``config.reweight`` is off, before a second visit, or where the
         batch evidence is not an importance-sampling integral (``odometry.n_samples`` 0, or more than
-        ``odometry.max_sampled_visits`` visits: see the module)."""
+        ``odometry.max_sampled_visits`` visits: see the module), or where the batch model fails on these
+        visits (the sequential weights are kept; :attr:`reweight_failure` says why)."""
         st = self._particles
         if not self.config.reweight or st is None or not sampled_evidence(len(self._visits), self.odometry):
+            return None
+        if self.reweight_failure is not None:
             return None
         if self._reweighted is None:
             start = time.perf_counter()
@@ -689,13 +695,12 @@ class TopologyFilter:
                 registrar=self._cached_registration if self.registrar is not None else None,
                 seed=self._seed,
             )
-            self._reweighted = reweigh(
-                st.log_w,
-                st.labels,
-                st.metric,
-                lambda labels: model.terms(labels).metric,
-            )
-            self._reweighted = replace(self._reweighted, seconds=time.perf_counter() - start)
+            try:
+                done = reweigh(st.log_w, st.labels, st.metric, lambda labels: model.terms(labels).metric)
+            except ModelError as err:
+                self.reweight_failure = f"visit {len(self._visits) - 1}: {err}"
+                return None
+            self._reweighted = replace(done, seconds=time.perf_counter() - start)
         return self._reweighted
 
     def _log_w(self) -> FloatArray:
@@ -770,6 +775,7 @@ class TopologyFilter:
         self._visits.append(visit)
         self._index = None
         self._reweighted = None
+        self.reweight_failure = None
         self._log_evidence += increment
         w = np.exp(new.log_w)
         update_s = time.perf_counter() - start
