@@ -410,12 +410,14 @@ def test_few_reweighted_particles_are_close_to_the_batch_posterior(heading_case)
         assert total_variation(ex, flt.ptm_weights()) <= 0.05
 
 
-def test_the_sequential_metric_evidence_is_the_batch_one_where_both_are_exact(odometry_case):
-    """The particles' sequential metric evidence carries the batch model's constants (areas, the first
-    visit, odometry normalisers): a topology without a loop, linear in its relative poses and without a
-    separation penalty, is integrated exactly by both, so its reweighting shift is 0."""
+@pytest.mark.parametrize("area_m2", [1000.0, 0.0])
+def test_the_sequential_metric_evidence_is_the_batch_one_where_both_are_exact(odometry_case, area_m2):
+    """The particles' sequential metric evidence carries the batch model's constants (areas, fixed or
+    learned from the visits so far, the first visit, odometry normalisers): a topology without a loop,
+    linear in its relative poses and without a separation penalty, is integrated exactly by both, so its
+    reweighting shift is 0."""
     visits, _, _ = odometry_case
-    odo = replace(ODO, n_samples=200, penalty_max=0.0)
+    odo = replace(ODO, n_samples=200, penalty_max=0.0, area_m2=area_m2)
     flt = run_filter(visits, RbpfConfig(particles=bell(len(visits)), reweight=True), make_prior(PRIOR), odo)
     rw = flt.reweighted()
     assert rw is not None
