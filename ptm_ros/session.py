@@ -60,7 +60,13 @@ from ptm_ros.inference.persistence import (
 from ptm_ros.inference.rbpf import FilterState, Prefetch, RbpfConfig, TopologyFilter
 from ptm_ros.model.appearance import AppearanceModel
 from ptm_ros.model.geometry import Registrar, RelativePose
-from ptm_ros.model.heading_noise import HeadingScale, heading_residuals, heading_scale, scaled_heading_noise
+from ptm_ros.model.heading_noise import (
+    HeadingScale,
+    heading_residuals,
+    heading_scale,
+    profiled_outlier,
+    scaled_heading_noise,
+)
 from ptm_ros.model.odometry import OdometryConfig
 from ptm_ros.model.partitions import Labels
 from ptm_ros.model.posterior import (
@@ -320,9 +326,11 @@ class FilterSession:
         valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
         if len(valid) == self._heading.registrations:
             return state
-        learned = heading_scale(heading_residuals(self._visits, valid, cfg), cfg.heading_prior_sd)
-        if abs(learned.step - self._heading.step) < HEADING_HYSTERESIS:
-            self._heading = replace(self._heading, registrations=learned.registrations)
+        residuals = heading_residuals(self._visits, valid, cfg)
+        learned = heading_scale(residuals, cfg.heading_prior_sd)
+        if abs(learned.step - self._heading.step) < HEADING_HYSTERESIS:  # the scale stays; its report moves
+            outliers = profiled_outlier(residuals, self._heading.step)
+            self._heading = replace(self._heading, registrations=len(residuals), outlier_fraction=outliers)
             return state
         self._heading = learned
         return self._rebuild(self._filter.appearance)

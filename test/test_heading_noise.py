@@ -21,6 +21,7 @@ from ptm_ros.model.heading_noise import (
     heading_residuals,
     heading_scale,
     path_heading_variances,
+    profiled_outlier,
     scaled_heading_noise,
 )
 from ptm_ros.model.odometry import OdometryConfig
@@ -179,3 +180,20 @@ def test_a_live_stream_freezes_the_scale_with_the_priors_and_an_offline_run_does
     offline = filter_visits(FilterSession(config, fitted_to=visits, registrar=registrar), visits)
     never = filter_visits(FilterSession(config, refit_max_visits=0, registrar=registrar), visits)
     assert offline.heading == never.heading and offline.heading.step != early.step
+
+
+def test_the_profiled_outlier_fraction_at_the_scale_in_use_counts_the_aliases():
+    """A ring of rotated, identical sides: registrations of different sides match a quarter turn off the
+    odometry's own heading change (the calibration bench's aliased ring: 7 of its 8 valid registrations).
+    At the scale in use the heading model takes them for aliases, whether or not the scale moves; clean
+    residuals keep the smallest fraction."""
+    path = np.full(8, 0.01)  # rad², the model's heading variance of each registration's path
+    reg = np.full(8, 1e-4)
+    aliased = HeadingResiduals(np.array([0.0, 1.57, -1.57, 3.14, 1.56, -1.55, 1.58, 1.59]), path, reg)
+    clean = HeadingResiduals(np.array([0.02, -0.05, 0.1, -0.08, 0.0, 0.06, -0.12, 0.04]), path, reg)
+    assert profiled_outlier(aliased, 0) == 0.9
+    assert profiled_outlier(clean, 0) == OUTLIER_FRACTIONS[0]
+    none = HeadingResiduals(np.zeros(0), np.zeros(0), np.zeros(0))
+    assert profiled_outlier(none, 0) == OUTLIER_FRACTIONS[0]
+    learned = heading_scale(clean, 1.0)
+    assert learned.outlier_fraction == profiled_outlier(clean, learned.step)

@@ -155,6 +155,17 @@ def heading_scale(residuals: HeadingResiduals, prior_sd: float) -> HeadingScale:
     return HeadingScale(float(scales[k]), int(steps[k]), OUTLIER_FRACTIONS[int(best_eps[k])], len(residuals))
 
 
+def profiled_outlier(residuals: HeadingResiduals, step: int) -> float:
+    """The ``ε`` of :data:`OUTLIER_FRACTIONS` that best explains the residuals at the scale of lattice step
+    ``step`` (``k = 2^(step/2)``): the share of the registrations the heading model takes for aliases at the
+    scale in use; the smallest fraction without residuals."""
+    if len(residuals) == 0:
+        return OUTLIER_FRACTIONS[0]
+    scale = np.array([2.0 ** (step / 2.0)])
+    table = [float(scale_log_likelihoods(residuals, scale, eps)[0]) for eps in OUTLIER_FRACTIONS]
+    return OUTLIER_FRACTIONS[int(np.argmax(table))]
+
+
 def scaled_heading_noise(config: OdometryConfig, scale: float) -> OdometryConfig:
     """``config`` with its heading noise (``a_th``, ``b_th``, ``c_th``) multiplied by ``scale``."""
     if scale == 1.0:
