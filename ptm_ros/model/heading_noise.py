@@ -148,7 +148,7 @@ def heading_scale(residuals: HeadingResiduals, prior_sd: float) -> HeadingScale:
     log_prior = -0.5 * (np.log(scales) / prior_sd) ** 2
     if len(residuals) == 0:
         return HeadingScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
-    table = np.stack([scale_log_likelihoods(residuals, scales, eps) for eps in OUTLIER_FRACTIONS])
+    table = _outlier_table(residuals, scales)
     best_eps = np.argmax(table, axis=0)
     score = table[best_eps, np.arange(len(scales))] + log_prior
     k = int(np.argmax(score))
@@ -161,9 +161,13 @@ def profiled_outlier(residuals: HeadingResiduals, step: int) -> float:
     scale in use; the smallest fraction without residuals."""
     if len(residuals) == 0:
         return OUTLIER_FRACTIONS[0]
-    scale = np.array([2.0 ** (step / 2.0)])
-    table = [float(scale_log_likelihoods(residuals, scale, eps)[0]) for eps in OUTLIER_FRACTIONS]
-    return OUTLIER_FRACTIONS[int(np.argmax(table))]
+    table = _outlier_table(residuals, np.array([2.0 ** (step / 2.0)]))
+    return OUTLIER_FRACTIONS[int(np.argmax(table[:, 0]))]
+
+
+def _outlier_table(residuals: HeadingResiduals, scales: FloatArray) -> FloatArray:
+    """``(len(OUTLIER_FRACTIONS), len(scales))`` log likelihoods of the residuals, one row per ``ε``."""
+    return np.stack([scale_log_likelihoods(residuals, scales, eps) for eps in OUTLIER_FRACTIONS])
 
 
 def scaled_heading_noise(config: OdometryConfig, scale: float) -> OdometryConfig:
