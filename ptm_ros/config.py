@@ -130,15 +130,14 @@ class InferenceConfig(Settings):
         doc="RBPF: ``optimal`` (Fearnhead-Clifford) or ``top`` (the N heaviest children, biased).",
     )
     reweight: bool = setting(
-        False,
+        True,
         doc=(
             "rbpf: weigh the topologies the filter keeps with the batch model's metric evidence, an "
             "importance-sampling integral over the whole trajectory, instead of the filter's sequential EKF "
             "estimate, which linearises each heading error where the robot drove; applies while the batch "
             "evidence is sampled (up to ``model.odometry.max_sampled_visits`` visits). The PTM is then the "
-            "batch model's posterior over the filter's topologies (``--method exact``'s on small runs); off "
-            "by default because that model is the less calibrated of the two on aliased worlds "
-            "(bench/reweighting.md)."
+            "batch model's posterior over the filter's topologies (``--method exact``'s on small runs); off: "
+            "the sequential weights (bench/reweighting.md)."
         ),
     )
     seed: int = setting(

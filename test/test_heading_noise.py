@@ -20,11 +20,10 @@ from ptm_ros.model.heading_noise import (
     HeadingScale,
     heading_residuals,
     heading_scale,
-    path_heading_variances,
     profiled_outlier,
     scaled_heading_noise,
 )
-from ptm_ros.model.odometry import OdometryConfig
+from ptm_ros.model.odometry import OdometryConfig, path_heading_variances
 from ptm_ros.model.visits import Visit
 from ptm_ros.session import HEADING_KEY, FilterSession, filter_visits
 

@@ -13,8 +13,13 @@ import pytest
 from ptm_ros.errors import ConfigError
 from ptm_ros.inference.rbpf import RbpfConfig, run_filter
 from ptm_ros.io.synthetic import simulate_route
-from ptm_ros.model.geometry import RelativePose, between, compose
-from ptm_ros.model.odometry import OdometryConfig, registration_aliases
+from ptm_ros.model.geometry import RelativePose, between, compose, wrap_angle
+from ptm_ros.model.odometry import (
+    OdometryConfig,
+    heading_aliases,
+    odometry_covariances,
+    registration_aliases,
+)
 from ptm_ros.model.partitions import bell, canonical
 from ptm_ros.model.posterior import (
     ModelConfig,
@@ -80,6 +85,45 @@ def test_registration_aliases_flag_only_the_alias():
     # ε = 0 trusts every loop; no loops, no flags
     assert not registration_aliases(truth, visits, replace(ODO, registration_outlier=0.0), loops).any()
     assert not registration_aliases(truth, visits, replace(ODO, registration_outlier=0.05), []).size
+
+
+@pytest.mark.parametrize("eps", [0.05, 0.132, 0.3])
+def test_heading_aliases_is_the_max_mixture_decision_on_the_heading_marginal(eps):
+    """A registration of visits i < j whose heading lies beyond e* of the odometry's own heading change is an
+    alias, where (1 − ε) N(e*; 0, V + R) = ε / 2π (V summed here from the odometry's per-step covariances,
+    independently of the module's cumulative sums); the residual is wrapped, so a full turn changes
+    nothing; ε = 0 flags nothing. The batch alias test inherits the flags, whatever the optimum says."""
+    visits, true = simulate()
+    cfg = replace(ODO, registration_outlier=eps)
+    i, j = 0, 4
+    r_th = 0.01**2
+    var = float(np.sum(odometry_covariances(visits[i : j + 1], cfg)[:, 2, 2])) + r_th
+    bound = math.sqrt(
+        var * (2.0 * math.log((1.0 - eps) * 2.0 * math.pi / eps) - math.log(2.0 * math.pi * var))
+    )
+    odo_turn = visits[j].pose[2] - visits[i].pose[2]
+    mean = between(true[i], true[j])
+
+    def reg(e: float) -> RelativePose:
+        return RelativePose(
+            i, j, np.array([mean[0], mean[1], wrap_angle(odo_turn + e)]), np.diag([1e-4, 1e-4, r_th])
+        )
+
+    cases = [
+        0.0,
+        0.99 * bound,
+        1.01 * bound,
+        -0.99 * bound,
+        -1.01 * bound,
+        0.99 * bound + 2 * math.pi,
+        math.pi / 2,
+    ]
+    want = [False, False, True, False, True, False, True]
+    assert heading_aliases(visits, [reg(e) for e in cases], cfg).tolist() == want
+    assert not heading_aliases(visits, [reg(e) for e in cases], replace(cfg, registration_outlier=0.0)).any()
+    assert heading_aliases(visits, [], cfg).shape == (0,)
+    truth = canonical(ROUTE)
+    assert registration_aliases(truth, visits, cfg, [reg(1.01 * bound), reg(0.0)]).tolist() == [True, False]
 
 
 def test_batch_posterior_explains_the_alias_as_an_outlier():

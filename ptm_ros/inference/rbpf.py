@@ -80,7 +80,8 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    sequential metric log evidence (the terms above but the prior and appearance), so that the PTM can be
    weighed with the batch model's instead (:mod:`ptm_ros.inference.reweighting`, :meth:`reweighted`):
    resampling uses the sequential weights, :meth:`ptm_weights` the reweighted ones where the batch
-   evidence is sampled, when ``RbpfConfig.reweight`` (off by default: see that module).
+   evidence is sampled, when ``RbpfConfig.reweight`` (off in the bare filter, on in the product:
+   ``inference.reweight``).
 
 For a model linear in the poses these steps are the chain rule of the batch integral
 :math:`\int f_G\,dX` (the product over steps of the predictive densities), so the particles' weights equal
@@ -97,8 +98,8 @@ revisits score too low; a wrong topology that avoided the closure can then overt
 back-end, or re-optimising a particle's poses after a large innovation, would remove this.
 
 Against ``ptm-run --method exact`` (``bench/bench_exact.py``, figures in ``bench/reweighting.md``) the
-sequential weights differ in two ways; the (optional) reweighting removes both where it applies (the
-batch evidence is the reference's), and the filter's choice of which topologies to keep remains:
+sequential weights differ in two ways; the reweighting removes both where it applies (the batch evidence
+is the reference's), and the filter's choice of which topologies to keep remains:
 
 * the EKF linearisation above, also for moderate closures: a closure several metres off the odometry at
   tens of metres from the pivoting headings is scored with the straight-line (linearised) image of the
@@ -110,8 +111,8 @@ batch evidence is the reference's), and the filter's choice of which topologies 
   a state that keeps them (a Lie-group or smoothing filter) would remove it.
 * the alias decision of a laser registration (below): the filter tests a registration against its state
   *with* the topology's earlier registrations, the batch model (:func:`~ptm_ros.model.odometry.alias_test`)
-  against the optimum *without* any; where they disagree the batch's max-mixture can keep as a true match
-  a registration that contradicts others, an error of the batch model, not of the filter.
+  against the optimum *without* any; both also take for an alias, in every topology, a registration whose
+  heading alone the odometry predicts worse than an alias (:func:`~ptm_ros.model.odometry.heading_aliases`).
 
 The laser factor is known only after selection (registrations are expensive, so only the selected
 revisits are registered). As in :class:`~ptm_ros.model.posterior.PosteriorModel`, the data are the outcomes of
@@ -126,7 +127,9 @@ A valid registration may still be a symmetric alias (a crossing passed in opposi
 laser matches best turned by π): with probability ``ε = registration_outlier`` its outcome is uniform
 over ``V_reg``. The predictive is then the mixture :math:`(1-ε) N(z; \cdot) V_{reg} + ε` (relative to
 ``1/V_reg``), and the state keeps the dominant component of the posterior: no update from an alias
-(the batch model's :func:`~ptm_ros.model.odometry.registration_aliases`). Without it, one trusted alias
+(the batch model's :func:`~ptm_ros.model.odometry.registration_aliases`). A registration whose heading
+alone rules out a true match (:func:`~ptm_ros.model.odometry.heading_aliases`) is an alias whatever the
+state predicts: it contributes ``ε`` only. Without it, one trusted alias
 costs the true topology hundreds of nats and the filter splits the place.
 
 Thesis corrections:
@@ -167,7 +170,7 @@ from ptm_ros.inference.resampling import (
 from ptm_ros.inference.reweighting import Reweighted, reweigh, sampled_evidence
 from ptm_ros.model.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.model.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose, wrap_angle
-from ptm_ros.model.odometry import OdometryConfig, odometry_covariances, place_area
+from ptm_ros.model.odometry import OdometryConfig, heading_aliases, odometry_covariances, place_area
 from ptm_ros.model.partitions import Labels
 from ptm_ros.model.posterior import ModelConfig, PosteriorModel
 from ptm_ros.model.priors import TopologyPrior
@@ -983,14 +986,17 @@ class TopologyFilter:
             w1 = W[:n_z]
             rows6 = cov[np.arange(n_z)[:, None], sub, :]
             rows6 -= np.take_along_axis(w1, sub[:, None, :], axis=2).transpose(0, 2, 1) @ w1  # rows of P'
-            w2, v2, laser_ll[:n_z] = _laser_factor(mean[:n_z], rows6, lc, [z_of[int(r)] for r in with_z])
+            zs = [z_of[int(r)] for r in with_z]
+            w2, v2, laser_ll[:n_z] = _laser_factor(mean[:n_z], rows6, lc, zs)
             laser_ll[:n_z] += math.log(cfg.registration_volume)  # ratio against "not one place": 1/V_reg
             eps = cfg.registration_outlier
             if eps > 0.0:  # a valid match may be an alias (uniform over V_reg): mixture predictive, and
-                # the state keeps the posterior's dominant component (no update from an alias)
+                # the state keeps the posterior's dominant component (no update from an alias); one whose
+                # heading the odometry alone rules out is an alias in every topology (heading_aliases)
                 match = math.log1p(-eps) + laser_ll[:n_z]
-                alias = match < math.log(eps)
-                laser_ll[:n_z] = np.logaddexp(match, math.log(eps))
+                on_heading = heading_aliases(visits, zs, cfg)
+                alias = (match < math.log(eps)) | on_heading
+                laser_ll[:n_z] = np.where(on_heading, math.log(eps), np.logaddexp(match, math.log(eps)))
                 w2[alias] = 0.0
                 v2[alias] = 0.0
             mean[:n_z] += np.einsum("zki,zk->zi", w2, v2)

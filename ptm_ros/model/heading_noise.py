@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from ptm_ros.model.geometry import FloatArray, RelativePose, wrap_angle
-from ptm_ros.model.odometry import OdometryConfig, odometry_covariances
+from ptm_ros.model.geometry import FloatArray, RelativePose
+from ptm_ros.model.odometry import OdometryConfig, heading_residuals_of
 from ptm_ros.model.visits import Visit
 
 #: The lattice of scales: ``k = 2^(m/2)`` for ``m`` in this range (0.001 … 16).
@@ -103,31 +103,14 @@ class HeadingScale:
         }
 
 
-def path_heading_variances(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
-    """``(N,)`` cumulative heading variance of the odometry from visit 0 to each visit (eq. 17's heading
-    variances of :func:`~ptm_ros.model.odometry.odometry_covariances` summed), so that :math:`V_{ij}` is
-    ``c[j] - c[i]``."""
-    return np.concatenate([[0.0], np.cumsum(odometry_covariances(visits, config)[:, 2, 2])])
-
-
 def heading_residuals(
     visits: Sequence[Visit], registrations: Iterable[RelativePose], config: OdometryConfig
 ) -> HeadingResiduals:
     """The heading discrepancy of each registration against the visits' odometry (module docstring);
     registrations of visits beyond ``visits`` are left out."""
-    cum = path_heading_variances(visits, config)
     n = len(visits)
-    rows = [
-        (
-            float(wrap_angle(z.mean[2] - (visits[z.j].pose[2] - visits[z.i].pose[2]))),
-            float(cum[z.j] - cum[z.i]),
-            float(z.cov[2, 2]),
-        )
-        for z in registrations
-        if z.j < n and z.i < z.j
-    ]
-    arr = np.array(rows, dtype=float).reshape(-1, 3)
-    return HeadingResiduals(arr[:, 0], arr[:, 1], arr[:, 2])
+    kept = [z for z in registrations if z.j < n and z.i < z.j]
+    return HeadingResiduals(*heading_residuals_of(visits, kept, config))
 
 
 def scale_log_likelihoods(residuals: HeadingResiduals, scales: FloatArray, outlier: float) -> FloatArray:

@@ -370,6 +370,53 @@ def _odometry_variances(visits: Sequence[Visit], config: OdometryConfig) -> Floa
     return np.stack([var_xy, var_xy, var_th], axis=-1).reshape(-1, 3)
 
 
+def path_heading_variances(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
+    """``(N,)`` cumulative heading variance of the odometry from visit 0 to each visit (eq. 17's heading
+    variances summed), so that the heading variance of the path from visit ``i`` to visit ``j`` is
+    ``c[j] - c[i]``."""
+    return np.concatenate([[0.0], np.cumsum(_odometry_variances(visits, config)[:, 2])])
+
+
+def heading_residuals_of(
+    visits: Sequence[Visit], loops: Sequence[RelativePose], config: OdometryConfig
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """For registrations of visits ``i < j``: the heading residual against the odometry's own heading
+    change, ``wrap(z_θ − (u_j^θ − u_i^θ))``, the odometry's heading variance ``V_ij`` from ``i`` to ``j``
+    (eq. 17) and the registration's ``R_θθ``, each ``(L,)`` (:func:`heading_aliases`)."""
+    cum = path_heading_variances(visits, config)
+    heading = np.array([v.pose[2] for v in visits], dtype=float)
+    i = np.array([z.i for z in loops], dtype=np.intp)
+    j = np.array([z.j for z in loops], dtype=np.intp)
+    error = wrap_angle(np.array([z.mean[2] for z in loops], dtype=float) - (heading[j] - heading[i]))
+    return error, cum[j] - cum[i], np.array([z.cov[2, 2] for z in loops], dtype=float)
+
+
+def heading_aliases(
+    visits: Sequence[Visit], loops: Sequence[RelativePose], config: OdometryConfig
+) -> NDArray[np.bool_]:
+    r"""Which laser loops the odometry's own heading change already rules out as true matches.
+
+    Headings compose additively, so a true match ``z`` of visits ``i < j`` has, before any topology, the
+    heading residual :math:`e = \mathrm{wrap}(z_\theta - (u_j^\theta - u_i^\theta)) \sim
+    \mathcal N(0, V_{ij} + R_{\theta\theta})` exactly (no linearisation), ``V_ij`` the odometry's
+    heading variance from ``i`` to ``j`` (eq. 17); an alias is uniform over ``V_reg``, so its heading is
+    uniform over ``2π``. The loop is an alias when :math:`(1-\varepsilon)\,\mathcal N(e; 0, V_{ij} +
+    R_{\theta\theta}) < \varepsilon / 2\pi`: the max-mixture's decision (:func:`alias_test`) made on the
+    heading's marginal, the same for every topology. It catches what the decision at a topology's optimum
+    cannot: a chain of aliased registrations along identical sections (a ring's rotated sides), whose
+    place coincidences have already bent that optimum until the aliases fit (``bench/reweighting.md``).
+    All False when ``ε = 0``.
+    """
+    eps = config.registration_outlier
+    out = np.zeros(len(loops), dtype=bool)
+    if eps == 0.0 or not loops:
+        return out
+    e, path, reg = heading_residuals_of(visits, loops, config)
+    var = path + reg
+    log_match = math.log1p(-eps) - 0.5 * (e * e / var + np.log(2.0 * math.pi * var))
+    return np.asarray(log_match < math.log(eps / (2.0 * math.pi)), dtype=bool)
+
+
 @dataclass(frozen=True)
 class _Problem:
     """Everything about one (topology, visits, loops, config) that does not depend on ``X``."""
@@ -914,13 +961,15 @@ def alias_test(
     ``N(z; x*_i ⊖ x*_j, J H⁻¹ Jᵀ + R)`` (``J`` the Jacobian of ``x_i ⊖ x_j``), and the loop is an alias
     when ``(1 − ε) N(·) < ε / V_reg``: the mixture's dominant component (a max-mixture, after Olson &
     Agarwal 2013). Testing before optimising with the loops matters: an optimum that includes a
-    confident alias bends the path until the alias fits. No alias and no optimisation when ``ε = 0`` or
-    there are no loops.
+    confident alias bends the path until the alias fits. A loop whose heading alone the odometry predicts
+    worse than an alias is one too (:func:`heading_aliases`), whatever the optimum. No alias and no
+    optimisation when ``ε = 0`` or there are no loops.
     """
     eps = config.registration_outlier
     out = np.zeros(len(loops), dtype=bool)
     if eps == 0.0 or not loops:
         return AliasTest(aliases=out, poses=None)
+    on_heading = heading_aliases(visits, loops, config)
     prob = _build_problem(labels, visits, config, ())
     opt = _optimize(prob, config, None)
     x = opt.poses
@@ -948,7 +997,7 @@ def alias_test(
     chol = _cholesky_3(0.5 * (s + s.transpose(0, 2, 1)), "laser loop", np.arange(len(ij)), ij)
     v = np.einsum("kij,kj->ki", _lower_inverse_3(chol), e)
     log_det = np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)
-    out = -1.5 * _LOG_2PI - log_det - 0.5 * np.sum(v * v, axis=1) < threshold
+    out = (-1.5 * _LOG_2PI - log_det - 0.5 * np.sum(v * v, axis=1) < threshold) | on_heading
     return AliasTest(aliases=out, poses=x)
 
 

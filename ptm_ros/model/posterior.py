@@ -14,8 +14,9 @@ the unnormalised log posterior of any topology:
   (:func:`ptm_ros.perception.laser.fitness_log_bayes`). A valid registration is a true match with probability
   1 − ε and a symmetric alias (uniform over V_reg) with probability ε (``registration_outlier``); the
   loops the odometry and topology predict worse than an alias
-  (:func:`ptm_ros.model.odometry.registration_aliases`) contribute log ε and no pose constraint, the others
-  log(1 − ε) besides their Gaussian (a max-mixture);
+  (:func:`ptm_ros.model.odometry.registration_aliases`: at the topology's optimum without registrations,
+  or on the heading alone, :func:`ptm_ros.model.odometry.heading_aliases`) contribute log ε and no pose
+  constraint, the others log(1 − ε) besides their Gaussian (a max-mixture);
 * appearance likelihood: :mod:`ptm_ros.model.appearance` (eq. 22–28, 54–57), a product over blocks cached
   per block, because a topology's blocks recur across MCMC moves and particles; a visit without a
   panorama is a missing measurement and simply left out.
