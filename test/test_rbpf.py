@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.errors import ConfigError, ModelError, RegistrationError
 from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
 from ptm_ros.inference.rbpf import FilterState, RbpfConfig, TopologyFilter, _separation_update, run_filter
 from ptm_ros.inference.resampling import optimal_resample, top_resample
@@ -439,14 +439,15 @@ def test_reweighting_stops_where_the_batch_evidence_is_not_sampled(odometry_case
     assert full_filter(visits[:5], replace(ODO, n_samples=200)).reweighted() is None  # off by default
 
 
-def test_a_batch_model_failure_keeps_the_sequential_weights(odometry_case, monkeypatch):
-    """Should the batch model fail on the visits (ModelError), the PTM keeps the sequential weights and
-    says why, rather than the filter (or the node around it) failing."""
+@pytest.mark.parametrize("error", [ModelError, RegistrationError])
+def test_a_batch_model_failure_keeps_the_sequential_weights(odometry_case, monkeypatch, error):
+    """Should the batch model fail on the visits (ModelError, or a registrar's RegistrationError), the PTM
+    keeps the sequential weights and says why, rather than the filter (or the node around it) failing."""
     import ptm_ros.inference.rbpf as rbpf_module
 
     def broken(*args, **kwargs):
         msg = "the optimiser did not converge"
-        raise ModelError(msg)
+        raise error(msg)
 
     visits, _, _ = odometry_case
     odo = replace(ODO, n_samples=200)

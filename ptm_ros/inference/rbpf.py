@@ -158,7 +158,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.blas import dgemm
 
-from ptm_ros.errors import ConfigError, ModelError
+from ptm_ros.errors import ConfigError, ModelError, PtmError
 from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
 from ptm_ros.inference.resampling import (
     RESAMPLE_METHODS,
@@ -700,7 +700,7 @@ class TopologyFilter:
             )
             try:
                 done = reweigh(st.log_w, st.labels, st.metric, lambda labels: model.terms(labels).metric)
-            except ModelError as err:
+            except PtmError as err:  # the batch model's or a registrar's: the PTM keeps its own weights
                 self.reweight_failure = f"visit {len(self._visits) - 1}: {err}"
                 return None
             self._reweighted = replace(done, seconds=time.perf_counter() - start)
