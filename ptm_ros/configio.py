@@ -21,6 +21,26 @@ from ptm_ros.errors import ConfigError
 T = TypeVar("T")
 
 
+def _exponent_hint(value: object) -> str:
+    """A hint for a number that YAML 1.1 (PyYAML, which reads ROS 2 parameter files) takes for text: an
+    exponent without a decimal point or without a sign (``5e-05``, ``1.0e3``); empty for anything else."""
+    if not isinstance(value, str) or "e" not in value.lower():
+        return ""
+    try:
+        number = float(value)
+    except ValueError:
+        return ""
+    if not math.isfinite(number):
+        return ""
+    mantissa, _, exponent = value.lower().partition("e")
+    mantissa = mantissa if "." in mantissa else f"{mantissa}.0"
+    exponent = exponent if exponent[:1] in "+-" else f"+{exponent}"
+    fixed = f"{mantissa}e{exponent}"
+    if fixed == value.lower():  # already a YAML number: it was quoted
+        return ""
+    return f" (YAML reads an exponent without a decimal point and a sign as text: write {fixed})"
+
+
 def _convert(value: Any, hint: Any, where: str) -> Any:
     origin = typing.get_origin(hint)
     if isinstance(hint, type) and dataclasses.is_dataclass(hint):
@@ -60,7 +80,7 @@ def _convert(value: Any, hint: Any, where: str) -> Any:
         return value
     if hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            msg = f"{where}: expected a number, got {value!r}"
+            msg = f"{where}: expected a number, got {value!r}{_exponent_hint(value)}"
             raise ConfigError(msg)
         try:
             number = float(value)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +110,20 @@ def write(tmp_path, text):
 def test_bad_parameter_files_are_rejected_with_the_field_named(tmp_path, text, match):
     with pytest.raises(ConfigError, match=match):
         load_config(write(tmp_path, text))
+
+
+@pytest.mark.parametrize(
+    ("written", "fixed"), [("5e-05", "5.0e-05"), ("1.0e3", "1.0e+3"), ("2E-3", "2.0e-3")]
+)
+def test_an_exponent_yaml_reads_as_text_gets_the_form_it_reads_as_a_number(tmp_path, written, fixed):
+    """YAML 1.1 (PyYAML, as ROS 2 parameter files are read) needs a decimal point and a signed exponent:
+    ``5e-05`` is a string. The error says so and names the spelling that loads, which then loads."""
+    got, hint = re.escape(written), re.escape(fixed)
+    want = rf"model\.odometry\.b_th: expected a number, got '{got}' .*write {hint}\)"
+    with pytest.raises(ConfigError, match=want):
+        load_config(write(tmp_path, f"model:\n  odometry:\n    b_th: {written}\n"))
+    cfg = load_config(write(tmp_path, f"model:\n  odometry:\n    b_th: {fixed}\n"))
+    assert cfg.model.odometry.b_th == float(fixed)
 
 
 def test_missing_file_is_a_config_error(tmp_path):
