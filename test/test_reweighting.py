@@ -1,5 +1,7 @@
 """The particle filter's PTM weighed with the batch metric evidence (``ptm_ros.inference.reweighting``):
-the arithmetic here, against exact enumeration in ``test_rbpf.py``."""
+the arithmetic, and ``ptm-run`` at its defaults (reweighting on) against ``--method exact`` and on the
+aliased ring the heading test keeps from closing early; the filter against exact enumeration in
+``test_rbpf.py``."""
 
 from __future__ import annotations
 
