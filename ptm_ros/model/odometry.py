@@ -384,7 +384,7 @@ def heading_residuals_of(
     change, ``wrap(z_θ − (u_j^θ − u_i^θ))``, the odometry's heading variance ``V_ij`` from ``i`` to ``j``
     (eq. 17) and the registration's ``R_θθ``, each ``(L,)`` (:func:`heading_aliases`)."""
     cum = path_heading_variances(visits, config)
-    heading = np.array([v.pose[2] for v in visits], dtype=float)
+    heading = poses_array(visits)[:, 2]
     i = np.array([z.i for z in loops], dtype=np.intp)
     j = np.array([z.j for z in loops], dtype=np.intp)
     error = wrap_angle(np.array([z.mean[2] for z in loops], dtype=float) - (heading[j] - heading[i]))
