@@ -20,11 +20,14 @@ from ptm_ros.model.odometry import (
     mapped_area,
     metric_log_likelihood,
     metric_residuals,
+    new_places,
     odometry_covariances,
     optimize_poses,
     place_area,
+    place_log_priors,
     relative_odometry,
     swept_area,
+    visit_steps,
 )
 from ptm_ros.model.partitions import blocks
 from ptm_ros.model.visits import Visit
@@ -239,6 +242,48 @@ def test_no_merges_integrates_to_the_area_factors() -> None:
         assert res.log_likelihood == pytest.approx(expected, abs=5e-3)  # heading nonlinearity only
         np.testing.assert_allclose(res.poses, np.array(u), atol=1e-9)
         assert res.ess > 0.95 * cfg.n_samples
+
+
+def test_no_merges_integrates_to_the_steps_densities() -> None:
+    """``place_prior`` steps: without merges the integral is the product of the new places' densities,
+    each the run's step density at that visit's step mixed with ρ/A (checked against scipy), the first
+    visit's place uniform over A."""
+    u = [(0, 0, 0), (5, 0, 1.2), (6, 5, 2.9), (1, 6, -2.0), (-4, 2, -1.0), (-9, 3, 0.5)]
+    visits = visits_at(u)
+    n = len(visits)
+    cfg = OdometryConfig(n_samples=0, place_prior="steps")
+    area = place_area(visits, cfg)
+    steps = np.array([between(np.asarray(u[k - 1], float), np.asarray(u[k], float))[:2] for k in range(1, n)])
+    np.testing.assert_allclose(visit_steps(visits), steps, atol=1e-12)
+    dist = stats.multivariate_normal(steps.mean(axis=0), np.cov(steps.T, bias=True) + 0.25 * np.eye(2))
+    want = [-math.log(area)] + [math.log(0.95 * dist.pdf(z) + 0.05 / area) for z in steps]
+    np.testing.assert_allclose(place_log_priors(visits, cfg), want, rtol=1e-12)
+    res = metric_log_likelihood(tuple(range(n)), visits, cfg, rng=np.random.default_rng(0))
+    assert res.log_laplace == pytest.approx(sum(want), abs=1e-9)
+    # the area model, and the steps model below MIN_STEPS steps: -log A for every place
+    np.testing.assert_allclose(place_log_priors(visits, OdometryConfig()), -math.log(area), rtol=1e-12)
+    few = visits[:3]
+    assert np.all(place_log_priors(few, cfg) == -math.log(place_area(few, cfg)))
+
+
+def test_new_places_marks_the_first_visit_of_each_place() -> None:
+    assert new_places((0, 1, 0, 2, 1, 3)).tolist() == [True, True, False, True, False, True]
+    assert new_places([[0, 0, 1], [0, 1, 2]]).tolist() == [[True, False, True], [True, True, True]]
+    assert new_places((0,)).tolist() == [True]
+
+
+def test_the_steps_prior_changes_a_topology_by_its_new_places_only() -> None:
+    """The batch metric under ``place_prior`` steps is the area model's plus, for each new place, its log
+    density's change: merging visit 4 into place 0 drops that visit's term, whatever the rest."""
+    visits = visits_at([(0, 0, 0), (5, 0, 1.2), (6, 5, 2.9), (1, 6, -2.0), (0.5, 5, -1.0), (5, 0.5, 0.5)])
+    area_cfg = OdometryConfig(n_samples=0)
+    steps_cfg = OdometryConfig(n_samples=0, place_prior="steps")
+    delta = place_log_priors(visits, steps_cfg) - place_log_priors(visits, area_cfg)
+    assert np.ptp(delta[1:]) > 0.1  # the steps differ: a per-visit term, not a constant
+    for labels in [(0, 1, 2, 3, 4, 5), (0, 1, 2, 3, 3, 1), (0, 1, 0, 2, 1, 3)]:
+        a = metric_log_likelihood(labels, visits, area_cfg, rng=np.random.default_rng(0)).log_laplace
+        b = metric_log_likelihood(labels, visits, steps_cfg, rng=np.random.default_rng(0)).log_laplace
+        assert b - a == pytest.approx(float(np.sum(delta[new_places(labels)])), abs=1e-9)
 
 
 def test_two_visits_merged_matches_closed_form_and_grid() -> None:

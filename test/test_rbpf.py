@@ -315,6 +315,17 @@ def test_a_learned_area_moves_the_weights_exactly(odometry_case):
     assert total_variation(final, pw) <= 1e-9
 
 
+def test_the_steps_place_prior_moves_the_weights_exactly(odometry_case):
+    """``place_prior`` steps: the steps' density is fitted again at every visit and every particle is
+    reweighted by the change of its new places' log densities; the full filter equals exact enumeration
+    under the density of all the visits as closely as under the area model, and the posterior moves."""
+    visits, _, _ = odometry_case
+    steps = replace(ODO, area_m2=0.0, place_prior="steps")
+    ex = normalize_log(exact(visits, steps)[0])
+    assert total_variation(ex, full_filter(visits, steps).ptm_weights()) <= 0.02
+    assert total_variation(ex, normalize_log(exact(visits, replace(steps, place_prior="area"))[0])) > 0.05
+
+
 def test_full_filter_equals_exact_posterior_laser_and_appearance():
     """Laser factors (iterated-EKF predictive) and appearance predictives against enumeration. Noisy
     signatures keep the posterior open (MAP 0.96). Measured: TV 0.0017, log evidence within 0.023; with
@@ -410,14 +421,16 @@ def test_few_reweighted_particles_are_close_to_the_batch_posterior(heading_case)
         assert total_variation(ex, flt.ptm_weights()) <= 0.05
 
 
-@pytest.mark.parametrize("area_m2", [1000.0, 0.0])
-def test_the_sequential_metric_evidence_is_the_batch_one_where_both_are_exact(odometry_case, area_m2):
+@pytest.mark.parametrize(("area_m2", "place_prior"), [(1000.0, "area"), (0.0, "area"), (0.0, "steps")])
+def test_the_sequential_metric_evidence_is_the_batch_one_where_both_are_exact(
+    odometry_case, area_m2, place_prior
+):
     """The particles' sequential metric evidence carries the batch model's constants (areas, fixed or
-    learned from the visits so far, the first visit, odometry normalisers): a topology without a loop,
-    linear in its relative poses and without a separation penalty, is integrated exactly by both, so its
-    reweighting shift is 0."""
+    learned from the visits so far, the steps' densities fitted again at every visit, the first visit,
+    odometry normalisers): a topology without a loop, linear in its relative poses and without a
+    separation penalty, is integrated exactly by both, so its reweighting shift is 0."""
     visits, _, _ = odometry_case
-    odo = replace(ODO, n_samples=200, penalty_max=0.0, area_m2=area_m2)
+    odo = replace(ODO, n_samples=200, penalty_max=0.0, area_m2=area_m2, place_prior=place_prior)
     flt = run_filter(visits, RbpfConfig(particles=bell(len(visits)), reweight=True), make_prior(PRIOR), odo)
     rw = flt.reweighted()
     assert rw is not None

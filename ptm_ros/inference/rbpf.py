@@ -170,7 +170,13 @@ from ptm_ros.inference.resampling import (
 from ptm_ros.inference.reweighting import Reweighted, reweigh, sampled_evidence
 from ptm_ros.model.appearance import AppearanceModel, appearance_log_predictive
 from ptm_ros.model.geometry import FloatArray, NoMatch, Registrar, RelativePose, between, compose, wrap_angle
-from ptm_ros.model.odometry import OdometryConfig, heading_aliases, odometry_covariances, place_area
+from ptm_ros.model.odometry import (
+    OdometryConfig,
+    heading_aliases,
+    new_places,
+    odometry_covariances,
+    place_log_priors,
+)
 from ptm_ros.model.partitions import Labels
 from ptm_ros.model.posterior import ModelConfig, PosteriorModel
 from ptm_ros.model.priors import TopologyPrior
@@ -812,7 +818,8 @@ class TopologyFilter:
         counts = np.zeros((1, cap), dtype=np.intp)
         last = np.full((1, cap), -1, dtype=np.intp)
         counts[0, 0], last[0, 0] = 1, 0
-        increment = float(self.prior.log_predictive([])[0]) - math.log(place_area(visits[:1], self.odometry))
+        first = float(place_log_priors(visits[:1], self.odometry)[0])
+        increment = float(self.prior.log_predictive([])[0]) + first
         if self.appearance is not None:
             increment += appearance_log_predictive(0, (), visits, self.appearance)
         if not math.isfinite(increment):
@@ -828,7 +835,7 @@ class TopologyFilter:
             n_places=np.ones(1, dtype=np.intp),
             blocks=(((0,),),) if self.appearance is not None else None,
             penalty=np.zeros(1),
-            metric=np.array([-math.log(place_area(visits[:1], self.odometry))]),
+            metric=np.array([first]),
         )
         return particles, increment
 
@@ -874,11 +881,13 @@ class TopologyFilter:
         y = _solve_chol2(a_, b_, d_, d[..., None])[..., 0]  # L^{-1} d
         ll_rev = -_LOG_2PI - np.log(a_ * d_) - 0.5 * np.sum(y * y, axis=-1)
         valid = np.arange(cap)[None, :] < st.n_places[:, None]
-        # a learned area A (config 0) grows with the visits: every particle's weight moves to the new A
-        # exactly, (A_old / A_new)^{places} (eq. 17's 1/A per place), before the new visit is scored
-        area_old, area = place_area(visits[:-1], cfg), place_area(visits, cfg)
-        log_w = st.log_w + st.n_places * (math.log(area_old) - math.log(area))
-        ll_new = np.full(n_part, -math.log(area))
+        # the places' prior densities move with the visits (a learned area A grows, the steps' density is
+        # fitted again): every particle's weight moves exactly, by the change of its new places' log
+        # densities (eq. 17's 1/A per place: (A_old / A_new)^{places}), before the new visit is scored
+        prior_old, prior_now = place_log_priors(visits[:-1], cfg), place_log_priors(visits, cfg)
+        prior_shift = new_places(st.labels) @ (prior_now[:-1] - prior_old)
+        log_w = st.log_w + prior_shift
+        ll_new = np.full(n_part, prior_now[-1])
         coincidence_rev, coincidence_new = ll_rev.copy(), ll_new.copy()  # before the selection proxy
         proxy_rev = np.zeros((n_part, cap))  # separation penalty of the new pairs (i, n), for selection
         proxy_new = np.zeros(n_part)
@@ -1030,8 +1039,7 @@ class TopologyFilter:
         penalty = st.penalty[par] - log_sep
         lw = sel_lw + laser_ll + fitness + proxy + log_sep  # the proxy (selection only) was in sel_lw
         coincidence = np.where(is_new, coincidence_new[par], coincidence_rev[par, np.minimum(kk, cap - 1)])
-        area_shift = st.n_places[par] * (math.log(area_old) - math.log(area))
-        metric = st.metric[par] + area_shift + coincidence + laser_ll + fitness + log_sep
+        metric = st.metric[par] + prior_shift[par] + coincidence + laser_ll + fitness + log_sep
         lse = float(logsumexp(lw))
         increment = lse_children + lse
         labels = tuple(st.labels[p] + (int(k),) for p, k in zip(par.tolist(), kk.tolist(), strict=True))

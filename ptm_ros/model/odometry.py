@@ -116,6 +116,12 @@ PROPOSALS = ("relative", "absolute")
 #: How the area ``A`` of eq. 17 is learned from the visits (:func:`place_area`).
 AREA_MODELS = ("swept", "extent")
 
+#: Where a new place can be (:func:`place_log_priors`).
+PLACE_PRIORS = ("area", "steps")
+
+#: With fewer visit-to-visit steps than this, a new place is uniform over ``A`` whatever ``place_prior``.
+MIN_STEPS = 3
+
 #: Raster cell of :class:`SweptArea` [m].
 SWEPT_CELL = 0.25
 
@@ -145,6 +151,24 @@ class OdometryConfig(Settings):
             'how ``A`` is learned when ``area_m2`` is 0: ``"swept"`` (default) the area the robot\'s path '
             'covers (:func:`swept_area`), ``"extent"`` the rectangle spanned by the visits '
             "(:func:`mapped_area`). Both are floored at ``penalty_radius²``."
+        ),
+    )
+    place_prior: str = setting(
+        "area",
+        choices=PLACE_PRIORS,
+        doc=(
+            'where a new place can be: ``"area"`` (default) uniform over ``A`` (eq. 17); ``"steps"`` '
+            "where the robot's step from the previous visit takes it, by the density of the run's own "
+            "visit-to-visit odometry steps (:func:`place_log_priors`)."
+        ),
+    )
+    step_floor: float = setting(
+        0.05,
+        gt=0,
+        lt=1,
+        doc=(
+            "ρ, with ``place_prior`` steps: the weight of the uniform ``1/A`` in a new place's density (a "
+            "step unlike the run's others)."
         ),
     )
     penalty_radius: float = setting(
@@ -347,6 +371,60 @@ def place_area(visits: Sequence[Visit], config: OdometryConfig) -> float:
     return max(swept_area(local[:, :2], math.sqrt(math.pi) * config.sigma_topology), floor * floor)
 
 
+def visit_steps(visits: Sequence[Visit]) -> FloatArray:
+    """``(N-1, 2)`` the translation of each visit in the frame of the visit before it (odometry)."""
+    if len(visits) < 2:
+        return np.zeros((0, 2))
+    poses = poses_array(visits)
+    return np.asarray(between(poses[:-1], poses[1:])[:, :2], dtype=float)
+
+
+def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
+    r"""``(N,)`` :math:`\log \pi_j`: the log density of the point of the place visit ``j`` creates, when it is
+    a new place (the ``1/A`` of :math:`g_s`, module docstring).
+
+    ``place_prior`` ``"area"``: every entry is :math:`-\log A` (:func:`place_area`), eq. 17's place uniform
+    over the mapped area. ``"steps"``: a new place lies where the robot's step from the previous visit
+    takes it, not anywhere in ``A``: for ``j ≥ 1``
+
+    .. math::
+        \pi_j = (1-\rho)\,\mathcal N(u_j;\ \mu, S + \sigma_T^2 I) + \rho / A,
+
+    ``u_j`` the step from visit ``j−1`` in its frame (:func:`visit_steps`), ``μ`` and ``S`` the mean and
+    covariance of the run's steps so far (empirical Bayes: learned from the run, no ground truth), ``σ_T²``
+    the place's own spread around the visit, ``ρ`` = ``step_floor``. Under ``"area"`` each merged place
+    gains ``log A``, and along two parallel corridors whose visits come at the same spacing every merge
+    after the first gains it again, although the robot's steps, not chance, line them up
+    (``bench/thesis_protocol.md``); under ``"steps"`` it gains the log density of a step like the others,
+    once per place as before. The density is taken at the odometry step rather than at the place's
+    position (a constant of the topology, as ``A`` is), and the first visit's place stays uniform over
+    ``A`` (common to every topology). Below :data:`MIN_STEPS` steps, ``"area"``.
+    """
+    n = len(visits)
+    area = place_area(visits, config)
+    out = np.full(n, -math.log(area))
+    if config.place_prior == "area" or n - 1 < MIN_STEPS:
+        return out
+    u = visit_steps(visits)
+    centred = u - u.mean(axis=0)
+    cov = centred.T @ centred / len(u) + config.sigma_topology**2 * np.eye(2)
+    y = np.linalg.solve(np.linalg.cholesky(cov), centred.T)
+    log_n = -0.5 * np.sum(y * y, axis=0) - _LOG_2PI - 0.5 * math.log(float(np.linalg.det(cov)))
+    rho = config.step_floor
+    out[1:] = np.logaddexp(math.log1p(-rho) + log_n, math.log(rho) - math.log(area))
+    return out
+
+
+def new_places(labels: ArrayLike) -> NDArray[np.bool_]:
+    """Which visits are the first of their place, for canonical labels ``(..., N)`` (a label that exceeds
+    every label before it)."""
+    lab = np.asarray(labels, dtype=np.int64)
+    out = np.ones(lab.shape, dtype=bool)
+    if lab.shape[-1] > 1:
+        out[..., 1:] = lab[..., 1:] > np.maximum.accumulate(lab, axis=-1)[..., :-1]
+    return out
+
+
 def relative_odometry(visits: Sequence[Visit]) -> FloatArray:
     """``(N-1, 3)`` relative odometry ``o_k = u_k ⊖ u_{k+1}`` (pose of visit k+1 in the frame of visit k)."""
     u = poses_array(visits)
@@ -492,7 +570,7 @@ def _build_problem(
     sizes = np.bincount(lab_arr, minlength=m)
     sig2 = config.sigma_topology**2
     log_const += float(
-        -m * math.log(place_area(visits, config))
+        np.sum(place_log_priors(visits, config)[new_places(lab_arr)])
         - np.sum(np.log(sizes))
         - np.sum(sizes - 1) * math.log(2.0 * math.pi * sig2)
     )
