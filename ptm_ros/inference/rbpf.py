@@ -885,7 +885,9 @@ class TopologyFilter:
         # fitted again): every particle's weight moves exactly, by the change of its new places' log
         # densities (eq. 17's 1/A per place: (A_old / A_new)^{places}), before the new visit is scored
         prior_old, prior_now = place_log_priors(visits[:-1], cfg), place_log_priors(visits, cfg)
-        prior_shift = new_places(st.labels) @ (prior_now[:-1] - prior_old)
+        moved = prior_now[:-1] - prior_old
+        same = bool(np.all(moved == moved[0]))  # one density for every place (the area's): by the counts
+        prior_shift = st.n_places * moved[0] if same else new_places(st.labels) @ moved
         log_w = st.log_w + prior_shift
         ll_new = np.full(n_part, prior_now[-1])
         coincidence_rev, coincidence_new = ll_rev.copy(), ll_new.copy()  # before the selection proxy

@@ -393,12 +393,14 @@ def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatAr
     ``u_j`` the step from visit ``j−1`` in its frame (:func:`visit_steps`), ``μ`` and ``S`` the mean and
     covariance of the run's steps so far (empirical Bayes: learned from the run, no ground truth), ``σ_T²``
     the place's own spread around the visit, ``ρ`` = ``step_floor``. Under ``"area"`` each merged place
-    gains ``log A``, and along two parallel corridors whose visits come at the same spacing every merge
-    after the first gains it again, although the robot's steps, not chance, line them up
-    (``bench/thesis_protocol.md``); under ``"steps"`` it gains the log density of a step like the others,
-    once per place as before. The density is taken at the odometry step rather than at the place's
-    position (a constant of the topology, as ``A`` is), and the first visit's place stays uniform over
-    ``A`` (common to every topology). Below :data:`MIN_STEPS` steps, ``"area"``.
+    gains ``log A``: along two parallel corridors visited at the same spacing, every lined-up visit after
+    the first gains it again, though the robot's steps, not chance, line them up; under ``"steps"`` a
+    merge gains what a step like the run's others costs (``bench/thesis_protocol.md``). The density is
+    taken at the odometry step rather than at the place's position (a constant of the topology, as ``A``
+    is), and the first visit's place stays uniform over ``A`` (common to every topology). Below
+    :data:`MIN_STEPS` steps, ``"area"``. Limitation (why ``"area"`` stays the default): nothing but the
+    separation prior keeps a new place off an old one, so where all steps are alike and only odometry
+    speaks, a revisit is no longer believed.
     """
     n = len(visits)
     area = place_area(visits, config)
