@@ -371,14 +371,6 @@ def place_area(visits: Sequence[Visit], config: OdometryConfig) -> float:
     return max(swept_area(local[:, :2], math.sqrt(math.pi) * config.sigma_topology), floor * floor)
 
 
-def visit_steps(visits: Sequence[Visit]) -> FloatArray:
-    """``(N-1, 2)`` the translation of each visit in the frame of the visit before it (odometry)."""
-    if len(visits) < 2:
-        return np.zeros((0, 2))
-    poses = poses_array(visits)
-    return np.asarray(between(poses[:-1], poses[1:])[:, :2], dtype=float)
-
-
 def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
     r"""``(N,)`` :math:`\log \pi_j`: the log density of the point of the place visit ``j`` creates, when it is
     a new place (the ``1/A`` of :math:`g_s`, module docstring).
@@ -390,7 +382,7 @@ def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatAr
     .. math::
         \pi_j = (1-\rho)\,\mathcal N(u_j;\ \mu, S + \sigma_T^2 I) + \rho / A,
 
-    ``u_j`` the step from visit ``j−1`` in its frame (:func:`visit_steps`), ``μ`` and ``S`` the mean and
+    ``u_j`` the step from visit ``j−1`` in its frame (:func:`relative_odometry`), ``μ`` and ``S`` the mean and
     covariance of the run's steps so far (empirical Bayes: learned from the run, no ground truth), ``σ_T²``
     the place's own spread around the visit, ``ρ`` = ``step_floor``. Under ``"area"`` each merged place
     gains ``log A``: along two parallel corridors visited at the same spacing, every lined-up visit after
@@ -407,7 +399,7 @@ def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatAr
     out = np.full(n, -math.log(area))
     if config.place_prior == "area" or n - 1 < MIN_STEPS:
         return out
-    u = visit_steps(visits)
+    u = relative_odometry(visits)[:, :2]
     centred = u - u.mean(axis=0)
     cov = centred.T @ centred / len(u) + config.sigma_topology**2 * np.eye(2)
     y = np.linalg.solve(np.linalg.cholesky(cov), centred.T)
