@@ -18,8 +18,10 @@ left out of each list) bound its error: ``|TV - TV_listed| <= (tail_exact + tail
 A run whose detector finds fewer than 8 or more than 9 visits is skipped (and listed), and further
 seeds are drawn until ``--runs`` runs are scored. Bags and the exact results are kept under ``--work``
 and reused when present (the exact enumeration of a 9-visit run takes minutes; it does not depend on
-the filter); the filter always runs afresh. Writes ``bench/exact.json`` (beside this script, or
-``--out``) and prints one line per run and the median / max. No timing is asserted.
+the filter) while the parameters they were computed with are today's (the ``config.yaml`` ``ptm-run``
+writes beside them; a changed default enumerates again); the filter always runs afresh. Writes
+``bench/exact.json`` (beside this script, or ``--out``) and prints one line per run and the median / max.
+No timing is asserted.
 
 Usage: ``PYTHONPATH=. .venv/bin/python bench/bench_exact.py [--runs 24] [--particles 1000]
 [--work out/bench_exact] [--out FILE]``.
@@ -40,7 +42,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
+from ptm_ros.config import load_config
+from ptm_ros.configio import to_dict
 from ptm_ros.tools import run as ptm_run
 from ptm_ros.tools import sim as ptm_sim
 
@@ -71,6 +76,15 @@ def _run_ptm(
     argv = [str(bag), "--out", str(out), "--method", method, "--params", str(params), "--seed", str(seed)]
     argv += ["--particles", str(particles), "--no-report", "--no-map", "--quiet"]
     return _quiet(ptm_run.main, argv)
+
+
+def _current(saved: Path, params: Path) -> bool:
+    """Whether a cached result's ``config.yaml`` holds today's parameters (``params`` on the defaults) but
+    for ``inference`` (the method): an enumeration made under other defaults is stale."""
+    if not saved.exists():
+        return False
+    cached, today = yaml.safe_load(saved.read_text()), to_dict(load_config(params))
+    return all(cached.get(part) == value for part, value in today.items() if part != "inference")
 
 
 def compare(exact: dict, rbpf: dict) -> dict:
@@ -124,7 +138,7 @@ def main() -> None:
                 continue
         exact_json = args.work / name / "exact" / "ptm.json"
         t0 = time.perf_counter()
-        if not exact_json.exists():
+        if not _current(exact_json.parent / "config.yaml", params):
             code, text = _run_ptm(
                 bag, exact_json.parent, params, method="exact", particles=args.particles, seed=0
             )

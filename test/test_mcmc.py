@@ -89,9 +89,11 @@ def spread_visits(route=(0, 1, 2, 3, 0), side=0.8, seed=4):
     return visits
 
 
-MODEL_CONFIG = ModelConfig(  # appearance prior within_fraction 0.1: the posterior these tests were built on
+MODEL_CONFIG = ModelConfig(  # the area model and within_fraction 0.1: the posterior these tests were built on
     prior=PriorConfig(alpha=2.0),
-    odometry=OdometryConfig(n_samples=0, penalty_max=0.0, area_m2=20.0, sigma_topology=1.0),
+    odometry=OdometryConfig(
+        n_samples=0, penalty_max=0.0, area_m2=20.0, sigma_topology=1.0, place_prior="area"
+    ),
     appearance=AppearanceConfig(within_fraction=0.1),
 )
 

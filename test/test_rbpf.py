@@ -248,7 +248,9 @@ def test_block_log_predictives_equal_the_appearance_module():
 
 # ------------------------------------------------------------------------- exactness against enumeration
 
-ODO = OdometryConfig(n_samples=0, a_xy=0.15**2, area_m2=1000.0)  # 15 cm/√m: the loop closures stay uncertain
+#: 15 cm/√m: the loop closures stay uncertain. The cases below were built on the area model (a new place
+#: uniform over A = 1000 m²): with odometry alone the step prior (the default) leaves the square undecided
+ODO = OdometryConfig(n_samples=0, a_xy=0.15**2, area_m2=1000.0, place_prior="area")
 ROUTE6 = [0, 1, 2, 3, 0, 1]
 
 
@@ -381,7 +383,9 @@ def test_filter_matches_enumeration_where_the_separation_prior_matters(seed):
 
 #: Heading noise well above the defaults (20 cm/√rad turned, 6 cm/√m of heading per metre) on a 12 m square:
 #: after a 48 m loop the heading is uncertain by tens of degrees, where the EKF's linearisation errs.
-ODO_HEADING = OdometryConfig(n_samples=500, a_xy=0.05**2, a_th=0.2**2, c_th=0.06**2, area_m2=1000.0)
+ODO_HEADING = OdometryConfig(
+    n_samples=500, a_xy=0.05**2, a_th=0.2**2, c_th=0.06**2, area_m2=1000.0, place_prior="area"
+)
 ROUTE7 = [0, 1, 2, 3, 0, 1, 2]
 SQUARE12 = [(0.0, 0.0), (12.0, 0.0), (12.0, 12.0), (0.0, 12.0)]
 
@@ -487,7 +491,7 @@ def test_place_positions_match_the_batch_optimum(odometry_case):
 
 # --------------------------------------------------------------------------------------- few particles
 
-ODO8 = OdometryConfig(n_samples=0, a_xy=0.3**2, area_m2=1000.0)  # 30 cm/√m on a 4 m square: spread
+ODO8 = OdometryConfig(n_samples=0, a_xy=0.3**2, area_m2=1000.0, place_prior="area")  # 30 cm/√m, 4 m square
 ROUTE8 = [0, 1, 2, 3, 0, 1, 2, 3]
 
 
@@ -521,8 +525,9 @@ def test_fewer_particles_stay_close_to_the_full_enumeration():
 
 def test_aliased_closures_keep_both_hypotheses():
     """Visit 5 returns, after a 60 m loop, exactly between places 0 and 1 (3 m apart): odometry cannot
-    decide. Enumeration: 0.53 / 0.47 (exact_posterior: 0.526 / 0.469). With 3 or 10 particles the filter
-    keeps both with the same masses, and carries them on."""
+    decide. Enumeration at the defaults: 0.287 / 0.284, and 0.427 on a new place (the area model: 0.457 /
+    0.451 / 0.091). With 3 or 10 particles the filter keeps both with the same masses, and carries them
+    on."""
     hp = math.pi / 2
     poses = [
         (0, 0, 0),
@@ -544,8 +549,8 @@ def test_aliased_closures_keep_both_hypotheses():
         for i, p in enumerate(poses)
     ]
     odo = OdometryConfig(n_samples=0)
-    ex = place_marginal(full_filter(visits[:6], odo).ptm_weights(), 5)  # = exact (0.526 / 0.469) ± 0.002
-    assert min(ex[0], ex[1]) > 0.4
+    ex = place_marginal(full_filter(visits[:6], odo).ptm_weights(), 5)
+    assert min(ex[0], ex[1]) > 0.2 and abs(ex[0] - ex[1]) < 0.05
     for particles in (3, 10):
         flt = TopologyFilter(RbpfConfig(particles=particles), make_prior(PRIOR), odo, seed=1)
         for v in visits:

@@ -33,7 +33,7 @@ from ptm_ros.model.visits import Visit
 
 SQUARE = [(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)]
 ROUTE = [0, 1, 2, 3, 0, 1, 2]
-ODO = OdometryConfig(n_samples=0, a_xy=0.15**2, area_m2=1000.0)  # the case was built on a 1000 m² A
+ODO = OdometryConfig(n_samples=0, a_xy=0.15**2, area_m2=1000.0, place_prior="area")  # built on a 1000 m² A
 SD = np.array([0.05, 0.05, 0.01])
 ALIAS = (1, 5)  # this pair's registration is the place's 180° symmetric image, not the truth
 

@@ -141,7 +141,8 @@ def test_an_aliased_ring_is_not_closed_too_early_by_a_chain_of_aliased_registrat
 def test_ptm_run_at_its_defaults_is_exact_enumeration_on_a_small_aliased_loop(tmp_path):
     """Issue #23's yardstick in the suite: ``ptm-run`` at its defaults against ``--method exact`` on one of
     ``bench/bench_exact.py``'s runs (``aliased-loop``, seed 100, 8 visits), where the filter's sequential
-    EKF weights are far off (measured TV 0.113: the exact MAP 0.61 against 0.72). The default PTM,
+    EKF weights are off (measured TV 0.048: the exact MAP 0.918 against 0.871; under the area model TV
+    0.113, 0.61 against 0.72). The default PTM,
     reweighted with the batch evidence, is the exact posterior over the filter's topologies (measured TV
     0.0000); the bound leaves room for the importance samples and the listed tail."""
     from ptm_ros.model.posterior import total_variation
@@ -167,4 +168,4 @@ def test_ptm_run_at_its_defaults_is_exact_enumeration_on_a_small_aliased_loop(tm
         dist[name] = {t.labels: t.probability for t in ptm.topologies}
     assert len(next(iter(dist["exact"]))) == 8
     assert total_variation(dist["exact"], dist["default"]) < 0.02
-    assert total_variation(dist["exact"], dist["sequential"]) > 0.05  # what the reweighting removes
+    assert total_variation(dist["exact"], dist["sequential"]) > 0.03  # what the reweighting removes

@@ -154,12 +154,12 @@ class OdometryConfig(Settings):
         ),
     )
     place_prior: str = setting(
-        "area",
+        "steps",
         choices=PLACE_PRIORS,
         doc=(
-            'where a new place can be: ``"area"`` (default) uniform over ``A`` (eq. 17); ``"steps"`` '
-            "where the robot's step from the previous visit takes it, by the density of the run's own "
-            "visit-to-visit odometry steps (:func:`place_log_priors`)."
+            'where a new place can be: ``"steps"`` (default) where the robot\'s step from the previous visit '
+            'takes it, by the density of the run\'s own visit-to-visit odometry steps; ``"area"`` uniform '
+            "over ``A`` (eq. 17) (:func:`place_log_priors`)."
         ),
     )
     step_floor: float = setting(
@@ -390,9 +390,11 @@ def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatAr
     merge gains what a step like the run's others costs (``bench/thesis_protocol.md``). The density is
     taken at the odometry step rather than at the place's position (a constant of the topology, as ``A``
     is), and the first visit's place stays uniform over ``A`` (common to every topology). Below
-    :data:`MIN_STEPS` steps, ``"area"``. Limitation (why ``"area"`` stays the default): nothing but the
-    separation prior keeps a new place off an old one, so where all steps are alike and only odometry
-    speaks, a revisit is no longer believed.
+    :data:`MIN_STEPS` steps, ``"area"``. What ``"steps"`` gives up: nothing but the separation prior keeps a
+    new place off an old one, so where all steps are alike and only odometry speaks (a square driven
+    twice), a fresh place where the steps lead is about as likely as the return: the loop stays open
+    at a few nats either way, as Sec. 2.6 of the thesis finds of odometry alone; a registration or the
+    appearance decides it.
     """
     n = len(visits)
     area = place_area(visits, config)
