@@ -26,7 +26,10 @@ interruption; ``--fresh`` starts over). Bags are deleted after their run unless 
         [--params FILE] [--families NAME ...] [--noise LEVEL ...]
 
 ``--params FILE`` runs ``ptm-run --params FILE`` instead of the defaults (a diagnostic: e.g. without the
-laser odometry), its records kept apart under ``WORK/full-<stem>``.
+laser odometry), its records kept apart under ``WORK/full-<stem>``. ``--scan-rate HZ`` and
+``--panorama-spacing M`` simulate other sensors than the simulator's (10 Hz scans, a panorama every metre:
+0.5 Hz at its 0.5 m/s), e.g. 5 Hz and 0.5 m (1 Hz), the rates of a held-out check; their records are kept
+apart under ``WORK/full-scan<HZ>-pano<M>``.
 """
 
 from __future__ import annotations
@@ -45,13 +48,13 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ptm_ros.io.simulator import OdometryNoiseConfig
+from ptm_ros.io.simulator import OdometryNoiseConfig, SimConfig
 from ptm_ros.scoring.evaluation import CalibrationSummary
 
 BENCH = Path(__file__).resolve().parent
@@ -92,6 +95,19 @@ class Case:
 CASE_KEYS = ("family", "variant", "world", "noise", "seed")
 
 
+@dataclass(frozen=True)
+class Sensors:
+    """Sensor rates other than the simulator's: scans per second, metres of travel between panoramas."""
+
+    scan_rate: float
+    panorama_spacing: float
+
+    @property
+    def tag(self) -> str:
+        """The suffix of the work directory of runs with these sensors."""
+        return f"scan{self.scan_rate:g}-pano{self.panorama_spacing:g}"
+
+
 def grid(
     runs: int,
     quick: bool = False,
@@ -118,10 +134,25 @@ def grid(
     return out
 
 
-def run_case(case: Case, work: str, keep_bags: bool, params: str | None = None) -> dict[str, Any]:
-    """Simulate, ``ptm-run`` at default parameters (or with ``--params params``), score: the case's record
-    (JSON values)."""
-    from ptm_ros.io.simulator import SimConfig, simulate, write_run
+def sim_config(case: Case, sensors: Sensors | None = None) -> SimConfig:
+    """The simulator's configuration of a case: its odometry noise level, and ``sensors`` (or the
+    simulator's own scan rate and panorama spacing)."""
+    from ptm_ros.io.simulator import SimConfig
+
+    config = SimConfig(odometry=NOISE_LEVELS[case.noise])
+    if sensors is None:
+        return config
+    laser = replace(config.laser, rate=sensors.scan_rate)
+    camera = replace(config.camera, spacing=sensors.panorama_spacing)
+    return replace(config, laser=laser, camera=camera)
+
+
+def run_case(
+    case: Case, work: str, keep_bags: bool, params: str | None = None, sensors: Sensors | None = None
+) -> dict[str, Any]:
+    """Simulate (with ``sensors``, or the simulator's), ``ptm-run`` at default parameters (or with
+    ``--params params``), score: the case's record (JSON values)."""
+    from ptm_ros.io.simulator import simulate, write_run
     from ptm_ros.io.worlds import get_world
     from ptm_ros.model.ptm import load_ptm
     from ptm_ros.tools import run as ptm_run
@@ -133,9 +164,7 @@ def run_case(case: Case, work: str, keep_bags: bool, params: str | None = None) 
     if root.exists():
         shutil.rmtree(root)
     root.mkdir(parents=True)
-    sim = simulate(
-        get_world(case.world), SimConfig(odometry=NOISE_LEVELS[case.noise]), np.random.default_rng(case.seed)
-    )
+    sim = simulate(get_world(case.world), sim_config(case, sensors), np.random.default_rng(case.seed))
     write_run(sim, bag)
     drift = float(np.hypot(*sim.odometry_error()[-1, :2]))
     t1 = time.perf_counter()
@@ -215,8 +244,13 @@ def wrong_pairs(rows: Iterable[dict[str, Any]], top: int = 5) -> dict[str, dict[
     return out
 
 
-def run_all(
-    cases: Sequence[Case], work: Path, jobs: int, keep_bags: bool, params: str | None = None
+def run_all(  # noqa: PLR0917 (the benchmark's options, positionally)
+    cases: Sequence[Case],
+    work: Path,
+    jobs: int,
+    keep_bags: bool,
+    params: str | None = None,
+    sensors: Sensors | None = None,
 ) -> list[dict[str, Any]]:
     """Every case's record, reusing ``work/records.jsonl`` and appending to it as runs finish."""
     work.mkdir(parents=True, exist_ok=True)
@@ -253,10 +287,10 @@ def run_all(
 
     if jobs <= 1:
         for k, case in enumerate(todo, 1):
-            record(run_case(case, str(work), keep_bags, params), k)
+            record(run_case(case, str(work), keep_bags, params, sensors), k)
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [pool.submit(run_case, c, str(work), keep_bags, params) for c in todo]
+            futures = [pool.submit(run_case, c, str(work), keep_bags, params, sensors) for c in todo]
             for k, fut in enumerate(futures, 1):
                 record(fut.result(), k)
     return [done[c.key] for c in cases]
@@ -373,6 +407,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         "runs_requested": args.runs,
         "quick": args.quick,
         "params": None if args.params is None else str(args.params),
+        "sensors": {"scan_rate_hz": args.scan_rate, "panorama_spacing_m": args.panorama_spacing},
         "wall_s": wall,
         "noise_levels": {k: asdict(v) for k, v in NOISE_LEVELS.items()},
         "definitions": {
@@ -408,7 +443,9 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         f"per-run records in `{out.name}`, reliability diagram `{png.name}`.",
         "",
         "Each run: a calibration world (aliased, or its control with distinct textures) simulated with one "
-        "odometry noise level and seed, `ptm-run` at "
+        "odometry noise level and seed"
+        + (f" ({_sensor_text(args)})" if args.scan_rate or args.panorama_spacing else "")
+        + ", `ptm-run` at "
         + (f"the parameters of `{args.params}`" if args.params else "the default parameters")
         + " (laser-surprise detector), "
         "scored against the simulator's places. *MAP right*: the MAP topology is exactly the true one. "
@@ -442,6 +479,13 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
     print(md.read_text())
 
 
+def _sensor_text(args: argparse.Namespace) -> str:
+    """The sensors a run was simulated with, where not the simulator's, in words."""
+    parts = [f"scans at {args.scan_rate:g} Hz"] if args.scan_rate else []
+    parts += [f"a panorama every {args.panorama_spacing:g} m"] if args.panorama_spacing else []
+    return " and ".join(parts)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=None, help=f"number of runs (default {DEFAULT_RUNS})")
@@ -457,6 +501,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--params", type=Path, default=None, help="ptm-run --params FILE (default: the default parameters)"
     )
     parser.add_argument("--families", nargs="+", default=None, help="only these families")
+    parser.add_argument("--scan-rate", type=float, default=None, help="simulated scans per second")
+    parser.add_argument("--panorama-spacing", type=float, default=None, help="metres between panoramas")
     parser.add_argument(
         "--noise", nargs="+", default=None, choices=list(NOISE_LEVELS), help="only these levels"
     )
@@ -468,6 +514,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     work = args.work / ("quick" if args.quick else "full")
     if args.params is not None:
         work = work.with_name(f"{work.name}-{args.params.stem}")
+    sensors = None
+    if args.scan_rate is not None or args.panorama_spacing is not None:
+        default = SimConfig()
+        sensors = Sensors(
+            default.laser.rate if args.scan_rate is None else args.scan_rate,
+            default.camera.spacing if args.panorama_spacing is None else args.panorama_spacing,
+        )
+        if sensors.scan_rate <= 0.0 or sensors.panorama_spacing <= 0.0:
+            parser.error("--scan-rate and --panorama-spacing must be > 0")
+        work = work.with_name(f"{work.name}-{sensors.tag}")
     if args.out is None:
         args.out = work / "calibration.json" if args.quick else BENCH / "calibration.json"
     if args.fresh and work.exists():
@@ -475,7 +531,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     cases = grid(args.runs, args.quick, args.families, args.noise)
     params = None if args.params is None else str(args.params.resolve())
-    rows = run_all(cases, work, args.jobs, args.keep_bags, params)
+    rows = run_all(cases, work, args.jobs, args.keep_bags, params, sensors)
     write_outputs(rows, args.out, args, time.perf_counter() - t0)
     return 0
 
