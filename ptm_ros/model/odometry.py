@@ -34,7 +34,9 @@ the integrand over :math:`X = (x_1, \dots, x_{N-1})` (``d = 3(N-1)`` dimensions)
   (headings are not constrained by the topology). Unlike the thesis' unnormalised eq. 17, which sums
   :math:`((l_{i1}-l_{i2})/\sigma_T)^2` over ordered pairs and has no normalising constant, this makes
   ``P(O | T)`` a proper density of the odometry, so topologies with different numbers of places compare
-  fairly: a merge gains about ``A / (2π · uncertainty area)``, a Bayes factor;
+  fairly: a merge gains about ``A / (2π · uncertainty area)``, a Bayes factor. With ``place_prior`` steps
+  (the default) the ``1/A`` of a place's first visit is the density of the run's own steps at that visit's
+  step (:func:`place_log_priors`), so a merge gains what a step like the run's others costs;
 * laser registrations :math:`z_{ij}` (:class:`ptm_ros.model.geometry.RelativePose`, only those that passed
   their fitness test) are Gaussian measurements of :math:`x_i \ominus x_j` when ``i`` and ``j`` are the
   same place, and a uniform outcome over the registration search volume :math:`V_{reg}` (m²·rad)
