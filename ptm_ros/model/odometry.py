@@ -395,8 +395,8 @@ def place_log_priors(visits: Sequence[Visit], config: OdometryConfig) -> FloatAr
     :data:`MIN_STEPS` steps, ``"area"``. What ``"steps"`` gives up: nothing but the separation prior keeps a
     new place off an old one, so where all steps are alike and only odometry speaks (a square driven
     twice), a fresh place where the steps lead is about as likely as the return: the loop stays open
-    at a few nats either way, as Sec. 2.6 of the thesis finds of odometry alone; a registration or the
-    appearance decides it.
+    at a few nats either way, as Sec. 2.6 of the thesis finds of odometry alone; registrations and the
+    appearance must decide it.
     """
     n = len(visits)
     area = place_area(visits, config)
