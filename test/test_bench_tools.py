@@ -1,0 +1,55 @@
+"""Helpers of the benchmarks whose mistakes would go unnoticed in their figures: the sensors
+``bench/bench_calibration.py`` simulates, and the cache of exact enumerations ``bench/bench_exact.py``
+reuses."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
+from bench_exact import _current
+
+from ptm_ros.config import load_config, save_config
+from ptm_ros.io.simulator import SimConfig, simulate
+from ptm_ros.io.worlds import get_world
+
+CASE = Case("loop", "aliased", "aliased-loop", "model", 0)
+
+
+def test_calibration_cases_simulate_the_sensors_asked_for():
+    """Without ``--scan-rate``/``--panorama-spacing`` the simulator's own sensors; with them, scans at
+    that rate and a panorama every that many metres, all else the same."""
+    plain = sim_config(CASE)
+    assert plain == SimConfig(odometry=NOISE_LEVELS["model"])
+    other = sim_config(CASE, Sensors(scan_rate=5.0, panorama_spacing=0.5))
+    assert (other.laser.rate, other.camera.spacing) == (5.0, 0.5)
+    assert replace(other, laser=plain.laser, camera=plain.camera) == plain
+    world, rng = get_world(CASE.world), np.random.default_rng
+    default_run, held_out = simulate(world, plain, rng(0)), simulate(world, other, rng(0))
+    assert np.median(np.diff(held_out.scan_stamps)) == pytest.approx(0.2)
+    assert np.median(np.diff(default_run.scan_stamps)) == pytest.approx(0.1)
+    assert len(held_out.image_stamps) > 1.8 * len(default_run.image_stamps)
+    assert Sensors(5.0, 0.5).tag == "scan5-pano0.5"
+
+
+def test_a_cached_enumeration_is_reused_only_under_todays_parameters(tmp_path):
+    """``bench_exact`` kept enumerations made under other defaults (the area model's, after the step prior
+    became the default): a cached ``config.yaml`` must equal today's but for ``inference``."""
+    params = tmp_path / "params.yaml"
+    params.write_text("inference:\n  top: 500\n")
+    saved = tmp_path / "exact" / "config.yaml"
+    assert not _current(saved, params)  # nothing cached
+    save_config(load_config(params, {"inference": {"method": "exact"}}), saved)
+    assert _current(saved, params)  # the method differs, the model does not
+    doc = yaml.safe_load(saved.read_text())
+    other = "area" if doc["model"]["odometry"]["place_prior"] == "steps" else "steps"
+    doc["model"]["odometry"]["place_prior"] = other
+    saved.write_text(yaml.safe_dump(doc))
+    assert not _current(saved, params)
