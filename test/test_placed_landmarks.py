@@ -37,6 +37,7 @@ from ptm_ros.perception.detectors import (
 )
 from ptm_ros.tools import evaluate as eval_cli
 from ptm_ros.tools import run as run_cli
+from ptm_ros.tools.outputs import RunResult
 from ptm_ros.tools.pipeline import run_offline
 
 
@@ -260,17 +261,24 @@ def test_a_ground_truth_of_another_clock_is_refused_before_the_work(
     assert not (tmp_path / "o" / "ptm.json").exists()
 
 
+def _thesis_protocol(run: Path, raw: str, ground_truth: str, tmp_path: Path) -> RunResult:
+    """A shared real run converted to a bag and replayed at the defaults with landmarks placed every 5 m
+    along its ground truth (``--detector ground-truth``), scored, into ``tmp_path / "o"``."""
+    from ptm_ros.tools import convert
+
+    bag = tmp_path / run.name
+    assert convert.main([str(run / raw), str(bag)]) == 0
+    config = load_config(None, {"detector": {"kind": "ground-truth"}})
+    return run_offline(
+        bag, tmp_path / "o", config, ground_truth=run / ground_truth, write_report=False, write_map=False
+    )
+
+
 @pytest.mark.slow
 def test_intel_with_landmarks_every_5_m_beats_the_thesis(datasets_dir: Path, tmp_path: Path) -> None:
     """The thesis' Intel experiment (Ch. 4.5, Fig. 57: landmarks placed 5 m from each other, 63 visits,
     72 % of the mass on the true topology with MC³), replayed with the filter at its defaults."""
-    from ptm_ros.tools import convert
-
-    bag = tmp_path / "intel"
-    assert convert.main([str(datasets_dir / "intel" / "intel-raw-910.clf.gz"), str(bag)]) == 0
-    config = load_config(None, {"detector": {"kind": "ground-truth"}})
-    gt = datasets_dir / "intel" / "intel-gt-910.txt"
-    result = run_offline(bag, tmp_path / "o", config, ground_truth=gt, write_report=False, write_map=False)
+    result = _thesis_protocol(datasets_dir / "intel", "intel-raw-910.clf.gz", "intel-gt-910.txt", tmp_path)
     assert result.score is not None
     assert 55 <= len(result.ptm.landmarks) <= 75
     assert result.score.true_topology_mass > 0.72, result.score.true_topology_mass
@@ -293,13 +301,7 @@ def test_aces_with_landmarks_every_5_m_is_not_sure_of_a_wrong_chain(
     at p 0.95 (MAP F1 0.789, no mass on topologies without a wrong pair). Under the step prior (the
     default) the MAP is the truth and the rest of the mass sits next to it (``bench/thesis_protocol.md``:
     1.000, consistent mass 0.48)."""
-    from ptm_ros.tools import convert
-
-    bag = tmp_path / "aces"
-    assert convert.main([str(datasets_dir / "aces" / "aces-raw-440.clf.gz"), str(bag)]) == 0
-    config = load_config(None, {"detector": {"kind": "ground-truth"}})
-    gt = datasets_dir / "aces" / "aces-gt-440.txt"
-    result = run_offline(bag, tmp_path / "o", config, ground_truth=gt, write_report=False, write_map=False)
+    result = _thesis_protocol(datasets_dir / "aces", "aces-raw-440.clf.gz", "aces-gt-440.txt", tmp_path)
     assert result.score is not None
     assert result.score.map.counts.precision > 0.97
     assert result.score.map.counts.f1 > 0.9
