@@ -137,8 +137,6 @@ def grid(
 def sim_config(case: Case, sensors: Sensors | None = None) -> SimConfig:
     """The simulator's configuration of a case: its odometry noise level, and ``sensors`` (or the
     simulator's own scan rate and panorama spacing)."""
-    from ptm_ros.io.simulator import SimConfig
-
     config = SimConfig(odometry=NOISE_LEVELS[case.noise])
     if sensors is None:
         return config
