@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -356,6 +357,23 @@ def test_the_time_offset_is_learned_from_the_run(delay):
         assert est.first == pytest.approx(-delay, abs=0.03)
     else:
         assert len(est.scores) == 1 and abs(est.first) < LaserOdometryConfig().learn_step / 2
+
+
+def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate():
+    """With workers, the candidates after the first run there (``ptm-run``'s worker processes): the same
+    passes, so the same estimate, scores and all."""
+    run = _delayed_run(0.15)
+    data = RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], _points(run)[:300])
+    sent: list[float] = []
+
+    class Recording(ThreadPoolExecutor):
+        def submit(self, fn, /, *args, **kwargs):
+            sent.append(args[1])
+            return super().submit(fn, *args, **kwargs)
+
+    with Recording(max_workers=2) as pool:
+        assert learn_time_offset(data, workers=pool) == learn_time_offset(data)
+    assert sent == [-0.15, -0.2]  # the first candidate, -0.1, ran here
 
 
 def test_best_time_offset_keeps_the_stamps_unless_an_offset_is_clearly_better():

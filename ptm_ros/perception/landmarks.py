@@ -152,6 +152,7 @@ class VisitExtractor:
 
     ``patches`` (optional) builds the patches elsewhere while the stream goes on: a visit is then returned
     by the first call after its patch is ready (the visits, their order and the counters are the same).
+    The learned time offset's candidate passes run there too (the same estimate).
     """
 
     def __init__(
@@ -372,7 +373,9 @@ class VisitExtractor:
             return []
         if len(held.odom_t) >= 2 and held.scan_t:
             run = RunInput.of(held.odom_t, held.odom_p, held.scan_t, held.scan_points)
-            self.time_offset_estimate = learn_time_offset(run, self._lo_config, self.laser)
+            self.time_offset_estimate = learn_time_offset(
+                run, self._lo_config, self.laser, workers=self.patches
+            )
             self.time_offset = self.time_offset_estimate.offset
         out: list[Visit] = []
         for stamp, topic, payload in held.messages:

@@ -59,7 +59,7 @@ from ptm_ros.model.geometry import (
     transform_points,
     wrap_angle,
 )
-from ptm_ros.perception.laser import LaserConfig, voxel_downsample
+from ptm_ros.perception.laser import LaserConfig, WorkerPool, voxel_downsample
 from ptm_ros.perception.patches import ScanMap
 from ptm_ros.settings import Settings, setting
 
@@ -573,7 +573,11 @@ class OffsetEstimate:
 
 
 def learn_time_offset(
-    run: RunInput, config: LaserOdometryConfig | None = None, laser: LaserConfig | None = None
+    run: RunInput,
+    config: LaserOdometryConfig | None = None,
+    laser: LaserConfig | None = None,
+    *,
+    workers: WorkerPool | None = None,
 ) -> OffsetEstimate:
     """The laser's time offset, learned from the run without ground truth (``learn_time_offset``).
 
@@ -584,7 +588,8 @@ def learn_time_offset(
     ``learn_step`` grid only picks the candidates: it and its two neighbours (in [-1, 0]) are scored
     like ``ptm-calibrate``'s (:func:`time_offset_scores`: the RMS heading correction) and
     :func:`best_time_offset` chooses among them and 0. When ``δ`` rounds to 0 the stamps are kept
-    after the one pass.
+    after the one pass. With ``workers`` the candidates' passes after the first run there, beside the first
+    (the same passes, so the same estimate).
     """
     cfg = LaserOdometryConfig() if config is None else config
     zero = yaw_corrections(run, 0.0, cfg, laser)
@@ -594,11 +599,25 @@ def learn_time_offset(
     scores = [offset_score(zero)]
     if centre < 0 and len(zero.yaw):
         grid = sorted({min(0, k) for k in (centre - 1, centre, centre + 1)} - {0}, reverse=True)
-        scores += [
-            offset_score(yaw_corrections(run, max(-1.0, round(k * step, 9)), cfg, laser)) for k in grid
-        ]
+        offsets = [max(-1.0, round(k * step, 9)) for k in grid]
+        scores += [offset_score(yc) for yc in _passes(run, offsets, cfg, laser, workers)]
     offset = best_time_offset(scores) if len(scores) > 1 else 0.0
     return OffsetEstimate(offset, first, tuple(scores), len(run.scan_stamps))
+
+
+def _passes(
+    run: RunInput,
+    offsets: Sequence[float],
+    config: LaserOdometryConfig,
+    laser: LaserConfig | None,
+    workers: WorkerPool | None,
+) -> list[YawCorrections]:
+    """:func:`yaw_corrections` at each of ``offsets``, in order: all here, or (``workers``) the first here
+    while the others run in the workers."""
+    if workers is None or len(offsets) <= 1:
+        return [yaw_corrections(run, o, config, laser) for o in offsets]
+    futures = [workers.submit(yaw_corrections, run, o, config, laser) for o in offsets[1:]]
+    return [yaw_corrections(run, offsets[0], config, laser), *(f.result() for f in futures)]
 
 
 def best_time_offset(scores: Sequence[OffsetScore], min_gain: float = 0.05) -> float:
