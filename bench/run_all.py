@@ -14,7 +14,8 @@
    ``make demo``'s world over 20 seeds (``bench_demo.py``: ``demo_seeds.{json,md}``), the laser time
    offset learned from simulated and real runs (``bench_time_offset.py``: ``time_offset.{json,md}``) and the
    occupancy maps of every simulated world and real run against their references (``bench_maps.py``:
-   ``maps_quality.json``, summarised in ``results.md``), when present.
+   ``maps_quality.json``, summarised in ``results.md``) and why the MAP misses same-place pairs on the
+   real runs (``bench_missed_pairs.py``: ``missed_pairs.{json,md}``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -79,6 +80,7 @@ COMPONENTS = (
     "bench_maps.py",
     "bench_demo.py",
     "bench_time_offset.py",
+    "bench_missed_pairs.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -1,6 +1,6 @@
 """Helpers of the benchmarks whose mistakes would go unnoticed in their figures: the sensors
-``bench/bench_calibration.py`` simulates, and the cache of exact enumerations ``bench/bench_exact.py``
-reuses."""
+``bench/bench_calibration.py`` simulates, the cache of exact enumerations ``bench/bench_exact.py``
+reuses, and how ``bench/bench_missed_pairs.py`` classes passages and registrations."""
 
 from __future__ import annotations
 
@@ -15,10 +15,12 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
+from bench_missed_pairs import heading_class, outcome
 
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
+from ptm_ros.perception.laser import FLAT_OPTIMUM, Registration
 
 CASE = Case("loop", "aliased", "aliased-loop", "model", 0)
 
@@ -53,3 +55,23 @@ def test_a_cached_enumeration_is_reused_only_under_todays_parameters(tmp_path):
     doc["model"]["odometry"]["place_prior"] = other
     saved.write_text(yaml.safe_dump(doc))
     assert not _current(saved, params)
+
+
+def test_missed_pairs_classes_headings_both_ways_round():
+    """Passages less than π/4 apart in heading go the same direction, more than 3π/4 opposite, whichever
+    way round and across ±π."""
+    assert [heading_class(d) for d in (0.1, -0.7, 2 * np.pi - 0.1)] == ["same direction"] * 3
+    assert [heading_class(d) for d in (np.pi, -3.0, 3.0 + 2 * np.pi)] == ["opposite"] * 3
+    assert [heading_class(d) for d in (np.pi / 2, -1.2, 2.3)] == ["across"] * 3
+
+
+def test_missed_pairs_names_a_registration_by_its_reason():
+    def reg(valid, reason):
+        return Registration(np.zeros(3), np.eye(3), 0.5, 0.5, 0.5, 0.1, 50, 100, valid, reason)
+
+    assert outcome(None) == "unregistrable"
+    assert outcome(reg(True, "")) == "valid"
+    assert outcome(reg(False, "inlier fraction 0.300 < 0.4 (source 0.3, target 0.5)")) == "inlier fraction"
+    assert outcome(reg(False, f"{FLAT_OPTIMUM}: moving 0.5 m keeps ...")) == FLAT_OPTIMUM
+    assert outcome(reg(False, "12 inliers < 30")) == "too few inliers"
+    assert outcome(reg(False, "ambiguous: distinct solution [1, 2, 3] has ...")) == "ambiguous"
