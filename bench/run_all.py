@@ -15,7 +15,9 @@
    offset learned from simulated and real runs (``bench_time_offset.py``: ``time_offset.{json,md}``) and the
    occupancy maps of every simulated world and real run against their references (``bench_maps.py``:
    ``maps_quality.json``, summarised in ``results.md``) and why the MAP misses same-place pairs on the
-   real runs (``bench_missed_pairs.py``: ``missed_pairs.{json,md}``), when present.
+   real runs (``bench_missed_pairs.py``: ``missed_pairs.{json,md}``) and the real runs' logs made
+   unlike themselves, a laser at half the rate and drifting wheels (``bench_perturbed_runs.py``:
+   ``perturbed_runs.{json,md}``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -81,6 +83,7 @@ COMPONENTS = (
     "bench_demo.py",
     "bench_time_offset.py",
     "bench_missed_pairs.py",
+    "bench_perturbed_runs.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

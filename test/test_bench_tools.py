@@ -1,9 +1,11 @@
 """Helpers of the benchmarks whose mistakes would go unnoticed in their figures: the sensors
 ``bench/bench_calibration.py`` simulates, the cache of exact enumerations ``bench/bench_exact.py``
-reuses, and how ``bench/bench_missed_pairs.py`` classes passages and registrations."""
+reuses, how ``bench/bench_missed_pairs.py`` classes passages and registrations, and the logs
+``bench/bench_perturbed_runs.py`` makes unlike themselves."""
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -16,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
 from bench_missed_pairs import heading_class, outcome
+from bench_perturbed_runs import drifted, every_nth_scan
 
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
@@ -75,3 +78,37 @@ def test_missed_pairs_names_a_registration_by_its_reason():
     assert outcome(reg(False, f"{FLAT_OPTIMUM}: moving 0.5 m keeps ...")) == FLAT_OPTIMUM
     assert outcome(reg(False, "12 inliers < 30")) == "too few inliers"
     assert outcome(reg(False, "ambiguous: distinct solution [1, 2, 3] has ...")) == "ambiguous"
+
+
+def _flaser(x, y, th, t):
+    return f"FLASER 3 1.0 2.0 3.0 {x} {y} {th} {x} {y} {th} {t} host {t}"
+
+
+def _odometry(line):
+    tokens = line.split()
+    return [float(v) for v in tokens[8:11]], [float(v) for v in tokens[5:8]]
+
+
+def test_perturbed_logs_drop_every_other_scan_and_nothing_else():
+    lines = ["# header", *(_flaser(k, 0, 0, k) for k in range(5)), "PARAM x 1"]
+    kept = every_nth_scan(lines, 2)
+    assert kept == ["# header", lines[1], lines[3], lines[5], "PARAM x 1"]
+
+
+def test_perturbed_logs_drift_by_the_bias_per_metre_and_the_scale():
+    """An L-shaped path (3 m east, a left turn, 2 m north): without bias and scale the poses come back;
+    with them the heading gains the bias per metre travelled and the travel its scale, the laser pose
+    following the odometry's."""
+    path = [(0, 0, 0), (1, 0, 0), (2, 0, 0), (3, 0, math.pi / 2), (3, 1, math.pi / 2), (3, 2, math.pi / 2)]
+    lines = [_flaser(x, y, th, k) for k, (x, y, th) in enumerate(path)]
+    for line, (x, y, th) in zip(drifted(lines, 0.0, 1.0), path, strict=True):
+        odom, laser = _odometry(line)
+        assert odom == pytest.approx([x, y, th], abs=1e-6) and laser == odom
+    bias, scale = 0.01, 1.02
+    out = [_odometry(line)[0] for line in drifted(lines, bias, scale)]
+    # two 1 m steps east: the second taken already turned by the first's bias
+    assert out[2] == pytest.approx([scale * (1 + math.cos(bias)), scale * math.sin(bias), 2 * bias], abs=1e-6)
+    assert out[3][2] == pytest.approx(math.pi / 2 + 3 * bias, abs=1e-6)  # the turn itself adds no travel
+    last = np.array(out[-1][:2]) - np.array(out[3][:2])  # two 1 m steps, the second turned by bias
+    assert np.hypot(*last) == pytest.approx(2 * scale * math.cos(bias / 2), abs=1e-6)
+    assert out[-1][2] == pytest.approx(math.pi / 2 + 5 * bias, abs=1e-6)
