@@ -157,6 +157,24 @@ def test_motion_gate_matches_only_after_enough_motion():
     assert np.hypot(*(pose5[:2] - compose(true1, [0.12, 0.0, 0.06])[:2])) < 0.01
 
 
+def test_the_correction_limits_grow_with_the_travel_since_the_last_accepted_match():
+    """The wheels' heading error grows with the travel it accrued over: after 0.5 m a 0.3 rad correction
+    is beyond ``max_correction_yaw`` (0.2) and rejected; after 2 m (a laser logged at a low rate, or
+    steps rejected in a row) the limit is twice that and the same error is corrected."""
+    start = np.array([1.5, 2.0, 0.0])
+    for travel, matched in ((0.5, False), (2.0, True)):
+        lo = LaserOdometry()
+        lo.on_scan(start, room_scan(start))  # the first map
+        true = compose(start, [travel, 0.0, 0.0])
+        wheel = compose(true, [0.0, 0.0, 0.3])  # the wheels turned 0.3 rad that the robot did not
+        pose = lo.on_scan(wheel, room_scan(true))
+        assert (lo.counters.matched, lo.counters.rejected) == ((1, 0) if matched else (0, 1))
+        if matched:
+            assert np.hypot(*(pose[:2] - true[:2])) < 0.02 and abs(wrap_angle(pose[2] - true[2])) < 0.01
+        else:
+            assert np.array_equal(pose, wheel)
+
+
 def test_motion_gate_off_matches_every_scan():
     lo = LaserOdometry(LaserOdometryConfig(match_xy=0.0, match_yaw=0.0))
     pose = np.array([3.0, 2.0, 0.0])

@@ -87,6 +87,16 @@ class LaserOdometryConfig(Settings):
         0.5, gt=0, doc="larger corrections of one scan step are rejected (the step keeps wheel odometry)."
     )
     max_correction_yaw: float = setting(0.2, gt=0, doc="the same for heading.")
+    correction_travel: float = setting(
+        1.0,
+        gt=0,
+        doc=(
+            "the two limits hold for up to this much wheel travel [m] since the last accepted match and grow "
+            "in proportion beyond it: the wheel odometry's error, which a correction takes out, grows with "
+            "the travel it accrued over (a laser logged at a low rate; a run of rejected steps, which would "
+            "otherwise keep rejecting the same accrued error)."
+        ),
+    )
     min_points: int = setting(
         10, ge=1, doc="fewer usable points than this in a scan (after downsampling) or in the map: no match."
     )
@@ -231,6 +241,7 @@ class LaserOdometry:
         self._last_wheel: FloatArray | None = None  # wheel pose of the last scan past the motion gate
         self._last_constrained = False  # whether that scan's match constrained every direction
         self._path = np.zeros(2)  # (laser, wheel) path length of consecutive constrained matches (m)
+        self._accepted_wheel: FloatArray | None = None  # wheel pose of the last accepted match
 
     @property
     def wheel_scale(self) -> float:
@@ -284,10 +295,11 @@ class LaserOdometry:
                 min_points=cfg.min_points,
                 degenerate_ratio=ratio,
             )
-            if aligned is None or not self._acceptable(guess, aligned.pose, pts):
+            if aligned is None or not self._acceptable(guess, aligned.pose, pts, wheel):
                 self.counters.rejected += 1
             else:
                 pose = aligned.pose
+                self._accepted_wheel = wheel
                 self._correction = compose(pose, inverse(wheel))
                 self.counters.matched += 1
                 constrained = ratio > 0.0 and aligned.weak == 0
@@ -300,17 +312,23 @@ class LaserOdometry:
             self._map = ScanMap(np.vstack(tuple(self._window)), self.laser, voxel=cfg.voxel)
             self._last_key = pose
             self.counters.keyframes += 1
+            if self._accepted_wheel is None:  # the first map: the travel counts from its scan
+                self._accepted_wheel = wheel
         return pose
 
-    def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray) -> bool:
-        """Whether a match corrects the guess within the step limits and places enough of the scan on
-        the local map (``max_correction_*``, ``min_inlier_fraction``)."""
+    def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray, wheel: FloatArray) -> bool:
+        """Whether a match corrects the guess within the step limits, grown with the wheel travel since
+        the last accepted match beyond ``correction_travel``, and places enough of the scan on the local
+        map (``max_correction_*``, ``min_inlier_fraction``)."""
         cfg = self.config
         step = between(guess, aligned)
+        since = self._accepted_wheel
+        travel = 0.0 if since is None else math.dist(wheel[:2], since[:2])
+        grow = max(1.0, travel / cfg.correction_travel)
         assert self._map is not None  # a match was made on it
         return (
-            math.hypot(step[0], step[1]) <= cfg.max_correction_xy
-            and abs(step[2]) <= cfg.max_correction_yaw
+            math.hypot(step[0], step[1]) <= grow * cfg.max_correction_xy
+            and abs(step[2]) <= grow * cfg.max_correction_yaw
             and self._map.inlier_fraction(pts, aligned) >= cfg.min_inlier_fraction
         )
 
