@@ -5,8 +5,8 @@ robots and loggers. This benchmark makes each CARMEN log of ``../shared/datasets
 could have recorded, then runs ``ptm-run`` on them at the default parameters with the run's ground truth
 (matched by stamp, so it still applies):
 
-* ``every 2nd scan``: every other ``FLASER`` record dropped (a laser logged at half the rate; the
-  odometry of the kept records is unchanged);
+* ``every 2nd scan``, ``every 3rd scan``: only every second / third ``FLASER`` record kept (a laser logged
+  at a half / a third of the rate; the odometry of the kept records is unchanged);
 * ``drift``: the odometry re-integrated from its own increments with a heading bias of ``DRIFT_RAD_PER_M``
   per metre travelled and the travel scaled by ``DRIFT_SCALE`` (worse wheels: a systematic turn and a
   wrong wheel radius), in every record that carries an odometry pose (``FLASER``, ``ODOM``).
@@ -110,6 +110,7 @@ def drifted(lines: Iterable[str], bias: float, scale: float) -> list[str]:
 PERTURBATIONS: dict[str, Callable[[list[str]], list[str]]] = {
     "as logged": list,
     "every 2nd scan": lambda lines: every_nth_scan(lines, 2),
+    "every 3rd scan": lambda lines: every_nth_scan(lines, 3),
     "drift": lambda lines: drifted(lines, DRIFT_RAD_PER_M, DRIFT_SCALE),
 }
 
@@ -169,7 +170,8 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         "# The real runs made unlike themselves (issue #23)",
         "",
         f"Generated {doc['generated']} by `bench/bench_perturbed_runs.py` ({doc['minutes']:.0f} min). Each "
-        "CARMEN log as logged, with every other scan dropped (a laser at half the rate), and with its "
+        "CARMEN log as logged, with only every 2nd or 3rd scan (a laser at a half or a third of the rate) "
+        "and with its "
         f"odometry drifted ({doc['drift_rad_per_m']} rad of heading per metre, travel × "
         f"{doc['drift_scale']}); `ptm-run` at the default parameters, scored against the run's ground truth.",
         "",
@@ -185,7 +187,7 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
             f"| {r['run']} | {r['log']} | {r['visits']} | {r['map_f1']:.3f} ({r['map_precision']:.3f}, "
             f"{r['map_recall']:.3f}) | {r['map_probability']:.2f} | {r['consistent_mass']:.2f} | "
             f"{r['ate_smoothed_m']:.2f} / {r['ate_odometry_m']:.2f} | {r['laser_matched']} / "
-            f"{r['laser_rejected']} | {r['heading_scale']} | {r['registrations_valid']} / "
+            f"{r['laser_rejected']} | {r['heading_scale']:.3g} | {r['registrations_valid']} / "
             f"{r['registrations']} |"
         )
     lines += ["", "## Commands", "", "    PYTHONPATH=. .venv/bin/python bench/bench_perturbed_runs.py", ""]
