@@ -158,7 +158,7 @@ def score(bag: Path, truth: Path, out: Path) -> dict[str, Any]:
         "ate_odometry_m": ate.get("ate_odometry_m"),
         "laser_matched": lo.get("matched"),
         "laser_rejected": lo.get("rejected"),
-        "heading_scale": doc["inference"].get("heading_noise", {}).get("scale"),
+        "heading_scale": doc["inference"].get("heading_noise", {}).get("scale", math.nan),
         "registrations": diag.get("registrations"),
         "registrations_valid": diag.get("registrations_valid"),
     }
