@@ -29,7 +29,6 @@ import argparse
 import contextlib
 import io
 import math
-import platform
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -37,7 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from run_all import prepare_runs, write_bench
+from run_all import prepare_runs, when_and_where, write_bench
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -205,9 +204,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ]
     reasons = sorted({o for r in runs for _, o, _ in r["registered"]}, key=lambda o: (o != "valid", o))
     doc = {
-        "generated": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "machine": platform.platform(),
-        "minutes": (time.perf_counter() - t0) / 60.0,
+        **when_and_where(t0),
         "reasons": reasons,
         "runs": runs,
     }

@@ -31,13 +31,12 @@ import contextlib
 import gzip
 import io
 import math
-import platform
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from run_all import DATASETS, REAL_RUNS, write_bench
+from run_all import DATASETS, REAL_RUNS, when_and_where, write_bench
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -212,9 +211,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             rows.append({"run": name, "log": label, **score(bag, DATASETS / gt, out)})
             print(f"[perturbed] {rows[-1]}", flush=True)
     doc = {
-        "generated": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "machine": platform.platform(),
-        "minutes": (time.perf_counter() - t0) / 60.0,
+        **when_and_where(t0),
         "drift_rad_per_m": DRIFT_RAD_PER_M,
         "drift_scale": DRIFT_SCALE,
         "rows": rows,

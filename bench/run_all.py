@@ -59,6 +59,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -91,6 +92,18 @@ REAL_RUNS = (
     ("aces", "aces/aces-raw-440.clf.gz", "aces/aces-gt-440.txt"),
     ("mit-csail", "mit-csail/mit-csail.clf.gz", "mit-csail/mit-csail-gt-406.txt"),
 )
+
+
+def when_and_where(t0: float) -> dict[str, Any]:
+    """A benchmark record's ``generated`` (local time), ``machine`` and ``minutes`` since ``t0``
+    (:func:`time.perf_counter`)."""
+    import platform
+
+    return {
+        "generated": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "machine": platform.platform(),
+        "minutes": (time.perf_counter() - t0) / 60.0,
+    }
 
 
 def write_bench(doc: dict, out: Path, write_md: Callable[[dict, Path], None]) -> None:
