@@ -1,7 +1,7 @@
 """The real runs made unlike themselves: a slower laser, worse wheels (issue #23: held-out data).
 
 The shared runs are the data every default was chosen on, and the issue's held-out runs came from other
-robots and loggers. This benchmark makes each CARMEN log of ``../shared/datasets`` into logs that robot
+robots and loggers. This benchmark makes each CARMEN log of ``../shared/datasets`` into logs its robot
 could have recorded, then runs ``ptm-run`` on them at the default parameters with the run's ground truth
 (matched by stamp, so it still applies):
 
@@ -115,7 +115,8 @@ PERTURBATIONS: dict[str, Callable[[list[str]], list[str]]] = {
 
 
 def perturbed_bag(log: Path, name: str, work: Path) -> Path:
-    """The bag of ``log`` under perturbation ``name`` (made once under ``work``)."""
+    """The bag of ``log`` under perturbation ``name``, made once under ``work`` (a changed perturbation
+    needs a fresh ``work``)."""
     from ptm_ros.tools.convert import convert
 
     tag = name.replace(" ", "-")
