@@ -15,9 +15,11 @@ Per run and log: MAP F1 (precision, recall), the MAP probability and the mass on
 pair wrong, the smoothed MAP trajectory's and the odometry's ATE, the visits, the laser odometry's matched
 and rejected scans, the learned heading-noise scale and the registrations (valid / made).
 
-Writes ``bench/perturbed_runs.json`` and ``bench/perturbed_runs.md`` (``--out``). About 4 minutes.
+Over inference seeds ``--seeds`` (0, 1, 2). Writes ``bench/perturbed_runs.json`` and
+``bench/perturbed_runs.md`` (``--out``). About 12 minutes.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_perturbed_runs.py [--work out/perturbed] [--out bench]
+    PYTHONPATH=. .venv/bin/python bench/bench_perturbed_runs.py [--seeds 0 1 2] [--work out/perturbed] \\
+        [--out bench]
 """
 
 from __future__ import annotations
@@ -131,9 +133,9 @@ def perturbed_bag(log: Path, name: str, work: Path) -> Path:
     return bag
 
 
-def score(bag: Path, truth: Path, out: Path) -> dict[str, Any]:
-    """``ptm-run`` at the defaults (``--force``: a drifted odometry no longer moves as the ground truth's
-    raw one), its figures."""
+def score(bag: Path, truth: Path, out: Path, seed: int) -> dict[str, Any]:
+    """``ptm-run`` at the defaults but the inference ``seed`` (``--force``: a drifted odometry no longer
+    moves as the ground truth's raw one), its figures."""
     import json
 
     from ptm_ros.model.ptm import load_ptm
@@ -141,7 +143,8 @@ def score(bag: Path, truth: Path, out: Path) -> dict[str, Any]:
     from ptm_ros.tools.outputs import score_against
 
     log = io.StringIO()
-    args = [str(bag), "--out", str(out), "--ground-truth", str(truth), "--force", "--no-report", "--no-map"]
+    args = [str(bag), "--out", str(out), "--ground-truth", str(truth), "--seed", str(seed), "--force"]
+    args += ["--no-report", "--no-map"]
     with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         code = ptm_run.main(args)
     if code != 0:
@@ -175,29 +178,54 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         f"odometry drifted ({doc['drift_rad_per_m']} rad of heading per metre, travel × "
         f"{doc['drift_scale']}); `ptm-run` at the default parameters, scored against the run's ground truth.",
         "",
-        "| run | log | visits | MAP F1 (P, R) | MAP p | consistent mass | ATE smoothed / odometry (m) "
-        "| laser odometry matched / rejected | heading scale | registrations valid / made |",
+        "Per inference seed (the filter's resampling; the visits and the laser odometry do not depend on "
+        f"it), seeds {', '.join(str(x) for x in doc['seeds'])}:",
+        "",
+        "| run | log | visits | MAP F1 (precision) | MAP p | ATE smoothed (m) | heading scale "
+        "| registrations valid / made | laser odometry matched / rejected | odometry ATE (m) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for r in doc["rows"]:
-        if "error" in r:
-            lines.append(f"| {r['run']} | {r['log']} | failed: {r['error'][-200:]!r} ||||||||")
-            continue
-        lines.append(
-            f"| {r['run']} | {r['log']} | {r['visits']} | {r['map_f1']:.3f} ({r['map_precision']:.3f}, "
-            f"{r['map_recall']:.3f}) | {r['map_probability']:.2f} | {r['consistent_mass']:.2f} | "
-            f"{r['ate_smoothed_m']:.2f} / {r['ate_odometry_m']:.2f} | {r['laser_matched']} / "
-            f"{r['laser_rejected']} | {r['heading_scale']:.3g} | {r['registrations_valid']} / "
-            f"{r['registrations']} |"
-        )
+        groups.setdefault((r["run"], r["log"]), []).append(r)
+    for (run, log), rows in groups.items():
+        failed = [r["error"][-120:] for r in rows if "error" in r]
+        if failed:
+            lines.append(f"| {run} | {log} | failed: {failed!r} ||||||||")
+        ok = [r for r in rows if "error" not in r]
+        if ok:
+            lines.append(_seeds_row(run, log, ok))
     lines += ["", "## Commands", "", "    PYTHONPATH=. .venv/bin/python bench/bench_perturbed_runs.py", ""]
     path.write_text("\n".join(lines))
+
+
+def _seeds_row(run: str, log: str, rows: Sequence[dict[str, Any]]) -> str:
+    """One markdown row of a run and log over its seeds (per-seed figures joined by ``/``)."""
+
+    def each(fmt: str, *keys: str) -> str:
+        return " / ".join(fmt.format(*(r[k] for k in keys)) for r in rows)
+
+    first = rows[0]
+    cells = [
+        run,
+        log,
+        str(first["visits"]),
+        each("{:.3f} ({:.2f})", "map_f1", "map_precision"),
+        each("{:.2f}", "map_probability"),
+        each("{:.2f}", "ate_smoothed_m"),
+        each("{:.3g}", "heading_scale"),
+        each("{}/{}", "registrations_valid", "registrations"),
+        f"{first['laser_matched']} / {first['laser_rejected']}",
+        f"{first['ate_odometry_m']:.2f}",
+    ]
+    return "| " + " | ".join(cells) + " |"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=REPO / "out" / "perturbed")
     parser.add_argument("--out", type=Path, default=BENCH, help="where perturbed_runs.{json,md} are written")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="inference seeds")
     args = parser.parse_args(argv)
     if not (DATASETS / "README.md").is_file():
         print(f"[perturbed] {DATASETS} absent: nothing to do", flush=True)
@@ -208,13 +236,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name, log, gt in REAL_RUNS:
         for label in PERTURBATIONS:
             bag = perturbed_bag(DATASETS / log, label, args.work)
-            out = args.work / f"{name}-{label.replace(' ', '-')}"
-            rows.append({"run": name, "log": label, **score(bag, DATASETS / gt, out)})
-            print(f"[perturbed] {rows[-1]}", flush=True)
+            for seed in args.seeds:
+                out = args.work / f"{name}-{label.replace(' ', '-')}-{seed}"
+                rows.append({"run": name, "log": label, "seed": seed, **score(bag, DATASETS / gt, out, seed)})
+                print(f"[perturbed] {rows[-1]}", flush=True)
     doc = {
         **when_and_where(t0),
         "drift_rad_per_m": DRIFT_RAD_PER_M,
         "drift_scale": DRIFT_SCALE,
+        "seeds": args.seeds,
         "rows": rows,
     }
     write_bench(doc, args.out / "perturbed_runs.json", write_md)
