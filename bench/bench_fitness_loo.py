@@ -30,8 +30,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import contextlib
-import io
 import json
 import time
 from collections.abc import Mapping, Sequence
@@ -40,7 +38,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from run_all import LOO_HEADERS, SIMULATED, outlier_table, prepare_runs
+from run_all import LOO_HEADERS, SIMULATED, outlier_table, prepare_runs, ptm_run_scored
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -140,22 +138,12 @@ def score(
     recall; ``tag`` names its files under ``work``."""
     import yaml
 
-    from ptm_ros.tools import run as ptm_run
-
     path = work / f"params-{bag.name}-{seed}-{tag}.yaml"
     path.write_text(yaml.safe_dump({"inference": {"seed": seed}, **params}))
-    out = path.with_suffix("")
-    log = io.StringIO()
-    with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-        code = ptm_run.main(
-            [str(bag), "--out", str(out), "--params", str(path), "--ground-truth", str(truth), *QUIET]
-        )
-    if code != 0:
-        return {"error": log.getvalue()[-1000:]}
-    from ptm_ros.model.ptm import load_ptm
-    from ptm_ros.tools.outputs import score_against
-
-    s = score_against(load_ptm(out / "ptm.json"), truth).as_dict(per_topology=False)
+    res = ptm_run_scored(bag, truth, path.with_suffix(""), "--params", str(path), *QUIET)
+    if isinstance(res, str):
+        return {"error": res}
+    _, s = res
     return {k: s[k] for k in ("map_f1", "map_precision", "map_recall")}
 
 

@@ -26,8 +26,6 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import contextlib
-import io
 import math
 import time
 from collections import Counter
@@ -36,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from run_all import prepare_runs, when_and_where, write_bench
+from run_all import prepare_runs, ptm_run_scored, when_and_where, write_bench
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -62,37 +60,23 @@ def outcome(reg: Any) -> str:
     return " ".join(words[:2]) if words[0] != "ambiguous" else "ambiguous"
 
 
-def run_pipeline(bag: Path, truth: Path, out: Path) -> dict[str, Any]:
-    """``ptm-run`` at the defaults, its PTM and score."""
-    from ptm_ros.model.ptm import load_ptm
-    from ptm_ros.tools import run as ptm_run
-    from ptm_ros.tools.outputs import score_against
-
-    log = io.StringIO()
-    with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-        code = ptm_run.main(
-            [str(bag), "--out", str(out), "--ground-truth", str(truth), "--no-report", "--quiet"]
-        )
-    if code != 0:
-        msg = f"ptm-run failed on {bag}: {log.getvalue()[-1000:]}"
-        raise RuntimeError(msg)
-    ptm = load_ptm(out / "ptm.json")
-    return {"ptm": ptm, "score": score_against(ptm, truth).as_dict(per_topology=False)}
-
-
 def analyse(name: str, bag: Path, truth_file: Path, work: Path) -> dict[str, Any]:
     """Both parts of the module docstring for one run."""
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.model.geometry import interpolate_poses
     from ptm_ros.perception.laser import RegistrationError, register_patches
     from ptm_ros.scoring.evaluation import EvalConfig, contradictory_pairs, pair_truth
     from ptm_ros.tools.evaluate import true_positions_for
     from ptm_ros.tools.pipeline import detect_visits
 
     config = load_config()
-    res = run_pipeline(bag, truth_file, work / name)
-    ptm = res["ptm"]
+    res = ptm_run_scored(bag, truth_file, work / name, "--no-report", "--no-map", "--quiet")
+    if isinstance(res, str):
+        msg = f"ptm-run failed on {bag}: {res}"
+        raise RuntimeError(msg)
+    ptm, s = res
     run = read_run(bag, odom_topic="/odom", scan_topic="/scan", image_topic="/panorama", require=("/odom",))
     visits = detect_visits(run, config)
     if [v.stamp for v in visits] != [lm.stamp for lm in ptm.landmarks]:
@@ -100,8 +84,6 @@ def analyse(name: str, bag: Path, truth_file: Path, work: Path) -> dict[str, Any
         raise RuntimeError(msg)
     truth = load_ground_truth(truth_file)
     xy = true_positions_for(ptm, truth)
-    from ptm_ros.model.geometry import interpolate_poses
-
     heading = interpolate_poses(truth.stamps, truth.poses_corrected, np.array([v.stamp for v in visits]))[
         :, 2
     ]
@@ -128,7 +110,6 @@ def analyse(name: str, bag: Path, truth_file: Path, work: Path) -> dict[str, Any
             spans.append(gap)
             unavoidable += int(chain)
             missed[("split" if gap < radius else "apart", how)] += 1
-    s = res["score"]
     return {
         "run": name,
         "visits": len(visits),

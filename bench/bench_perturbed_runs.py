@@ -29,16 +29,14 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import contextlib
 import gzip
-import io
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from run_all import DATASETS, REAL_RUNS, when_and_where, write_bench
+from run_all import DATASETS, REAL_RUNS, ptm_run_scored, when_and_where, write_bench
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -138,18 +136,11 @@ def score(bag: Path, truth: Path, out: Path, seed: int) -> dict[str, Any]:
     moves as the ground truth's raw one), its figures."""
     import json
 
-    from ptm_ros.model.ptm import load_ptm
-    from ptm_ros.tools import run as ptm_run
-    from ptm_ros.tools.outputs import score_against
-
-    log = io.StringIO()
-    args = [str(bag), "--out", str(out), "--ground-truth", str(truth), "--seed", str(seed), "--force"]
-    args += ["--no-report", "--no-map"]
-    with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-        code = ptm_run.main(args)
-    if code != 0:
-        return {"error": log.getvalue()[-1000:]}
-    s = score_against(load_ptm(out / "ptm.json"), truth).as_dict(per_topology=False)
+    options = ("--seed", str(seed), "--force", "--no-report", "--no-map")
+    res = ptm_run_scored(bag, truth, out, *options)
+    if isinstance(res, str):
+        return {"error": res}
+    _, s = res
     doc = json.loads((out / "ptm.json").read_text())
     diag, ate = doc["diagnostics"], doc.get("trajectory_error") or {}
     lo = diag.get("laser_odometry", {})

@@ -94,6 +94,26 @@ REAL_RUNS = (
 )
 
 
+def ptm_run_scored(bag: Path, truth: Path, out: Path, *options: str) -> tuple[Any, dict[str, Any]] | str:
+    """``ptm-run BAG --out OUT --ground-truth TRUTH OPTIONS`` in this process, its output captured: the
+    PTM it wrote and its score against ``truth`` (``Score.as_dict(per_topology=False)``), or the end of its
+    output when it failed."""
+    import contextlib
+    import io
+
+    from ptm_ros.model.ptm import load_ptm
+    from ptm_ros.tools import run as ptm_run
+    from ptm_ros.tools.outputs import score_against
+
+    log = io.StringIO()
+    with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+        code = ptm_run.main([str(bag), "--out", str(out), "--ground-truth", str(truth), *options])
+    if code != 0:
+        return log.getvalue()[-1000:]
+    ptm = load_ptm(out / "ptm.json")
+    return ptm, score_against(ptm, truth).as_dict(per_topology=False)
+
+
 def when_and_where(t0: float) -> dict[str, Any]:
     """A benchmark record's ``generated`` (local time), ``machine`` and ``minutes`` since ``t0``
     (:func:`time.perf_counter`)."""
