@@ -175,6 +175,25 @@ def test_the_correction_limits_grow_with_the_travel_since_the_last_accepted_matc
             assert np.array_equal(pose, wheel)
 
 
+def test_a_rejected_match_is_retried_from_turned_headings():
+    """After 3 m without a match the heading limit is 0.6 rad, but ICP from a guess 0.45 rad off
+    converges beside the room; started again from the guess turned by ±0.3 and ±0.6 rad, one start
+    lands in the right basin and the wheels' error is taken out (it used to stay, rejected)."""
+    start = np.array([1.0, 2.0, 0.0])
+    lo = LaserOdometry()
+    lo.on_scan(start, room_scan(start))  # the first map
+    true = compose(start, [3.0, 0.0, 0.0])
+    pose = lo.on_scan(compose(true, [0.0, 0.0, 0.45]), room_scan(true))
+    assert (lo.counters.matched, lo.counters.rejected) == (1, 0)
+    assert np.hypot(*(pose[:2] - true[:2])) < 0.02 and abs(wrap_angle(pose[2] - true[2])) < 0.01
+    # beyond the limit nothing is accepted, from any start: 0.7 rad after 3 m keeps the wheel pose
+    lo = LaserOdometry()
+    lo.on_scan(start, room_scan(start))
+    wheel = compose(true, [0.0, 0.0, 0.7])
+    assert np.array_equal(lo.on_scan(wheel, room_scan(true)), wheel)
+    assert (lo.counters.matched, lo.counters.rejected) == (0, 1)
+
+
 def test_motion_gate_off_matches_every_scan():
     lo = LaserOdometry(LaserOdometryConfig(match_xy=0.0, match_yaw=0.0))
     pose = np.array([3.0, 2.0, 0.0])

@@ -13,8 +13,12 @@ keeping the odometry *incremental* (no loop closing happens here: that remains t
 * each scan is aligned (kiss-icp point-to-point, then the point-to-plane polish of
   :mod:`ptm_ros.perception.laser`) onto a voxel map of the last ``window`` keyframe scans, starting from
   ``C ⊕ wheel(t_scan)``; the aligned pose ``a`` resets ``C = a ⊕ wheel(t_scan)⁻¹``. A correction of one
-  step larger than ``max_correction_xy`` / ``max_correction_yaw``, or a scan with fewer than
-  ``min_points`` points, keeps ``C`` (the step is counted as rejected / skipped);
+  step larger than ``max_correction_xy`` / ``max_correction_yaw`` (limits that grow with the wheel
+  travel since the last accepted match beyond ``correction_travel``), or with less than
+  ``min_inlier_fraction`` of the scan on the map, is retried from the guess turned by ±½ and ±1 times the
+  heading limit, since a long wheel step can accrue a heading error beyond ICP's basin; the acceptable
+  match that places most of the scan on the map is kept. With none, or with a scan of fewer than
+  ``min_points`` points, ``C`` stays (the step is counted as rejected / skipped);
 * a scan joins the window when the corrected pose moved ``keyframe_xy`` or turned ``keyframe_yaw`` since
   the last keyframe;
 * degenerate directions: along a translation direction that the scan's planes hardly constrain (a
@@ -60,7 +64,7 @@ from ptm_ros.model.geometry import (
     wrap_angle,
 )
 from ptm_ros.perception.laser import LaserConfig, WorkerPool, voxel_downsample
-from ptm_ros.perception.patches import ScanMap
+from ptm_ros.perception.patches import Alignment, ScanMap
 from ptm_ros.settings import Settings, setting
 
 
@@ -287,15 +291,8 @@ class LaserOdometry:
         if self._map is not None:
             ratio = cfg.degenerate_ratio if cfg.refine else 0.0
             prior = self._scaled_guess(wheel) if ratio > 0.0 else guess
-            aligned = self._map.align(
-                pts,
-                prior,
-                correspondence_distance=cfg.correspondence_distance,
-                refine=cfg.refine,
-                min_points=cfg.min_points,
-                degenerate_ratio=ratio,
-            )
-            if aligned is None or not self._acceptable(guess, aligned.pose, pts, wheel):
+            aligned = self._align(pts, prior, guess, wheel, ratio)
+            if aligned is None:
                 self.counters.rejected += 1
             else:
                 pose = aligned.pose
@@ -316,15 +313,54 @@ class LaserOdometry:
                 self._accepted_wheel = wheel
         return pose
 
-    def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray, wheel: FloatArray) -> bool:
-        """Whether a match corrects the guess within the step limits, grown with the wheel travel since
-        the last accepted match beyond ``correction_travel``, and places enough of the scan on the local
-        map (``max_correction_*``, ``min_inlier_fraction``)."""
-        cfg = self.config
-        step = between(guess, aligned)
+    def _growth(self, wheel: FloatArray) -> float:
+        """How much the step limits have grown: the wheel travel since the last accepted match over
+        ``correction_travel``, at least 1 (the error a correction takes out grows with that travel)."""
         since = self._accepted_wheel
         travel = 0.0 if since is None else math.dist(wheel[:2], since[:2])
-        grow = max(1.0, travel / cfg.correction_travel)
+        return max(1.0, travel / self.config.correction_travel)
+
+    def _align(
+        self, pts: FloatArray, prior: FloatArray, guess: FloatArray, wheel: FloatArray, ratio: float
+    ) -> Alignment | None:
+        """The scan aligned onto the local map from ``prior`` when that match is acceptable
+        (:meth:`_acceptable`); else the acceptable alignment, from ``prior`` turned by ±½ and ±1 times the
+        (grown) heading limit, that places most of the scan on the map; None when none is acceptable.
+
+        ICP from one guess converges to the optimum nearest to it, and the heading error that a long
+        wheel step accrues can lie beyond that basin; a rejected step keeps the wheel's error for good
+        (``bench/perturbed_runs.md``). The extra starts cover the headings the limits accept."""
+        assert self._map is not None  # only called with a map
+        cfg = self.config
+        limit = self._growth(wheel) * cfg.max_correction_yaw
+        best: Alignment | None = None
+        best_fraction = -math.inf
+        for turn in (0.0, -0.5 * limit, 0.5 * limit, -limit, limit):
+            start = prior if turn == 0.0 else compose(prior, np.array([0.0, 0.0, turn]))
+            aligned = self._map.align(
+                pts,
+                start,
+                correspondence_distance=cfg.correspondence_distance,
+                refine=cfg.refine,
+                min_points=cfg.min_points,
+                degenerate_ratio=ratio,
+            )
+            if aligned is None or not self._acceptable(guess, aligned.pose, pts, wheel):
+                continue
+            if turn == 0.0:
+                return aligned
+            fraction = self._map.inlier_fraction(pts, aligned.pose)
+            if fraction > best_fraction:
+                best, best_fraction = aligned, fraction
+        return best
+
+    def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray, wheel: FloatArray) -> bool:
+        """Whether a match corrects the guess within the step limits, grown with the wheel travel since
+        the last accepted match beyond ``correction_travel`` (:meth:`_growth`), and places enough of the
+        scan on the local map (``max_correction_*``, ``min_inlier_fraction``)."""
+        cfg = self.config
+        step = between(guess, aligned)
+        grow = self._growth(wheel)
         assert self._map is not None  # a match was made on it
         return (
             math.hypot(step[0], step[1]) <= grow * cfg.max_correction_xy
