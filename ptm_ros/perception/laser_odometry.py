@@ -16,9 +16,10 @@ keeping the odometry *incremental* (no loop closing happens here: that remains t
   step larger than ``max_correction_xy`` / ``max_correction_yaw`` (limits that grow with the wheel
   travel since the last accepted match beyond ``correction_travel``), or with less than
   ``min_inlier_fraction`` of the scan on the map, is retried from the guess turned by ±½ and ±1 times the
-  heading limit, since a long wheel step can accrue a heading error beyond ICP's basin; the acceptable
-  match that places most of the scan on the map is kept. With none, or with a scan of fewer than
-  ``min_points`` points, ``C`` stays (the step is counted as rejected / skipped);
+  heading limit, since a long wheel step can accrue a heading error beyond ICP's basin; of all these
+  alignments the one that places most of the scan on the map is kept if it passes the same tests. Else,
+  or with a scan of fewer than ``min_points`` points, ``C`` stays (the step is counted as rejected /
+  skipped);
 * a scan joins the window when the corrected pose moved ``keyframe_xy`` or turned ``keyframe_yaw`` since
   the last keyframe;
 * degenerate directions: along a translation direction that the scan's planes hardly constrain (a
@@ -324,12 +325,14 @@ class LaserOdometry:
         self, pts: FloatArray, prior: FloatArray, guess: FloatArray, wheel: FloatArray, ratio: float
     ) -> Alignment | None:
         """The scan aligned onto the local map from ``prior`` when that match is acceptable
-        (:meth:`_acceptable`); else the acceptable alignment, from ``prior`` turned by ±½ and ±1 times the
-        (grown) heading limit, that places most of the scan on the map; None when none is acceptable.
+        (:meth:`_acceptable`). Else ICP also starts from ``prior`` turned by ±½ and ±1 times the (grown)
+        heading limit, and of all the alignments the one that places most of the scan on the map is
+        returned if it is acceptable; None when it is not (or ICP diverged from every start).
 
         ICP from one guess converges to the optimum nearest to it, and the heading error that a long
         wheel step accrues can lie beyond that basin; a rejected step keeps the wheel's error for good
-        (``bench/perturbed_runs.md``). The extra starts cover the headings the limits accept."""
+        (``bench/perturbed_runs.md``). The extra starts cover the headings the limits accept; the best
+        fit decides, so an optimum that the limits reject is not traded for a worse one inside them."""
         assert self._map is not None  # only called with a map
         cfg = self.config
         limit = self._growth(wheel) * cfg.max_correction_yaw
@@ -345,14 +348,14 @@ class LaserOdometry:
                 min_points=cfg.min_points,
                 degenerate_ratio=ratio,
             )
-            if aligned is None or not self._acceptable(guess, aligned.pose, pts, wheel):
+            if aligned is None:
                 continue
-            if turn == 0.0:
+            if turn == 0.0 and self._acceptable(guess, aligned.pose, pts, wheel):
                 return aligned
             fraction = self._map.inlier_fraction(pts, aligned.pose)
             if fraction > best_fraction:
                 best, best_fraction = aligned, fraction
-        return best
+        return best if best is not None and self._acceptable(guess, best.pose, pts, wheel) else None
 
     def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray, wheel: FloatArray) -> bool:
         """Whether a match corrects the guess within the step limits, grown with the wheel travel since
