@@ -34,7 +34,7 @@ from ptm_ros.perception.laser_odometry import (
     scan_time_poses,
     time_offset_scores,
 )
-from ptm_ros.perception.patches import scan_to_points
+from ptm_ros.perception.patches import Alignment, scan_to_points
 
 
 @pytest.fixture(scope="module")
@@ -192,6 +192,53 @@ def test_a_rejected_match_is_retried_from_turned_headings():
     wheel = compose(true, [0.0, 0.0, 0.7])
     assert np.array_equal(lo.on_scan(wheel, room_scan(true)), wheel)
     assert (lo.counters.matched, lo.counters.rejected) == (0, 1)
+
+
+class _ScriptedMap:
+    """A local map whose alignment from each start heading (relative to the guess) is scripted:
+    ``{turn: (pose, inlier fraction)}``; records the starts tried."""
+
+    def __init__(self, guess, script):
+        self.guess, self.script, self.turns = np.asarray(guess, dtype=float), script, []
+        self.fractions = {}
+
+    def align(self, points, start, **_):
+        turn = round(float(wrap_angle(start[2] - self.guess[2])), 6)
+        self.turns.append(turn)
+        pose, fraction = self.script[turn]
+        self.fractions[tuple(np.round(pose, 9))] = fraction
+        return Alignment(np.asarray(pose, dtype=float), 0)
+
+    def inlier_fraction(self, points, pose):
+        return self.fractions[tuple(np.round(pose, 9))]
+
+
+@pytest.mark.parametrize(
+    ("from_guess", "from_turned", "kept"),
+    [
+        # from the guess: beyond the 0.2 rad limit but the best fit; a worse fit inside the limit is
+        # not taken in its place
+        (([0.0, 0.0, 0.25], 0.9), ([0.0, 0.0, 0.1], 0.5), None),
+        # from the guess: too little of the scan on the map; a better fit from a turned start is kept
+        (([0.0, 0.0, 0.05], 0.2), ([0.0, 0.0, 0.15], 0.8), [0.0, 0.0, 0.15]),
+    ],
+)
+def test_the_best_fit_of_all_starts_decides_a_retried_match(from_guess, from_turned, kept):
+    """A match rejected from the guess is retried from the guess turned by ±0.1 and ±0.2 rad (the limit
+    after 0.5 m); the alignment with the largest inlier fraction is kept if it passes the tests."""
+    start = np.array([1.5, 2.0, 0.0])
+    lo = LaserOdometry()
+    lo.on_scan(start, room_scan(start))
+    wheel = compose(start, [0.5, 0.0, 0.0])
+    script = {0.0: from_guess} | {t: from_turned for t in (-0.1, 0.1, -0.2, 0.2)}
+    script = {t: (compose(wheel, pose), f) for t, (pose, f) in script.items()}
+    lo._map = scripted = _ScriptedMap(wheel, script)
+    pose = lo.on_scan(wheel, room_scan(wheel))
+    assert scripted.turns == [0.0, -0.1, 0.1, -0.2, 0.2]
+    if kept is None:
+        assert np.array_equal(pose, wheel) and lo.counters.rejected == 1
+    else:
+        assert np.allclose(pose, compose(wheel, kept)) and lo.counters.matched == 1
 
 
 def test_motion_gate_off_matches_every_scan():
