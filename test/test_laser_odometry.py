@@ -230,7 +230,7 @@ def test_the_best_fit_of_all_starts_decides_a_retried_match(from_guess, from_tur
     lo = LaserOdometry()
     lo.on_scan(start, room_scan(start))
     wheel = compose(start, [0.5, 0.0, 0.0])
-    script = {0.0: from_guess} | {t: from_turned for t in (-0.1, 0.1, -0.2, 0.2)}
+    script = {0.0: from_guess} | dict.fromkeys((-0.1, 0.1, -0.2, 0.2), from_turned)
     script = {t: (compose(wheel, pose), f) for t, (pose, f) in script.items()}
     lo._map = scripted = _ScriptedMap(wheel, script)
     pose = lo.on_scan(wheel, room_scan(wheel))
