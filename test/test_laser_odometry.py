@@ -176,9 +176,9 @@ def test_the_correction_limits_grow_with_the_travel_since_the_last_accepted_matc
 
 
 def test_a_rejected_match_is_retried_from_turned_headings():
-    """After 3 m without a match the heading limit is 0.6 rad, but ICP from a guess 0.45 rad off
-    converges beside the room; started again from the guess turned by ±0.3 and ±0.6 rad, one start
-    lands in the right basin and the wheels' error is taken out (it used to stay, rejected)."""
+    """After 3 m without a match the heading limit is 0.6 rad, but ICP from a guess 0.45 rad off does not
+    reach the true pose and the match was rejected; started again from the guess turned by ±0.3 and
+    ±0.6 rad, one start lands in the right basin and the wheels' error is taken out."""
     start = np.array([1.0, 2.0, 0.0])
     lo = LaserOdometry()
     lo.on_scan(start, room_scan(start))  # the first map
