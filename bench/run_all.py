@@ -85,6 +85,7 @@ COMPONENTS = (
     "bench_time_offset.py",
     "bench_missed_pairs.py",
     "bench_perturbed_runs.py",
+    "bench_laser_odometry.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

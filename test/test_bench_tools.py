@@ -1,7 +1,8 @@
 """Helpers of the benchmarks whose mistakes would go unnoticed in their figures: the sensors
 ``bench/bench_calibration.py`` simulates, the cache of exact enumerations ``bench/bench_exact.py``
-reuses, how ``bench/bench_missed_pairs.py`` classes passages and registrations, and the logs
-``bench/bench_perturbed_runs.py`` makes unlike themselves."""
+reuses, how ``bench/bench_missed_pairs.py`` classes passages and registrations, the logs
+``bench/bench_perturbed_runs.py`` makes unlike themselves and how ``bench/bench_laser_odometry.py`` scores
+the laser odometry."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
+from bench_laser_odometry import ScanPass, against_truth
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan
 
@@ -112,3 +114,29 @@ def test_perturbed_logs_drift_by_the_bias_per_metre_and_the_scale():
     last = np.array(out[-1][:2]) - np.array(out[3][:2])  # two 1 m steps, the second turned by bias
     assert np.hypot(*last) == pytest.approx(2 * scale * math.cos(bias / 2), abs=1e-6)
     assert out[-1][2] == pytest.approx(math.pi / 2 + 5 * bias, abs=1e-6)
+
+
+def test_the_laser_odometry_score_puts_each_heading_error_on_its_steps_status():
+    """A straight 10-step path; the laser odometry turns 0.1 rad too far on a rejected step and 0.02 rad
+    too little on a matched one, the wheels 0.05 rad too far on every step: the drift splits by status,
+    the wheels' is theirs, and the ATE is that of the bent path."""
+    from ptm_ros.model.geometry import compose
+
+    truth = np.array([[float(k), 0.0, 0.0] for k in range(11)])
+    stamps = np.arange(11.0)
+    status = ("kept", *("matched",) * 4, "rejected", *("matched",) * 5)
+    corrected, wheel = [truth[0]], [truth[0]]
+    for k in range(1, 11):
+        turn = {5: 0.1, 7: -0.02}.get(k, 0.0)
+        corrected.append(compose(corrected[-1], [1.0, 0.0, turn]))
+        wheel.append(compose(wheel[-1], [1.0, 0.0, 0.05]))
+    scan = ScanPass(stamps, np.array(wheel), np.array(corrected), status, 0.0)
+    got = against_truth(scan, stamps, truth)
+    assert (got["scans"], got["steps_matched"], got["steps_rejected"], got["steps_kept"]) == (11, 9, 1, 0)
+    assert got["heading_sum_rejected_rad"] == pytest.approx(0.1)
+    assert got["heading_sum_matched_rad"] == pytest.approx(-0.02)
+    assert got["heading_sum_rad"] == pytest.approx(0.08)
+    assert got["wheel_heading_sum_rad"] == pytest.approx(0.5)
+    assert 0.05 < got["ate_m"] < 0.5
+    exact = against_truth(ScanPass(stamps, truth, truth, status, 0.0), stamps, truth)
+    assert exact["ate_m"] == pytest.approx(0.0, abs=1e-9) and exact["heading_rms_rad"] == 0.0
