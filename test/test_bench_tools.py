@@ -20,7 +20,7 @@ from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
 from bench_laser_odometry import ScanPass, against_truth
 from bench_missed_pairs import heading_class, outcome
-from bench_perturbed_runs import drifted, every_nth_scan
+from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
 
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
@@ -140,3 +140,22 @@ def test_the_laser_odometry_score_puts_each_heading_error_on_its_steps_status():
     assert 0.05 < got["ate_m"] < 0.5
     exact = against_truth(ScanPass(stamps, truth, truth, status, 0.0), stamps, truth)
     assert exact["ate_m"] == pytest.approx(0.0, abs=1e-9) and exact["heading_rms_rad"] == 0.0
+
+
+def test_the_laser_odometry_ate_at_the_visits_aligns_rigidly_and_skips_visits_outside_the_truth(tmp_path):
+    """Visits whose corrected poses are the truth turned and shifted score 0; one visit 0.4 m off scores
+    its share of the RMS; a visit outside the ground truth's time span is left out."""
+    from ptm_ros.io.groundtruth import GroundTruthTrajectory, save_sim_gt
+    from ptm_ros.model.geometry import compose
+
+    stamps = np.arange(0.0, 21.0)
+    poses = np.array([[0.5 * t, 0.1 * t * t / 20.0, 0.0] for t in stamps])
+    truth = save_sim_gt(GroundTruthTrajectory(stamps=stamps, poses_corrected=poses), tmp_path / "gt.json")
+    moved = [compose([3.0, -2.0, 0.5], p) for p in poses]
+    visits = [{"stamp": float(t), "corrected_pose": list(m)} for t, m in zip(stamps, moved, strict=True)]
+    assert laser_odometry_ate(visits, truth) == pytest.approx(0.0, abs=1e-9)
+    outside = [*visits, {"stamp": 99.0, "corrected_pose": [50.0, 50.0, 0.0]}]
+    assert laser_odometry_ate(outside, truth) == pytest.approx(0.0, abs=1e-9)
+    off = [dict(v) for v in visits]
+    off[10]["corrected_pose"] = list(compose(moved[10], [0.4, 0.0, 0.0]))
+    assert 0.05 < laser_odometry_ate(off, truth) < 0.4
