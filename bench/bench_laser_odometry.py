@@ -37,9 +37,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_perturbed_runs import PERTURBATIONS, perturbed_bag
+from bench_perturbed_runs import perturbed_logs
 from numpy.typing import NDArray
-from run_all import DATASETS, REAL_RUNS, when_and_where, write_bench
+from run_all import DATASETS, when_and_where, write_bench
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -168,19 +168,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     t0 = time.perf_counter()
     args.work.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, log, gt in REAL_RUNS:
-        truth = load_ground_truth(DATASETS / gt)
-        for label in PERTURBATIONS:
-            row: dict[str, Any] = {"run": name, "log": label}
-            try:
-                scan = laser_odometry_pass(perturbed_bag(DATASETS / log, label, args.work))
-                row |= {"time_offset": scan.time_offset}
-                row |= against_truth(scan, truth.stamps, truth.poses_corrected)
-            except Exception as exc:  # one failed log is reported, the others still run
-                row["error"] = f"{type(exc).__name__}: {exc}"
-            rows.append(row)
-            print(f"[laser-odometry] {row}", flush=True)
+    truths: dict[Path, Any] = {}
+    for name, label, bag, truth_file in perturbed_logs(args.work):
+        if truth_file not in truths:  # one ground truth serves the run's four logs
+            truths[truth_file] = load_ground_truth(truth_file)
+        truth = truths[truth_file]
+        row: dict[str, Any] = {"run": name, "log": label}
+        try:
+            scan = laser_odometry_pass(bag)
+            row |= {"time_offset": scan.time_offset}
+            row |= against_truth(scan, truth.stamps, truth.poses_corrected)
+        except Exception as exc:  # one failed log is reported, the others still run
+            row["error"] = f"{type(exc).__name__}: {exc}"
+        rows.append(row)
+        print(f"[laser-odometry] {row}", flush=True)
     write_bench({**when_and_where(t0), "rows": rows}, args.out / "laser_odometry.json", write_md)
     return 0
 

@@ -33,7 +33,7 @@ import argparse
 import gzip
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -130,6 +130,14 @@ def perturbed_bag(log: Path, name: str, work: Path) -> Path:
             f.write("\n".join(PERTURBATIONS[name](lines)) + "\n")
         convert(text, bag)
     return bag
+
+
+def perturbed_logs(work: Path) -> Iterator[tuple[str, str, Path, Path]]:
+    """Every shared real run under every perturbation, as ``(run, perturbation, bag, ground truth file)``
+    (the bags made once under ``work``, :func:`perturbed_bag`)."""
+    for name, log, gt in REAL_RUNS:
+        for label in PERTURBATIONS:
+            yield name, label, perturbed_bag(DATASETS / log, label, work), DATASETS / gt
 
 
 def score(bag: Path, truth: Path, out: Path, seed: int) -> dict[str, Any]:
@@ -246,13 +254,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     args.work.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name, log, gt in REAL_RUNS:
-        for label in PERTURBATIONS:
-            bag = perturbed_bag(DATASETS / log, label, args.work)
-            for seed in args.seeds:
-                out = args.work / f"{name}-{label.replace(' ', '-')}-{seed}"
-                rows.append({"run": name, "log": label, "seed": seed, **score(bag, DATASETS / gt, out, seed)})
-                print(f"[perturbed] {rows[-1]}", flush=True)
+    for name, label, bag, truth in perturbed_logs(args.work):
+        for seed in args.seeds:
+            out = args.work / f"{name}-{label.replace(' ', '-')}-{seed}"
+            rows.append({"run": name, "log": label, "seed": seed, **score(bag, truth, out, seed)})
+            print(f"[perturbed] {rows[-1]}", flush=True)
     doc = {
         **when_and_where(t0),
         "drift_rad_per_m": DRIFT_RAD_PER_M,

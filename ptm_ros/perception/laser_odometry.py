@@ -350,25 +350,24 @@ class LaserOdometry:
             )
             if aligned is None:
                 continue
-            if turn == 0.0 and self._acceptable(guess, aligned.pose, pts, wheel):
-                return aligned
             fraction = self._map.inlier_fraction(pts, aligned.pose)
+            if turn == 0.0 and self._acceptable(guess, aligned.pose, fraction, wheel):
+                return aligned
             if fraction > best_fraction:
                 best, best_fraction = aligned, fraction
-        return best if best is not None and self._acceptable(guess, best.pose, pts, wheel) else None
+        return best if best is not None and self._acceptable(guess, best.pose, best_fraction, wheel) else None
 
-    def _acceptable(self, guess: FloatArray, aligned: FloatArray, pts: FloatArray, wheel: FloatArray) -> bool:
+    def _acceptable(self, guess: FloatArray, aligned: FloatArray, fraction: float, wheel: FloatArray) -> bool:
         """Whether a match corrects the guess within the step limits, grown with the wheel travel since
         the last accepted match beyond ``correction_travel`` (:meth:`_growth`), and places enough of the
-        scan on the local map (``max_correction_*``, ``min_inlier_fraction``)."""
+        scan on the local map: its inlier ``fraction`` (``max_correction_*``, ``min_inlier_fraction``)."""
         cfg = self.config
         step = between(guess, aligned)
         grow = self._growth(wheel)
-        assert self._map is not None  # a match was made on it
         return (
             math.hypot(step[0], step[1]) <= grow * cfg.max_correction_xy
             and abs(step[2]) <= grow * cfg.max_correction_yaw
-            and self._map.inlier_fraction(pts, aligned) >= cfg.min_inlier_fraction
+            and fraction >= cfg.min_inlier_fraction
         )
 
     def _scaled_guess(self, wheel: FloatArray) -> FloatArray:
