@@ -20,6 +20,16 @@ keeping the odometry *incremental* (no loop closing happens here: that remains t
   alignments the one that places most of the scan on the map is kept if it passes the same tests. Else,
   or with a scan of fewer than ``min_points`` points, ``C`` stays (the step is counted as rejected /
   skipped);
+* a decision that the next scans can revise: when the best alignment places enough of the scan on the
+  map and fails the step limits alone (a wheel slip turning in place, which the travel does not grow the
+  limits for), the step is rejected as above, but a second hypothesis that accepted it runs beside for
+  the next ``defer_scans`` scans, each matched on its own local map. Each of those scans is placed, at
+  both hypotheses' poses, on the local map of the branch (the one map both agree on); when the second
+  places them on it better by ``defer_gain`` of a scan on average, it replaces the first (its correction,
+  keyframes and counters), else it is dropped. The poses returned meanwhile are the first hypothesis's.
+  A rejection kept the wheels' error for good when it was real (ACES: 2 slips in in-place turns,
+  0.25 rad each, left the laser odometry 5 m off), but one that the next matches heal (a turn the wheels
+  and the scans disagree on for a moment) must not be overruled (``bench/laser_odometry.md``);
 * a scan joins the window when the corrected pose moved ``keyframe_xy`` or turned ``keyframe_yaw`` since
   the last keyframe;
 * degenerate directions: along a translation direction that the scan's planes hardly constrain (a
@@ -45,10 +55,11 @@ On the real runs the correction removes most of the wheel odometry's error betwe
 
 from __future__ import annotations
 
+import copy
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -117,6 +128,24 @@ class LaserOdometryConfig(Settings):
     )
     refine: bool = setting(
         True, doc="polish the ICP pose by point-to-plane Gauss–Newton (:mod:`ptm_ros.perception.laser`)."
+    )
+    defer_scans: int = setting(
+        10,
+        ge=0,
+        doc=(
+            "a match rejected by the step limits alone (its best alignment places at least "
+            "``min_inlier_fraction`` of the scan on the map) is judged again on this many later scans "
+            "matched under both decisions (see the module docstring; 0: a rejection is final)."
+        ),
+    )
+    defer_gain: float = setting(
+        0.1,
+        ge=0,
+        le=1,
+        doc=(
+            "the accepted alternative replaces the rejection when it places the later scans on the branch's "
+            "local map better by at least this fraction of a scan on average."
+        ),
     )
     match_xy: float = setting(
         0.04,
@@ -221,6 +250,8 @@ class LaserOdometryCounters:
     too_few_points: int = 0
     keyframes: int = 0
     gated: int = 0  # inside the motion gate: not matched, the correction kept
+    deferred: int = 0  # rejections judged again on the next scans (a second hypothesis started)
+    revised: int = 0  # of those, the ones the next scans overturned (the second hypothesis kept)
 
 
 @dataclass
@@ -247,6 +278,7 @@ class LaserOdometry:
         self._last_constrained = False  # whether that scan's match constrained every direction
         self._path = np.zeros(2)  # (laser, wheel) path length of consecutive constrained matches (m)
         self._accepted_wheel: FloatArray | None = None  # wheel pose of the last accepted match
+        self._rival: _Rival | None = None  # a rejection being judged again (``defer_scans``)
 
     @property
     def wheel_scale(self) -> float:
@@ -276,33 +308,72 @@ class LaserOdometry:
         if wheel.shape != (3,) or not np.all(np.isfinite(wheel)):
             msg = f"wheel pose must be 3 finite numbers, got {wheel.tolist()}"
             raise ModelError(msg)
+        rival = self._rival
+        pose, pts = self._step(wheel, points, stamp, branch=rival is None)
+        if rival is not None:
+            rival_pose, rival_pts = rival.odometry._step(wheel, points, stamp, branch=False)
+            if pts is not None and rival_pts is not None:  # both matched (or rejected) the scan
+                on_map = rival.reference.inlier_fraction
+                rival.gain += on_map(pts, rival_pose) - on_map(pts, pose)
+                rival.left -= 1
+            if rival.left <= 0:
+                self._settle(rival)
+        return pose
+
+    def _step(
+        self, wheel: FloatArray, points: ArrayLike, stamp: float | None, *, branch: bool
+    ) -> tuple[FloatArray, FloatArray | None]:
+        """One scan through the gate, the match and the keyframes (:meth:`on_scan`); ``branch``: a
+        rejection by the limits alone may start a second hypothesis. Returns the scan's pose and its finite
+        points, or None for them when the scan was gated or had too few points."""
         cfg = self.config
         guess = self.correct(wheel)
-        pose = guess
         if self._inside_gate(guess, stamp):
             self.counters.gated += 1
-            return pose
+            return guess, None
         pts = np.asarray(points, dtype=float).reshape(-1, 2)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
-        src = voxel_downsample(pts, cfg.voxel)
-        if len(src) < cfg.min_points:
+        if len(voxel_downsample(pts, cfg.voxel)) < cfg.min_points:
             self.counters.too_few_points += 1
-            return pose
+            return guess, None
+        if self._map is None:
+            self._commit(wheel, pts, stamp, pose=guess, aligned=None)
+            return guess, pts
+        ratio = cfg.degenerate_ratio if cfg.refine else 0.0
+        prior = self._scaled_guess(wheel) if ratio > 0.0 else guess
+        aligned, best = self._align(pts, prior, guess, wheel, ratio)
+        if aligned is None and branch and best is not None and cfg.defer_scans > 0:
+            twin = self._fork()
+            twin._commit(wheel, pts, stamp, pose=best.pose, aligned=best, ratio=ratio)
+            self._rival = _Rival(twin, self._map, left=cfg.defer_scans)
+            self.counters.deferred += 1
+        pose = guess if aligned is None else aligned.pose
+        self._commit(wheel, pts, stamp, pose=pose, aligned=aligned, ratio=ratio)
+        return pose, pts
+
+    def _commit(
+        self,
+        wheel: FloatArray,
+        pts: FloatArray,
+        stamp: float | None,
+        *,
+        pose: FloatArray,
+        aligned: Alignment | None,
+        ratio: float = 0.0,
+    ) -> None:
+        """Take a scan at ``pose``: the correction (when ``aligned``, else the step is counted as rejected
+        if there was a map to match), the learned wheel scale, the gate's reference and the keyframes."""
+        cfg = self.config
         constrained = False
-        if self._map is not None:
-            ratio = cfg.degenerate_ratio if cfg.refine else 0.0
-            prior = self._scaled_guess(wheel) if ratio > 0.0 else guess
-            aligned = self._align(pts, prior, guess, wheel, ratio)
-            if aligned is None:
-                self.counters.rejected += 1
-            else:
-                pose = aligned.pose
-                self._accepted_wheel = wheel
-                self._correction = compose(pose, inverse(wheel))
-                self.counters.matched += 1
-                constrained = ratio > 0.0 and aligned.weak == 0
-                if constrained and self._last_constrained:
-                    self._learn_scale(pose, wheel)
+        if aligned is not None:
+            self._accepted_wheel = wheel
+            self._correction = compose(pose, inverse(wheel))
+            self.counters.matched += 1
+            constrained = ratio > 0.0 and aligned.weak == 0
+            if constrained and self._last_constrained:
+                self._learn_scale(pose, wheel)
+        elif self._map is not None:
+            self.counters.rejected += 1
         self._last_match, self._last_match_stamp = pose, stamp
         self._last_wheel, self._last_constrained = wheel, constrained
         if self._last_key is None or moved(self._last_key, pose, cfg.keyframe_xy, cfg.keyframe_yaw):
@@ -312,7 +383,24 @@ class LaserOdometry:
             self.counters.keyframes += 1
             if self._accepted_wheel is None:  # the first map: the travel counts from its scan
                 self._accepted_wheel = wheel
-        return pose
+
+    def _fork(self) -> LaserOdometry:
+        """A copy whose later scans do not touch this one (the maps are rebuilt, never changed, so they
+        are shared)."""
+        twin = copy.copy(self)
+        twin._window = deque(self._window, maxlen=self.config.window)
+        twin.counters = replace(self.counters)
+        twin._rival = None
+        return twin
+
+    def _settle(self, rival: _Rival) -> None:
+        """End the second hypothesis: it replaces this one when it placed the later scans on the branch's
+        map better by ``defer_gain`` of a scan on average; else it is dropped."""
+        self._rival = None
+        if rival.gain > self.config.defer_gain * self.config.defer_scans:
+            counters = rival.odometry.counters
+            counters.deferred, counters.revised = self.counters.deferred, self.counters.revised + 1
+            vars(self).update(vars(rival.odometry))
 
     def _growth(self, wheel: FloatArray) -> float:
         """How much the step limits have grown: the wheel travel since the last accepted match over
@@ -323,11 +411,13 @@ class LaserOdometry:
 
     def _align(
         self, pts: FloatArray, prior: FloatArray, guess: FloatArray, wheel: FloatArray, ratio: float
-    ) -> Alignment | None:
+    ) -> tuple[Alignment | None, Alignment | None]:
         """The scan aligned onto the local map from ``prior`` when that match is acceptable
         (:meth:`_acceptable`). Else ICP also starts from ``prior`` turned by ±½ and ±1 times the (grown)
         heading limit, and of all the alignments the one that places most of the scan on the map is
-        returned if it is acceptable; None when it is not (or ICP diverged from every start).
+        returned if it is acceptable; None when it is not (or ICP diverged from every start). Second:
+        that best alignment when it failed the step limits alone (it places ``min_inlier_fraction`` of
+        the scan on the map), else None.
 
         ICP from one guess converges to the optimum nearest to it, and the heading error that a long
         wheel step accrues can lie beyond that basin; a rejected step keeps the wheel's error for good
@@ -352,10 +442,12 @@ class LaserOdometry:
                 continue
             fraction = self._map.inlier_fraction(pts, aligned.pose)
             if turn == 0.0 and self._acceptable(guess, aligned.pose, fraction, wheel):
-                return aligned
+                return aligned, None
             if fraction > best_fraction:
                 best, best_fraction = aligned, fraction
-        return best if best is not None and self._acceptable(guess, best.pose, best_fraction, wheel) else None
+        if best is None or best_fraction < cfg.min_inlier_fraction:
+            return None, None
+        return (best, None) if self._acceptable(guess, best.pose, best_fraction, wheel) else (None, best)
 
     def _acceptable(self, guess: FloatArray, aligned: FloatArray, fraction: float, wheel: FloatArray) -> bool:
         """Whether a match corrects the guess within the step limits, grown with the wheel travel since
@@ -396,6 +488,18 @@ class LaserOdometry:
         if stamp is None or last is None or cfg.match_interval == 0.0:
             return True
         return stamp - last < cfg.match_interval
+
+
+@dataclass
+class _Rival:
+    """The second hypothesis of a rejection being judged again (:attr:`LaserOdometryConfig.defer_scans`):
+    its ``odometry``, the local map at the branch (``reference``), the summed inlier-fraction ``gain`` of
+    its poses over the first hypothesis's on it and the scans ``left`` to judge."""
+
+    odometry: LaserOdometry
+    reference: ScanMap
+    left: int
+    gain: float = 0.0
 
 
 def apply_corrections(
