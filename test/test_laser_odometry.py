@@ -241,6 +241,51 @@ def test_the_best_fit_of_all_starts_decides_a_retried_match(from_guess, from_tur
         assert np.allclose(pose, compose(wheel, kept)) and lo.counters.matched == 1
 
 
+def _turn_in_place(lo, slip, transient):
+    """Turn in place in the room by 0.1 rad a scan, 12 scans after the first; at the first turn the wheels
+    report ``slip`` rad that the robot did not turn, for good or (``transient``) for that scan alone.
+    Returns each scan's returned pose and true pose."""
+    start = np.array([3.0, 2.0, 0.0])
+    lo.on_scan(start, room_scan(start))  # the first map
+    out = []
+    for k in range(1, 13):
+        true = compose(start, [0.0, 0.0, 0.1 * k])
+        wheel = compose(true, [0.0, 0.0, slip]) if k == 1 or not transient else true
+        out.append((lo.on_scan(wheel, room_scan(true)), true))
+    return out
+
+
+def heading_error(pose, true):
+    return abs(float(wrap_angle(pose[2] - true[2])))
+
+
+def test_a_slip_beyond_the_limits_is_taken_out_once_the_next_scans_confirm_it():
+    """Turning in place the travel does not grow the limits, and a 0.3 rad slip at one scan is rejected
+    (``max_correction_yaw`` 0.2) though the scan fits the map at the true heading. Without a second look
+    (``defer_scans`` 0) the odometry keeps the slip for good. With it, the alternative that accepted the
+    fit places the next 10 scans on the branch's map better, replaces the rejection, and the odometry is
+    right again; the poses returned meanwhile are the rejection's."""
+    kept = _turn_in_place(LaserOdometry(LaserOdometryConfig(defer_scans=0)), 0.3, transient=False)
+    assert all(heading_error(pose, true) > 0.25 for pose, true in kept)
+    lo = LaserOdometry()
+    revised = _turn_in_place(lo, 0.3, transient=False)
+    assert (lo.counters.deferred, lo.counters.revised) == (1, 1)
+    assert heading_error(*revised[0]) > 0.25  # the first hypothesis, meanwhile
+    pose, true = revised[-1]  # the scan after the ten that judged the branch
+    assert heading_error(pose, true) < 0.01 and np.hypot(*(pose[:2] - true[:2])) < 0.02
+    assert lo.counters.rejected == 0 and lo.counters.matched == 12  # the counts of the hypothesis kept
+
+
+def test_a_rejection_that_the_next_scans_heal_is_not_overruled():
+    """When the wheels disagree with the scan for that one scan only (a scan taken off its stamp while
+    turning), the rejection keeps the wheels, which are right from the next scan on; the alternative
+    that took the scan's fit would carry a 0.3 rad error, places the next scans worse and is dropped."""
+    lo = LaserOdometry()
+    healed = _turn_in_place(lo, 0.3, transient=True)
+    assert (lo.counters.deferred, lo.counters.revised) == (1, 0)
+    assert all(heading_error(pose, true) < 0.01 for pose, true in healed[1:])
+
+
 def test_motion_gate_off_matches_every_scan():
     lo = LaserOdometry(LaserOdometryConfig(match_xy=0.0, match_yaw=0.0))
     pose = np.array([3.0, 2.0, 0.0])
