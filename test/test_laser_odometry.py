@@ -286,6 +286,27 @@ def test_a_rejection_that_the_next_scans_heal_is_not_overruled():
     assert all(heading_error(pose, true) < 0.01 for pose, true in healed[1:])
 
 
+def test_a_dropped_second_hypothesis_leaves_no_trace():
+    """Driving along the room, the wheels' heading is 0.3 rad off at one scan only: the rejection starts a
+    second hypothesis, which is dropped; the poses, the correction and the learned wheel scale are those of
+    the odometry that never looked again (``defer_scans`` 0), bit for bit."""
+    start = np.array([1.0, 2.0, 0.0])
+    runs = []
+    for defer in (0, 10):
+        lo = LaserOdometry(LaserOdometryConfig(defer_scans=defer))
+        lo.on_scan(start, room_scan(start))
+        poses = []
+        for k in range(1, 14):
+            true = compose(start, [0.15 * k, 0.0, 0.0])
+            wheel = compose(true, [0.0, 0.0, 0.3]) if k == 1 else true
+            poses.append(lo.on_scan(wheel, room_scan(true)))
+        runs.append((lo, np.array(poses)))
+    (never, poses0), (looked, poses1) = runs
+    assert (looked.counters.deferred, looked.counters.revised) == (1, 0)
+    assert np.array_equal(poses0, poses1) and np.array_equal(never.correction, looked.correction)
+    assert never.wheel_scale == looked.wheel_scale != 1.0
+
+
 def test_motion_gate_off_matches_every_scan():
     lo = LaserOdometry(LaserOdometryConfig(match_xy=0.0, match_yaw=0.0))
     pose = np.array([3.0, 2.0, 0.0])
