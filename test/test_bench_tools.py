@@ -18,7 +18,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
-from bench_laser_odometry import ScanPass, against_truth
+from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
 
@@ -140,6 +140,28 @@ def test_the_laser_odometry_score_puts_each_heading_error_on_its_steps_status():
     assert 0.05 < got["ate_m"] < 0.5
     exact = against_truth(ScanPass(stamps, truth, truth, status, 0.0), stamps, truth)
     assert exact["ate_m"] == pytest.approx(0.0, abs=1e-9) and exact["heading_rms_rad"] == 0.0
+
+
+def test_a_pass_of_the_family_shifts_the_offset_skips_scans_and_takes_the_overrides():
+    """``laser_odometry_pass``: the learned offset plus the shift, held within [-1, 0]; the first ``skip``
+    scans left out; the overrides reach the laser odometry. The wheels are the truth along a room, so the
+    pass at the defaults is the truth."""
+    from test_laser_odometry import room_scan
+
+    stamps = np.arange(0.0, 12.0, 0.5)
+    poses = np.column_stack([1.0 + 0.1 * stamps, np.full_like(stamps, 2.0), np.zeros_like(stamps)])
+    scan_stamps = np.arange(1.0, 10.0)
+    points = [room_scan([1.0 + 0.1 * t, 2.0, 0.0]) for t in scan_stamps]
+    log = LogInput(stamps, poses, scan_stamps, points, learned_offset=-0.1)
+    plain = laser_odometry_pass(log)
+    assert plain.time_offset == -0.1 and len(plain.stamps) == 9
+    assert np.allclose(plain.corrected[:, 0], 1.0 + 0.1 * (scan_stamps - 0.1), atol=0.02)
+    shifted = laser_odometry_pass(log, 0.5, skip=3, overrides={"min_points": 10_000})
+    assert shifted.time_offset == 0.0 and np.array_equal(shifted.stamps, scan_stamps[3:])
+    assert set(shifted.status) == {"kept"}  # no scan has 10 000 points: none is matched
+    assert laser_odometry_pass(log, -2.0).time_offset == -1.0
+    with pytest.raises(TypeError):
+        laser_odometry_pass(log, overrides={"no_such_field": 1})
 
 
 def test_the_laser_odometry_ate_at_the_visits_aligns_rigidly_and_skips_visits_outside_the_truth(tmp_path):
