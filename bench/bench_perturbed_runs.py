@@ -253,6 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     t0 = time.perf_counter()
     args.work.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, label, bag, truth in perturbed_logs(args.work):
         for seed in args.seeds:
