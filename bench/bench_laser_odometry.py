@@ -238,7 +238,7 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
             "",
             f"Over all {len(done)} logs × {len(FAMILY_SHIFTS) * len(FAMILY_SKIPS)} passes of the family, the "
             f"geometric mean ATE is {both[0]:.2f} m at the defaults and {both[1]:.2f} m without the second "
-            "look at a rejection (``defer_scans`` 0).",
+            "look at a rejection (`defer_scans` 0).",
         ]
     lines += ["", "## Commands", "", "    PYTHONPATH=. .venv/bin/python bench/bench_laser_odometry.py", ""]
     path.write_text("\n".join(lines))
