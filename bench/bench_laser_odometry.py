@@ -40,12 +40,15 @@ from collections.abc import Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from bench_perturbed_runs import perturbed_logs
 from numpy.typing import NDArray
 from run_all import DATASETS, when_and_where, write_bench
+
+if TYPE_CHECKING:
+    from ptm_ros.io.groundtruth import GroundTruthTrajectory
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -134,7 +137,10 @@ WITHOUT_SECOND_LOOK = {"defer_scans": 0}
 
 
 def family_ate(
-    log: LogInput, truth_stamps: NDArray[np.float64], truth_poses: NDArray[np.float64], args: tuple
+    log: LogInput,
+    truth_stamps: NDArray[np.float64],
+    truth_poses: NDArray[np.float64],
+    args: tuple[float, int, dict[str, Any]],
 ) -> float:
     """The ATE of one pass of the family (``args``: :func:`laser_odometry_pass`'s shift, skip and
     overrides)."""
@@ -174,7 +180,7 @@ def step_heading_errors(poses: NDArray[np.float64], true: NDArray[np.float64]) -
 
 def against_truth(
     scan: ScanPass, truth_stamps: NDArray[np.float64], truth_poses: NDArray[np.float64]
-) -> dict:
+) -> dict[str, Any]:
     """The figures of the module docstring for one pass against the ground truth ``truth_poses (T, 3)``
     at ``truth_stamps``, over the scans inside its span (a step's status is its later scan's)."""
     from ptm_ros.model.geometry import interpolate_poses
@@ -248,6 +254,23 @@ def _family(ates: Sequence[float]) -> str:
     return f"{geometric_mean(ates):.2f} [{min(ates):.2f}–{max(ates):.2f}]"
 
 
+def log_row(name: str, label: str, bag: Path, truth: GroundTruthTrajectory, pool: Executor) -> dict[str, Any]:
+    """The figures of one log (the module docstring) against ``truth`` (its ground truth), or its error."""
+    row: dict[str, Any] = {"run": name, "log": label}
+    try:
+        log = load_log(bag)
+        scan = laser_odometry_pass(log)
+        row |= {"time_offset": scan.time_offset}
+        row |= against_truth(scan, truth.stamps, truth.poses_corrected)
+        for key, overrides in (("family", {}), ("family_without_second_look", WITHOUT_SECOND_LOOK)):
+            ates = family_ates(log, truth.stamps, truth.poses_corrected, overrides, pool)
+            row[f"{key}_ate_m"] = ates
+            row[f"{key}_ate_geomean_m"] = geometric_mean(ates)
+    except Exception as exc:  # one failed log is reported, the others still run
+        row["error"] = f"{type(exc).__name__}: {exc}"
+    return row
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from ptm_ros.io.groundtruth import load_ground_truth
 
@@ -263,27 +286,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    truths: dict[Path, Any] = {}
-    pool = ProcessPoolExecutor(max_workers=args.jobs)
-    for name, label, bag, truth_file in perturbed_logs(args.work):
-        if truth_file not in truths:  # one ground truth serves the run's four logs
-            truths[truth_file] = load_ground_truth(truth_file)
-        truth = truths[truth_file]
-        row: dict[str, Any] = {"run": name, "log": label}
-        try:
-            log = load_log(bag)
-            scan = laser_odometry_pass(log)
-            row |= {"time_offset": scan.time_offset}
-            row |= against_truth(scan, truth.stamps, truth.poses_corrected)
-            for key, overrides in (("family", {}), ("family_without_second_look", WITHOUT_SECOND_LOOK)):
-                ates = family_ates(log, truth.stamps, truth.poses_corrected, overrides, pool)
-                row[f"{key}_ate_m"] = ates
-                row[f"{key}_ate_geomean_m"] = geometric_mean(ates)
-        except Exception as exc:  # one failed log is reported, the others still run
-            row["error"] = f"{type(exc).__name__}: {exc}"
-        rows.append(row)
-        print(f"[laser-odometry] {row}", flush=True)
-    pool.shutdown()
+    truths: dict[Path, GroundTruthTrajectory] = {}
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        for name, label, bag, truth_file in perturbed_logs(args.work):
+            if truth_file not in truths:  # one ground truth serves the run's four logs
+                truths[truth_file] = load_ground_truth(truth_file)
+            rows.append(log_row(name, label, bag, truths[truth_file], pool))
+            print(f"[laser-odometry] {rows[-1]}", flush=True)
     write_bench({**when_and_where(t0), "rows": rows}, args.out / "laser_odometry.json", write_md)
     return 0
 
