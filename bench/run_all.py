@@ -86,6 +86,7 @@ COMPONENTS = (
     "bench_missed_pairs.py",
     "bench_perturbed_runs.py",
     "bench_laser_odometry.py",
+    "bench_filter_vs_batch.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -1,8 +1,8 @@
 """Helpers of the benchmarks whose mistakes would go unnoticed in their figures: the sensors
 ``bench/bench_calibration.py`` simulates, the cache of exact enumerations ``bench/bench_exact.py``
 reuses, how ``bench/bench_missed_pairs.py`` classes passages and registrations, the logs
-``bench/bench_perturbed_runs.py`` makes unlike themselves and how ``bench/bench_laser_odometry.py`` scores
-the laser odometry."""
+``bench/bench_perturbed_runs.py`` makes unlike themselves, how ``bench/bench_laser_odometry.py`` scores
+the laser odometry and how ``bench/bench_filter_vs_batch.py`` finds a posterior's surest wrong merge."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
+from bench_filter_vs_batch import worst_wrong_pair
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
@@ -181,3 +182,24 @@ def test_the_laser_odometry_ate_at_the_visits_aligns_rigidly_and_skips_visits_ou
     off = [dict(v) for v in visits]
     off[10]["corrected_pose"] = list(compose(moved[10], [0.4, 0.0, 0.0]))
     assert 0.05 < laser_odometry_ate(off, truth) < 0.4
+
+
+def test_the_worst_wrong_pair_is_the_surest_merge_of_visits_far_apart_in_truth(tmp_path):
+    """Visits at 0, 1 and 10 m (and one outside the ground truth's span): merging 0 and 10 m is wrong,
+    merging 0 and 1 m is not, and the visit outside the span is not scored."""
+    from ptm_ros.io.groundtruth import GroundTruthTrajectory, save_sim_gt
+
+    stamps = np.arange(0.0, 11.0)
+    poses = np.column_stack([stamps, np.zeros_like(stamps), np.zeros_like(stamps)])
+    truth = save_sim_gt(GroundTruthTrajectory(stamps=stamps, poses_corrected=poses), tmp_path / "gt.json")
+    doc = {
+        "landmarks": [{"stamp": t} for t in (0.0, 1.0, 10.0, 99.0)],
+        "topologies": [
+            {"labels": [0, 0, 1, 0], "probability": 0.6},  # right, but for the unscored visit
+            {"labels": [0, 1, 0, 2], "probability": 0.3},  # 0 m and 10 m merged
+            {"labels": [0, 0, 0, 0], "probability": 0.1},  # all merged
+        ],
+    }
+    assert worst_wrong_pair(doc, truth) == pytest.approx(0.4)
+    doc["topologies"] = [{"labels": [0, 0, 1, 1], "probability": 1.0}]
+    assert worst_wrong_pair(doc, truth) == 0.0
