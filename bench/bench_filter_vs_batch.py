@@ -11,8 +11,9 @@ Per case (each shared run as logged, at the defaults; MIT CSAIL also with ``lase
 -0.1 s) and inference seed, ``ptm-run`` with the filter (``--method rbpf``) and with MCMC (``--method
 mcmc``: the filter first, then Metropolis-Hastings over the batch posterior from its topologies):
 
-* each one's MAP F1 (precision) and the largest same-place probability of a pair of visits more than 4 m
-  apart in truth (``worst_wrong_pair``: how sure it is of its worst merge);
+* each one's MAP F1 (precision) and the largest same-place probability of a pair of visits that
+  ``ptm-eval`` scores as different places, more than 4 m apart in truth (``worst_wrong_pair``: how sure
+  it is of its worst merge);
 * from MCMC's ``ptm.json`` (``inference.versus_rbpf``): ``map_gain_nats``, the batch log posterior of
   MCMC's MAP minus the filter's MAP's; ``rbpf_map_mass``, the filter MAP's mass under MCMC; ``tv``, the
   total variation between the two PTMs.
@@ -31,46 +32,44 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from bench_perturbed_runs import perturbed_logs
-from run_all import DATASETS, ptm_run_scored, when_and_where, write_bench
+from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_bench
+
+if TYPE_CHECKING:
+    from ptm_ros.io.groundtruth import GroundTruthTrajectory
+    from ptm_ros.model.ptm import Ptm
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
-#: Pairs of visits farther apart than this in truth are scored "different places" (as ``ptm-eval``).
-DIFFERENT_M = 4.0
 #: The extra cases: (run, label, the ``laser_odometry`` parameters of ``--params``).
 OFFSET_CASES = (("mit-csail", "time offset -0.1 s", {"time_offset": -0.1}),)
 
 
-def worst_wrong_pair(doc: dict[str, Any], truth: Path) -> float:
-    """The largest same-place probability (``ptm.json``'s topologies) of a pair of visits more than
-    :data:`DIFFERENT_M` apart at the ground truth's poses at their stamps (visits inside its span)."""
-    from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.model.geometry import interpolate_poses
+def worst_wrong_pair(ptm: Ptm, truth: GroundTruthTrajectory) -> float:
+    """The largest same-place probability of a pair of visits that ``ptm-eval`` scores as different places
+    (:func:`~ptm_ros.scoring.evaluation.pair_truth` at the true positions of
+    :func:`~ptm_ros.tools.evaluate.true_positions_for`); 0 without such a pair."""
+    from ptm_ros.model.posterior import same_place_probabilities
+    from ptm_ros.scoring.evaluation import pair_truth
+    from ptm_ros.tools.evaluate import true_positions_for
 
-    gt = load_ground_truth(truth)
-    stamps = np.array([v["stamp"] for v in doc["landmarks"]])
-    inside = np.flatnonzero((stamps >= gt.stamps[0]) & (stamps <= gt.stamps[-1]))
-    xy = interpolate_poses(gt.stamps, gt.poses_corrected, stamps[inside])[:, :2]
-    far = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1)) > DIFFERENT_M
-    same = np.zeros(far.shape)
-    for top in doc["topologies"]:
-        labels = np.asarray(top["labels"])[inside]
-        same += top["probability"] * (labels[:, None] == labels[None, :])
-    return float(same[far].max()) if far.any() else 0.0
+    i, j, same = pair_truth(true_positions_for(ptm, truth))
+    marginals = {t.labels: t.probability for t in ptm.topologies}
+    wrong = same_place_probabilities(marginals, len(ptm.landmarks))[i[~same], j[~same]]
+    return float(wrong.max()) if wrong.size else 0.0
 
 
 def method_figures(
     bag: Path, truth: Path, out: Path, *, seed: int, method: str, params: Path | None
 ) -> dict[str, Any]:
     """``ptm-run`` with ``method`` and inference ``seed`` (``params``: a ``--params`` file), its figures."""
+    from ptm_ros.io.groundtruth import load_ground_truth
+
     options = ["--seed", str(seed), "--method", method, "--no-report", "--no-map", "--force"]
     if params is not None:
         options += ["--params", str(params)]
@@ -78,15 +77,14 @@ def method_figures(
     res = ptm_run_scored(bag, truth, out, *options)
     if isinstance(res, str):
         return {"error": res}
-    _, score = res
-    doc = json.loads((out / "ptm.json").read_text())
+    ptm, score = res
     figures = {
         "map_f1": score["map_f1"],
         "map_precision": score["map_precision"],
-        "worst_wrong_pair": worst_wrong_pair(doc, truth),
+        "worst_wrong_pair": worst_wrong_pair(ptm, load_ground_truth(truth)),
         "seconds": time.perf_counter() - start,
     }
-    versus = doc["inference"].get("versus_rbpf") or {}
+    versus = ptm.inference.get("versus_rbpf") or {}
     return figures | {k: versus[k] for k in ("map_gain_nats", "rbpf_map_mass", "tv") if k in versus}
 
 
@@ -119,7 +117,7 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         f"Generated {doc['generated']} by `bench/bench_filter_vs_batch.py` ({doc['minutes']:.0f} min). "
         "`ptm-run` with the particle filter and with MCMC (the filter first, then the batch posterior "
         "sampled from its topologies), the same inference seed. Worst wrong pair: the largest same-place "
-        f"probability of two visits more than {DIFFERENT_M:g} m apart in truth. MAP gain: the batch log "
+        "probability of two visits that `ptm-eval` scores as different places. MAP gain: the batch log "
         "posterior of MCMC's MAP minus the filter's MAP's; filter MAP mass: its mass under MCMC.",
         "",
         "| run | case | seed | filter MAP F1 (precision) | filter worst wrong pair | MCMC MAP F1 "
@@ -148,12 +146,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=BENCH, help="where filter_vs_batch.{json,md} are written")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="inference seeds")
     args = parser.parse_args(argv)
-    if not (DATASETS / "README.md").is_file():
-        print(f"[filter-vs-batch] {DATASETS} absent: nothing to do", flush=True)
+    if not shared_data_ready("filter-vs-batch", args.work, args.out):
         return 0
     t0 = time.perf_counter()
-    args.work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, label, bag, truth, params in cases(args.work):
         for seed in args.seeds:

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from bench_perturbed_runs import perturbed_logs
 from numpy.typing import NDArray
-from run_all import DATASETS, when_and_where, write_bench
+from run_all import shared_data_ready, when_and_where, write_bench
 
 if TYPE_CHECKING:
     from ptm_ros.io.groundtruth import GroundTruthTrajectory
@@ -125,7 +125,7 @@ def laser_odometry_pass(
     return ScanPass(stamps[keep], wheel, np.array(corrected), tuple(status), offset)
 
 
-#: The family of small perturbations each log is also run under (:func:`family_ates`): the time offset
+#: The family of small perturbations each log is also run under (:func:`family_passes`): the time offset
 #: shifted from the learned one (s) and the first scans left out. The laser odometry is deterministic, and
 #: one accept/reject decision can move a whole log's ATE by metres (MIT CSAIL as logged: 1.7 m at the
 #: learned offset, 5.3 m at 0.05 s from it), so a single pass per log is one draw of a chaotic process.
@@ -136,28 +136,29 @@ FAMILY_SKIPS = (0, 10)
 WITHOUT_SECOND_LOOK = {"defer_scans": 0}
 
 
-def family_ate(
+def family_pass(
     log: LogInput,
     truth_stamps: NDArray[np.float64],
     truth_poses: NDArray[np.float64],
     args: tuple[float, int, dict[str, Any]],
-) -> float:
-    """The ATE of one pass of the family (``args``: :func:`laser_odometry_pass`'s shift, skip and
-    overrides)."""
-    return against_truth(laser_odometry_pass(log, *args), truth_stamps, truth_poses)["ate_m"]
+) -> dict[str, Any]:
+    """One pass of the family (``args``: :func:`laser_odometry_pass`'s shift, skip and overrides): its
+    time offset and :func:`against_truth`'s figures."""
+    scan = laser_odometry_pass(log, *args)
+    return {"time_offset": scan.time_offset, **against_truth(scan, truth_stamps, truth_poses)}
 
 
-def family_ates(
+def family_passes(
     log: LogInput,
     truth_stamps: NDArray[np.float64],
     truth_poses: NDArray[np.float64],
     overrides: dict[str, Any],
     pool: Executor,
-) -> list[float]:
-    """The ATE (m) of every pass of the family (:data:`FAMILY_SHIFTS` × :data:`FAMILY_SKIPS`), run in
-    ``pool`` (an executor)."""
+) -> list[dict[str, Any]]:
+    """Every pass of the family (:data:`FAMILY_SHIFTS` × :data:`FAMILY_SKIPS`, the log itself first: shift
+    0, skip 0), run in ``pool`` (an executor)."""
     args = [(shift, skip, overrides) for shift in FAMILY_SHIFTS for skip in FAMILY_SKIPS]
-    futures = [pool.submit(family_ate, log, truth_stamps, truth_poses, a) for a in args]
+    futures = [pool.submit(family_pass, log, truth_stamps, truth_poses, a) for a in args]
     return [f.result() for f in futures]
 
 
@@ -259,11 +260,11 @@ def log_row(name: str, label: str, bag: Path, truth: GroundTruthTrajectory, pool
     row: dict[str, Any] = {"run": name, "log": label}
     try:
         log = load_log(bag)
-        scan = laser_odometry_pass(log)
-        row |= {"time_offset": scan.time_offset}
-        row |= against_truth(scan, truth.stamps, truth.poses_corrected)
         for key, overrides in (("family", {}), ("family_without_second_look", WITHOUT_SECOND_LOOK)):
-            ates = family_ates(log, truth.stamps, truth.poses_corrected, overrides, pool)
+            passes = family_passes(log, truth.stamps, truth.poses_corrected, overrides, pool)
+            if not overrides:  # the log itself at the defaults: the family's first pass
+                row |= passes[0]
+            ates = [p["ate_m"] for p in passes]
             row[f"{key}_ate_m"] = ates
             row[f"{key}_ate_geomean_m"] = geometric_mean(ates)
     except Exception as exc:  # one failed log is reported, the others still run
@@ -279,12 +280,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=BENCH, help="where laser_odometry.{json,md} are written")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes for the family")
     args = parser.parse_args(argv)
-    if not (DATASETS / "README.md").is_file():
-        print(f"[laser-odometry] {DATASETS} absent: nothing to do", flush=True)
+    if not shared_data_ready("laser-odometry", args.work, args.out):
         return 0
     t0 = time.perf_counter()
-    args.work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     truths: dict[Path, GroundTruthTrajectory] = {}
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from run_all import DATASETS, REAL_RUNS, ptm_run_scored, when_and_where, write_bench
+from run_all import DATASETS, REAL_RUNS, ptm_run_scored, shared_data_ready, when_and_where, write_bench
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -248,12 +248,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=BENCH, help="where perturbed_runs.{json,md} are written")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="inference seeds")
     args = parser.parse_args(argv)
-    if not (DATASETS / "README.md").is_file():
-        print(f"[perturbed] {DATASETS} absent: nothing to do", flush=True)
+    if not shared_data_ready("perturbed", args.work, args.out):
         return 0
     t0 = time.perf_counter()
-    args.work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, label, bag, truth in perturbed_logs(args.work):
         for seed in args.seeds:

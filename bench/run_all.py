@@ -116,6 +116,17 @@ def ptm_run_scored(bag: Path, truth: Path, out: Path, *options: str) -> tuple[An
     return ptm, score_against(ptm, truth).as_dict(per_topology=False)
 
 
+def shared_data_ready(tag: str, *dirs: Path) -> bool:
+    """Whether ``../shared/datasets`` is here (else a line saying so, under ``[tag]``), with ``dirs`` made:
+    the start of every benchmark on the shared real runs."""
+    if not (DATASETS / "README.md").is_file():
+        print(f"[{tag}] {DATASETS} absent: nothing to do", flush=True)
+        return False
+    for d in dirs:
+        d.mkdir(parents=True, exist_ok=True)
+    return True
+
+
 def when_and_where(t0: float) -> dict[str, Any]:
     """A benchmark record's ``generated`` (local time), ``machine`` and ``minutes`` since ``t0``
     (:func:`time.perf_counter`)."""

@@ -184,22 +184,23 @@ def test_the_laser_odometry_ate_at_the_visits_aligns_rigidly_and_skips_visits_ou
     assert 0.05 < laser_odometry_ate(off, truth) < 0.4
 
 
-def test_the_worst_wrong_pair_is_the_surest_merge_of_visits_far_apart_in_truth(tmp_path):
+def test_the_worst_wrong_pair_is_the_surest_merge_of_visits_far_apart_in_truth():
     """Visits at 0, 1 and 10 m (and one outside the ground truth's span): merging 0 and 10 m is wrong,
     merging 0 and 1 m is not, and the visit outside the span is not scored."""
-    from ptm_ros.io.groundtruth import GroundTruthTrajectory, save_sim_gt
+    from ptm_ros.io.groundtruth import GroundTruthTrajectory
+    from ptm_ros.model.ptm import Landmark, make_ptm
 
     stamps = np.arange(0.0, 11.0)
     poses = np.column_stack([stamps, np.zeros_like(stamps), np.zeros_like(stamps)])
-    truth = save_sim_gt(GroundTruthTrajectory(stamps=stamps, poses_corrected=poses), tmp_path / "gt.json")
-    doc = {
-        "landmarks": [{"stamp": t} for t in (0.0, 1.0, 10.0, 99.0)],
-        "topologies": [
-            {"labels": [0, 0, 1, 0], "probability": 0.6},  # right, but for the unscored visit
-            {"labels": [0, 1, 0, 2], "probability": 0.3},  # 0 m and 10 m merged
-            {"labels": [0, 0, 0, 0], "probability": 0.1},  # all merged
-        ],
-    }
-    assert worst_wrong_pair(doc, truth) == pytest.approx(0.4)
-    doc["topologies"] = [{"labels": [0, 0, 1, 1], "probability": 1.0}]
-    assert worst_wrong_pair(doc, truth) == 0.0
+    truth = GroundTruthTrajectory(stamps=stamps, poses_corrected=poses)
+    landmarks = [Landmark(k, t, (0.0, 0.0, 0.0)) for k, t in enumerate((0.0, 1.0, 10.0, 99.0))]
+    ptm = make_ptm(
+        landmarks,
+        {
+            (0, 0, 1, 0): 0.6,  # right, but for the unscored visit
+            (0, 1, 0, 2): 0.3,  # 0 m and 10 m merged
+            (0, 0, 0, 0): 0.1,  # all merged
+        },
+    )
+    assert worst_wrong_pair(ptm, truth) == pytest.approx(0.4)
+    assert worst_wrong_pair(make_ptm(landmarks, {(0, 0, 1, 1): 1.0}), truth) == 0.0

@@ -389,7 +389,7 @@ class LaserOdometry:
         are shared)."""
         twin = copy.copy(self)
         twin._window = deque(self._window, maxlen=self.config.window)
-        twin._path = self._path.copy()  # the only state changed in place
+        twin._path = self._path.copy()  # changed in place by _learn_scale
         twin.counters = replace(self.counters)
         twin._rival = None
         return twin
