@@ -1,4 +1,5 @@
-"""The heading noise learned from a run (``model.odometry.learn_heading``, issue #23) against the truth.
+"""The noise models against the truth (issue #23): the heading noise learned from a run
+(``model.odometry.learn_heading``) and the covariance of the laser registrations.
 
 For each real run in ``../shared/datasets`` (converted once under ``--work``) and each simulated world of
 ``--worlds`` at the odometry noise levels ``--noise`` of ``bench_calibration.py`` (seed 0):
@@ -8,7 +9,12 @@ For each real run in ``../shared/datasets`` (converted once under ``--work``) an
   default model gives the same stretches (``a_th ρ + c_th ℓ``): the scale a perfect estimator would learn;
 * **learned**: the scale the filter session learns from the run's own laser registrations, no ground truth
   (:mod:`ptm_ros.model.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and
-  the outlier fraction behind it.
+  the outlier fraction behind it;
+* **registrations**: each valid registration of the run (the pairs the filter asked about) against the
+  true relative pose of its two visits, for the pairs less than ``TRUE_PAIR_M`` apart in truth: its error in
+  translation and heading, and its squared Mahalanobis distance under its own covariance (χ² with 3 degrees
+  of freedom if the covariance were right: ``CHI2_3_99`` is exceeded by 1 % of the pairs). Those more than
+  ``ALIAS_RAD`` off in heading are counted as aliases and left out of the error figures.
 
 Writes ``bench/heading_noise.json`` and ``bench/heading_noise.md``.
 
@@ -33,6 +39,12 @@ import numpy as np
 from run_all import DATASETS, REAL_RUNS, prepare_runs, write_bench
 
 BENCH = Path(__file__).resolve().parent
+#: Registrations of visits at most this far apart in truth are scored (the scoring's "different" line).
+TRUE_PAIR_M = 4.0
+#: A registration this far off the true relative heading is an alias (a symmetric mismatch), not noise.
+ALIAS_RAD = 0.5
+#: The 99 % quantile of χ² with 3 degrees of freedom.
+CHI2_3_99 = 11.345
 WORLDS = ("aliased-loop", "twin-rooms", "room-row", "aliased-ring")
 NOISE = ("sim", "model", "twice-model")
 
@@ -63,12 +75,50 @@ def measured_ratio(stamps: np.ndarray, corrected: np.ndarray, truth: Any, window
     }
 
 
+def registration_errors(
+    stamps: np.ndarray, registrations: Sequence[Any], truth: Any, floor: tuple[float, float]
+) -> dict[str, float]:
+    """Valid registrations (``RelativePose``, of visits at ``stamps``) against the truth's relative poses
+    (module docstring); ``floor`` the registration covariance's floor ``(σ_xy, σ_θ)``, for comparison."""
+    from ptm_ros.model.geometry import between, interpolate_poses, wrap_angle
+
+    t = np.asarray(stamps, dtype=float)
+    inside = (t >= truth.stamps[0]) & (t <= truth.stamps[-1])
+    g = interpolate_poses(truth.stamps, truth.poses_corrected, t)
+    trans, head, maha, aliases = [], [], [], 0
+    for z in registrations:
+        if not (inside[z.i] and inside[z.j]) or np.hypot(*(g[z.i, :2] - g[z.j, :2])) >= TRUE_PAIR_M:
+            continue
+        e = np.asarray(z.mean, dtype=float) - between(g[z.i], g[z.j])
+        e[2] = wrap_angle(e[2])
+        if abs(e[2]) > ALIAS_RAD:
+            aliases += 1
+            continue
+        trans.append(float(np.hypot(e[0], e[1])))
+        head.append(abs(float(e[2])))
+        maha.append(float(e @ np.linalg.solve(np.asarray(z.cov, dtype=float), e)))
+    out: dict[str, float] = {
+        "scored": len(trans),
+        "aliases": aliases,
+        "floor_xy": floor[0],
+        "floor_th": floor[1],
+    }
+    if trans:
+        for name, v in (("xy", np.array(trans)), ("th", np.array(head))):
+            out[f"{name}_rms"] = float(np.sqrt(np.mean(v * v)))
+            out[f"{name}_median"] = float(np.median(v))
+            out[f"{name}_p90"] = float(np.quantile(v, 0.9))
+        out["beyond_chi2_99"] = float(np.mean(np.array(maha) > CHI2_3_99))
+    return out
+
+
 def one_run(bag: Path, truth_path: Path, window: float) -> dict[str, Any]:
     """Measured and learned scale of one bag at the default parameters (laser-surprise visits)."""
     from ptm_ros.config import PtmConfig
     from ptm_ros.factories import with_detector_kind
     from ptm_ros.io.bag import read_run
     from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.model.geometry import RelativePose
     from ptm_ros.session import FilterSession, filter_visits
     from ptm_ros.tools.outputs import run_odometry
     from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor, run_sensors
@@ -79,20 +129,28 @@ def one_run(bag: Path, truth_path: Path, window: float) -> dict[str, Any]:
     visits = detect_visits(run, config, extractor=extractor)
     odom = run_odometry(run)
     out: dict[str, Any] = {"visits": len(visits)}
+    truth = load_ground_truth(truth_path)
     out["measured"] = measured_ratio(
-        np.asarray(odom.stamps), corrected_odometry(run, extractor), load_ground_truth(truth_path), window
+        np.asarray(odom.stamps), corrected_odometry(run, extractor), truth, window
     )
     t0 = time.perf_counter()
     session = filter_visits(FilterSession(config, fitted_to=visits), visits)
     out["learned"] = session.heading.as_dict()
     out["filter_s"] = time.perf_counter() - t0
     out["replays"] = session.replays
+    valid = sorted(
+        (z for z in session.pairs.values() if isinstance(z, RelativePose)), key=lambda z: (z.i, z.j)
+    )
+    floor = (config.laser.min_std_xy, config.laser.min_std_yaw)
+    out["registrations"] = registration_errors(np.array([v.stamp for v in visits]), valid, truth, floor)
     return out
 
 
 def write_md(doc: dict[str, Any], path: Path) -> None:
     lines = [
-        "# The heading noise learned from the run (issue #23)",
+        "# The noise models against the truth (issue #23)",
+        "",
+        "## The heading noise learned from the run",
         "",
         f"Generated {doc['generated']} by `bench/bench_heading_noise.py` ({doc['wall_s'] / 60:.0f} min). "
         f"*Measured*: the laser-corrected odometry's heading error against the ground truth over "
@@ -112,6 +170,30 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
             f"| {r['run']} | {r.get('noise', 'real')} | {r['visits']} | {m['stretches']} | {ratio} | "
             f"{lr['scale']:.3g} | {lr['registrations']} | {lr['outlier_fraction']:.2f} | "
             f"{r['filter_s']:.1f} ({r['replays']}) |"
+        )
+    lines += [
+        "",
+        "## The laser registrations against the truth",
+        "",
+        f"Each valid registration of visits less than {TRUE_PAIR_M:.0f} m apart in truth (the pairs the "
+        "filter asked about), against the true relative pose of its visits: the error of its translation (m) "
+        "and heading (rad), and the share of them outside the 99 % ellipsoid of their own covariance (1 % if "
+        f"the covariance were right). Those more than {ALIAS_RAD} rad off in heading are aliases, counted "
+        "apart. The registrations' covariance is the point-to-plane fit's, floored at `laser.min_std_xy` and "
+        "`laser.min_std_yaw` (the floor columns).",
+        "",
+        "| run | noise | scored | aliases | xy rms | xy median | xy p90 | floor xy | θ rms | θ median "
+        "| θ p90 | floor θ | outside 99 % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in doc["runs"]:
+        g = r.get("registrations", {})
+        if not g.get("scored"):
+            continue
+        lines.append(
+            f"| {r['run']} | {r.get('noise', 'real')} | {g['scored']} | {g['aliases']} | {g['xy_rms']:.3f} | "
+            f"{g['xy_median']:.3f} | {g['xy_p90']:.3f} | {g['floor_xy']:.3f} | {g['th_rms']:.3f} | "
+            f"{g['th_median']:.3f} | {g['th_p90']:.3f} | {g['floor_th']:.3f} | {g['beyond_chi2_99']:.2f} |"
         )
     path.write_text("\n".join(lines) + "\n")
 

@@ -2,7 +2,8 @@
 ``bench/bench_calibration.py`` simulates, the cache of exact enumerations ``bench/bench_exact.py``
 reuses, how ``bench/bench_missed_pairs.py`` classes passages and registrations, the logs
 ``bench/bench_perturbed_runs.py`` makes unlike themselves, how ``bench/bench_laser_odometry.py`` scores
-the laser odometry and how ``bench/bench_filter_vs_batch.py`` finds a posterior's surest wrong merge."""
+the laser odometry, how ``bench/bench_filter_vs_batch.py`` finds a posterior's surest wrong merge and how
+``bench/bench_heading_noise.py`` scores the registrations against the truth."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
 from bench_filter_vs_batch import worst_wrong_pair
+from bench_heading_noise import CHI2_3_99, registration_errors
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
@@ -26,6 +29,7 @@ from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
+from ptm_ros.model.geometry import RelativePose, between
 from ptm_ros.perception.laser import FLAT_OPTIMUM, Registration
 
 CASE = Case("loop", "aliased", "aliased-loop", "model", 0)
@@ -204,3 +208,34 @@ def test_the_worst_wrong_pair_is_the_surest_merge_of_visits_far_apart_in_truth()
     )
     assert worst_wrong_pair(ptm, truth) == pytest.approx(0.4)
     assert worst_wrong_pair(make_ptm(landmarks, {(0, 0, 1, 1): 1.0}), truth) == 0.0
+
+
+def test_registrations_are_scored_against_the_true_relative_pose_with_aliases_and_far_pairs_apart():
+    """An exact registration has no error and lies inside its ellipsoid; one 0.3 m and 0.1 rad off, with
+    the floor covariance, lies outside; one a radian off is an alias; pairs 4 m apart or more in truth and
+    visits outside the truth's span are not scored."""
+    truth = SimpleNamespace(
+        stamps=np.array([0.0, 1.0, 2.0, 3.0]),
+        poses_corrected=np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [1.0, 1.0, 1.0], [9.0, 0.0, 0.0]]),
+    )
+    stamps = np.array([0.0, 1.0, 2.0, 3.0, 5.0])  # visit 4 lies beyond the truth
+    g = truth.poses_corrected
+    cov = np.diag([0.05**2, 0.05**2, 0.02**2])
+    exact = RelativePose(0, 1, between(g[0], g[1]), cov)
+    off = RelativePose(0, 2, between(g[0], g[2]) + np.array([0.3, 0.0, 0.1]), cov)
+    alias = RelativePose(1, 2, between(g[1], g[2]) + np.array([0.0, 0.0, 1.0]), cov)
+    far = RelativePose(0, 3, between(g[0], g[3]), cov)
+    outside = RelativePose(2, 4, np.zeros(3), cov)
+    out = registration_errors(stamps, [exact, off, alias, far, outside], truth, (0.05, 0.02))
+    assert (out["scored"], out["aliases"]) == (2, 1)
+    assert out["xy_rms"] == pytest.approx(math.sqrt(0.3**2 / 2))
+    assert out["th_median"] == pytest.approx(0.05)
+    assert out["th_p90"] == pytest.approx(0.09)
+    assert out["beyond_chi2_99"] == pytest.approx(0.5)
+    assert CHI2_3_99 < (0.3 / 0.05) ** 2
+    assert registration_errors(stamps, [far, outside], truth, (0.05, 0.02)) == {
+        "scored": 0,
+        "aliases": 0,
+        "floor_xy": 0.05,
+        "floor_th": 0.02,
+    }
