@@ -17,7 +17,12 @@
    ``maps_quality.json``, summarised in ``results.md``) and why the MAP misses same-place pairs on the
    real runs (``bench_missed_pairs.py``: ``missed_pairs.{json,md}``) and the real runs' logs made
    unlike themselves, a laser at half the rate and drifting wheels (``bench_perturbed_runs.py``:
-   ``perturbed_runs.{json,md}``), when present.
+   ``perturbed_runs.{json,md}``), the laser odometry over a family of small perturbations
+   (``bench_laser_odometry.py``: ``laser_odometry.{json,md}``), the filter against MCMC on the real runs
+   (``bench_filter_vs_batch.py``: ``filter_vs_batch.{json,md}``), the heading noise and the laser
+   registrations against the truth (``bench_heading_noise.py``: ``heading_noise.{json,md}``) and each wrong
+   merge of the perturbed real runs decomposed by the batch model (``bench_wrong_merges.py``:
+   ``wrong_merges.{json,md}``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -87,6 +92,8 @@ COMPONENTS = (
     "bench_perturbed_runs.py",
     "bench_laser_odometry.py",
     "bench_filter_vs_batch.py",
+    "bench_heading_noise.py",
+    "bench_wrong_merges.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -3,7 +3,8 @@
 reuses, how ``bench/bench_missed_pairs.py`` classes passages and registrations, the logs
 ``bench/bench_perturbed_runs.py`` makes unlike themselves, how ``bench/bench_laser_odometry.py`` scores
 the laser odometry, how ``bench/bench_filter_vs_batch.py`` finds a posterior's surest wrong merge and how
-``bench/bench_heading_noise.py`` scores the registrations against the truth."""
+``bench/bench_heading_noise.py`` scores the registrations against the truth and how
+``bench/bench_wrong_merges.py`` splits a wrong merge into its groups in truth."""
 
 from __future__ import annotations
 
@@ -25,11 +26,12 @@ from bench_heading_noise import CHI2_3_99, registration_errors
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
+from bench_wrong_merges import outcomes_between, split_labels, truth_groups
 
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
-from ptm_ros.model.geometry import RelativePose, between
+from ptm_ros.model.geometry import NoMatch, RelativePose, between
 from ptm_ros.perception.laser import FLAT_OPTIMUM, Registration
 
 CASE = Case("loop", "aliased", "aliased-loop", "model", 0)
@@ -239,3 +241,30 @@ def test_registrations_are_scored_against_the_true_relative_pose_with_aliases_an
         "floor_xy": 0.05,
         "floor_th": 0.02,
     }
+
+
+def test_a_wrong_merge_splits_into_its_groups_in_truth_keeping_chains_of_one_place_whole():
+    """Visits 1.2 m apart stay together even when the chain they form reaches past 4 m of a third visit
+    that a plain complete linkage would have grouped first; a group takes a chain only if no pair of
+    them is more than 4 m apart."""
+    xy = np.array([[0.0, 0.0], [0.7, 0.0], [3.0, 0.0], [4.2, 0.0], [5.4, 0.0], [20.0, 0.0], [0.2, 0.3]])
+    assert truth_groups([0, 1, 2, 3, 4, 5, 6], xy) == [[0, 1, 6], [2, 3, 4], [5]]
+    assert truth_groups([0, 1, 6], xy) == [[0, 1, 6]]
+    assert truth_groups([], xy) == []
+    labels = (0, 0, 0, 0, 0, 1, 0)
+    assert split_labels(labels, [[0, 1, 6], [2, 3, 4], [5]]) == (0, 0, 1, 1, 1, 2, 0)
+
+
+def test_the_outcomes_between_groups_leave_out_pairs_inside_a_group_and_visits_outside():
+    cov = np.eye(3)
+    pairs = {
+        (0, 1): RelativePose(0, 1, np.zeros(3), cov),  # inside a group
+        (0, 2): RelativePose(0, 2, np.zeros(3), cov),
+        (1, 2): NoMatch(1, 2, log_bayes=-2.0),
+        (1, 3): NoMatch(1, 3, log_bayes=-1.0),
+        (2, 9): NoMatch(2, 9, log_bayes=5.0),  # visit 9 in no group
+        (0, 3): None,
+    }
+    assert outcomes_between([[0, 1], [2, 3]], pairs) == {"valid": 1, "failed": 2, "failed_log_bayes": -1.5}
+    out = outcomes_between([[0, 1]], pairs)
+    assert (out["valid"], out["failed"], math.isnan(out["failed_log_bayes"])) == (0, 0, True)

@@ -1,0 +1,242 @@
+"""Why the most probable topology merges places that are different in truth (issue #23), merge by merge.
+
+For each shared real run under each perturbation of ``bench_perturbed_runs.py`` (``--perturbations``,
+default all; seed 0), ``ptm-run`` at the defaults keeps its filter's state. Each place of the MAP topology
+that holds a pair of visits ``ptm-eval`` scores as different places (more than 4 m apart in truth) is a
+*wrong merge*. Its visits are split into the groups they form in truth (:func:`truth_groups`: chains of
+visits scored as one place kept whole), and the batch model (:class:`ptm_ros.model.posterior.PosteriorModel`,
+at the heading-noise scale the run learned, with the run's own registrations) scores the MAP against the MAP
+with that place split. The difference of the two
+log posteriors, merge minus split, is decomposed into
+
+* **prior**: the topology prior (Ch. 1.3; the Dirichlet process favours fewer places);
+* **geometry**: the metric likelihood without the laser fitness evidence: odometry, place coincidences,
+  the registrations used as pose constraints (eq. 17–18);
+* **laser**: the fitness evidence of the laser outcomes the two topologies chain (eq. 47–49: each visit
+  against the previous visit of its place; a failed match counts against one place by its ``log_bayes``).
+
+Beside them: how far apart the groups are in truth and in the laser-corrected odometry (the closest pair of
+visits across groups), the PTM's probability that the farthest pair is one place, and the laser outcomes
+between the groups (valid matches; failed ones with their mean ``log_bayes``).
+
+Writes ``bench/wrong_merges.json`` and ``bench/wrong_merges.md``.
+
+    PYTHONPATH=. .venv/bin/python bench/bench_wrong_merges.py [--work out/wrong_merges]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from bench_perturbed_runs import PERTURBATIONS, perturbed_logs
+from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_bench
+
+BENCH = Path(__file__).resolve().parent
+
+
+def truth_groups(block: Sequence[int], positions: np.ndarray) -> list[list[int]]:
+    """The visits of ``block`` in the groups they form in truth (``positions`` ``(N, 2)``), as ``ptm-eval``
+    scores them (:class:`~ptm_ros.scoring.evaluation.EvalConfig`): visits chained by gaps below the
+    same-place radius stay together (:func:`~ptm_ros.scoring.evaluation.single_linkage_places`); those chains,
+    in the order of their first visits, then join the first group none of whose visits lies beyond the
+    different-place radius of theirs, else open a group."""
+    from ptm_ros.scoring.evaluation import EvalConfig, single_linkage_places
+
+    cfg = EvalConfig()
+    members = np.asarray(block, dtype=np.intp)
+    chains = single_linkage_places(positions[members], cfg.same_radius)
+    groups: list[list[int]] = []
+    for k in range(int(chains.max()) + 1 if len(members) else 0):
+        chain = [int(v) for v in members[chains == k]]
+        for g in groups:
+            if all(
+                np.hypot(*(positions[v] - positions[u])) <= cfg.different_radius for u in g for v in chain
+            ):
+                g.extend(chain)
+                break
+        else:
+            groups.append(chain)
+    return [sorted(g) for g in groups]
+
+
+def split_labels(labels: Sequence[int], groups: Sequence[Sequence[int]]) -> tuple[int, ...]:
+    """``labels`` with every group but the first of one place given a new place of its own, canonical."""
+    from ptm_ros.model.partitions import canonical
+
+    out = list(labels)
+    top = max(out)
+    for k, g in enumerate(groups[1:], start=1):
+        for v in g:
+            out[v] = top + k
+    return tuple(canonical(out))
+
+
+def closest(a: Sequence[int], b: Sequence[int], positions: np.ndarray) -> float:
+    """The smallest distance between a visit of ``a`` and one of ``b`` (``positions`` ``(N, 2)``)."""
+    return float(min(np.hypot(*(positions[i] - positions[j])) for i in a for j in b))
+
+
+def outcomes_between(
+    groups: Sequence[Sequence[int]], registrations: Mapping[tuple[int, int], Any]
+) -> dict[str, float]:
+    """Laser outcomes registered between visits of different groups: valid matches, failed ones and the
+    failed ones' mean ``log_bayes`` (nan without any)."""
+    from ptm_ros.model.geometry import NoMatch, RelativePose
+
+    member = {v: k for k, g in enumerate(groups) for v in g}
+    valid, failed = 0, []
+    for (i, j), z in registrations.items():
+        if i in member and j in member and member[i] != member[j]:
+            if isinstance(z, RelativePose):
+                valid += 1
+            elif isinstance(z, NoMatch):
+                failed.append(z.log_bayes)
+    return {
+        "valid": valid,
+        "failed": len(failed),
+        "failed_log_bayes": float(np.mean(failed)) if failed else np.nan,
+    }
+
+
+def wrong_merges(out: Path, truth_path: Path) -> list[dict[str, Any]]:
+    """The wrong merges of the MAP ``ptm-run`` wrote to ``out`` (its ``filter_state.npz`` kept), decomposed
+    (module docstring)."""
+    from dataclasses import replace
+
+    from ptm_ros.config import PtmConfig
+    from ptm_ros.inference.persistence import load_filter_state
+    from ptm_ros.io.groundtruth import load_ground_truth
+    from ptm_ros.model.geometry import interpolate_poses
+    from ptm_ros.model.partitions import blocks
+    from ptm_ros.model.posterior import PosteriorModel, same_place_probabilities
+    from ptm_ros.model.ptm import load_ptm
+    from ptm_ros.session import FilterSession
+
+    ptm = load_ptm(out / "ptm.json")
+    state, _ = load_filter_state(out / "filter_state.npz")
+    config = PtmConfig()
+    session = FilterSession(config)
+    session.load_state(state)
+    visits = session.visits
+    truth = load_ground_truth(truth_path)
+    stamps = np.array([v.stamp for v in visits])
+    inside = (stamps >= truth.stamps.min()) & (stamps <= truth.stamps.max())
+    true_xy = interpolate_poses(truth.stamps, truth.poses_corrected, stamps)[:, :2]
+    odom_xy = np.array([v.pose[:2] for v in visits])
+    model = PosteriorModel(
+        visits,
+        replace(config.model, odometry=session.odometry_config(), use_appearance=False),
+        registrar=session.registrar,
+    )
+    labels = ptm.topologies[0].labels
+    marginals = {t.labels: t.probability for t in ptm.topologies}
+    same = same_place_probabilities(marginals, len(labels))
+    found = []
+    for block in blocks(labels):
+        groups = truth_groups([v for v in block if inside[v]], true_xy)
+        if len(groups) < 2:
+            continue
+        merged, split = model.terms(labels), model.terms(split_labels(labels, groups))
+        laser = model.laser_evidence(labels) - model.laser_evidence(split_labels(labels, groups))
+        far = max(
+            ((i, j) for a in groups for b in groups if a is not b for i in a for j in b if i < j),
+            key=lambda p: np.hypot(*(true_xy[p[0]] - true_xy[p[1]])),
+        )
+        found.append(
+            {
+                "groups": [list(map(int, g)) for g in groups],
+                "true_apart_m": closest(groups[0], [v for g in groups[1:] for v in g], true_xy),
+                "odometry_apart_m": closest(groups[0], [v for g in groups[1:] for v in g], odom_xy),
+                "farthest_pair": [int(far[0]), int(far[1])],
+                "farthest_true_m": float(np.hypot(*(true_xy[far[0]] - true_xy[far[1]]))),
+                "p_same": float(same[far]),
+                "delta_total": merged.total - split.total,
+                "delta_prior": merged.prior - split.prior,
+                "delta_geometry": (merged.metric - split.metric) - laser,
+                "delta_laser": laser,
+                **outcomes_between(groups, session.pairs),
+            }
+        )
+    return found
+
+
+def write_md(doc: dict[str, Any], path: Path) -> None:
+    lines = [
+        "# Wrong merges, decomposed by the batch model (issue #23)",
+        "",
+        f"Generated {doc['generated']} by `bench/bench_wrong_merges.py` ({doc['minutes']:.0f} min, seed "
+        f"{doc['seed']}). Each place of the MAP topology holding visits that `ptm-eval` scores as different "
+        "places (more than 4 m apart in truth), split into its groups in truth (`truth_groups`: chains of "
+        "visits closer than 1.5 m kept whole), scored by the batch model (at the run's learned heading-noise "
+        "scale) against the MAP: the log posterior of the merge minus the split [nats] and its parts, the "
+        "prior, the geometry (odometry, coincidences, pose constraints) and the laser fitness evidence of "
+        "the chained outcomes. *Apart*: the closest pair of visits across the groups in truth and in the "
+        "laser-corrected odometry [m]. *P(same)*: the PTM's probability that the farthest pair is one place. "
+        "*Between*: laser outcomes registered across the groups, valid / failed "
+        "(mean log Bayes factor of the failed).",
+        "",
+        "| run | log | MAP F1 | groups | apart truth / odometry | farthest | P(same) | Δ total | Δ prior "
+        "| Δ geometry | Δ laser | between |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in doc["runs"]:
+        if "error" in r:
+            lines.append(f"| {r['run']} | {r['log']} | failed | | | | | | | | | |")
+            continue
+        if not r["merges"]:
+            lines.append(f"| {r['run']} | {r['log']} | {r['map_f1']:.3f} | none | | | | | | | | |")
+        for m in r["merges"]:
+            groups = " / ".join(",".join(map(str, g)) for g in m["groups"])
+            fail = f"{m['failed']} ({m['failed_log_bayes']:+.1f})" if m["failed"] else "0"
+            lines.append(
+                f"| {r['run']} | {r['log']} | {r['map_f1']:.3f} | {groups} | {m['true_apart_m']:.1f} / "
+                f"{m['odometry_apart_m']:.1f} | {m['farthest_true_m']:.1f} | {m['p_same']:.2f} | "
+                f"{m['delta_total']:+.1f} | {m['delta_prior']:+.1f} | {m['delta_geometry']:+.1f} | "
+                f"{m['delta_laser']:+.1f} | {m['valid']} / {fail} |"
+            )
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--perturbations", nargs="+", default=list(PERTURBATIONS), choices=list(PERTURBATIONS)
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work", type=Path, default=BENCH.parent / "out" / "wrong_merges")
+    parser.add_argument("--out", type=Path, default=BENCH / "wrong_merges.json")
+    args = parser.parse_args(argv)
+    if not shared_data_ready("wrong-merges", args.work):
+        return 0
+    t0 = time.perf_counter()
+    runs = []
+    for name, label, bag, truth in perturbed_logs(args.work):
+        if label not in args.perturbations:
+            continue
+        out = args.work / f"{name}-{label.replace(' ', '-')}"
+        options = ("--seed", str(args.seed), "--force", "--no-report", "--no-map", "--autosave", "1000000")
+        res = ptm_run_scored(bag, truth, out, *options)
+        if isinstance(res, str):
+            runs.append({"run": name, "log": label, "error": res})
+            continue
+        runs.append(
+            {"run": name, "log": label, "map_f1": res[1]["map_f1"], "merges": wrong_merges(out, truth)}
+        )
+        print(f"[wrong-merges] {name} {label}: {runs[-1]}", flush=True)
+    doc = {"benchmark": "wrong_merges", "seed": args.seed, **when_and_where(t0), "runs": runs}
+    write_bench(doc, args.out, write_md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
