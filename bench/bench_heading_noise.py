@@ -33,10 +33,14 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from run_all import DATASETS, REAL_RUNS, prepare_runs, write_bench
+
+if TYPE_CHECKING:
+    from ptm_ros.io.groundtruth import GroundTruthTrajectory
+    from ptm_ros.model.geometry import RelativePose
 
 BENCH = Path(__file__).resolve().parent
 #: Registrations of visits at most this far apart in truth are scored (the scoring's "different" line).
@@ -76,7 +80,10 @@ def measured_ratio(stamps: np.ndarray, corrected: np.ndarray, truth: Any, window
 
 
 def registration_errors(
-    stamps: np.ndarray, registrations: Sequence[Any], truth: Any, floor: tuple[float, float]
+    stamps: np.ndarray,
+    registrations: Sequence[RelativePose],
+    truth: GroundTruthTrajectory,
+    floor: tuple[float, float],
 ) -> dict[str, float]:
     """Valid registrations (``RelativePose``, of visits at ``stamps``) against the truth's relative poses
     (module docstring); ``floor`` the registration covariance's floor ``(σ_xy, σ_θ)``, for comparison."""

@@ -35,11 +35,14 @@ import sys
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from bench_perturbed_runs import PERTURBATIONS, perturbed_logs
 from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_bench
+
+if TYPE_CHECKING:
+    from ptm_ros.model.geometry import NoMatch, RelativePose
 
 BENCH = Path(__file__).resolve().parent
 
@@ -87,7 +90,7 @@ def closest(a: Sequence[int], b: Sequence[int], positions: np.ndarray) -> float:
 
 
 def outcomes_between(
-    groups: Sequence[Sequence[int]], registrations: Mapping[tuple[int, int], Any]
+    groups: Sequence[Sequence[int]], registrations: Mapping[tuple[int, int], RelativePose | NoMatch | None]
 ) -> dict[str, float]:
     """Laser outcomes registered between visits of different groups: valid matches, failed ones and the
     failed ones' mean ``log_bayes`` (nan without any)."""
