@@ -7,6 +7,10 @@ For each real run in ``../shared/datasets`` (converted once under ``--work``) an
 * **measured**: the laser-corrected odometry's heading error against the ground truth over consecutive
   stretches of ``--window`` m of true travel, its mean square divided by the mean heading variance the
   default model gives the same stretches (``a_th ρ + c_th ℓ``): the scale a perfect estimator would learn;
+* **measured over revisits**: the same error between the visits of one place in truth (less than 1.5 m
+  apart, at least ``REVISIT_GAP`` visits apart), its square over the default model's heading variance of
+  the path between them, averaged: the scale a loop's likelihood needs (heading errors that cancel over a
+  loop count in the stretches' ratio, not in this one);
 * **learned**: the scale the filter session learns from the run's own laser registrations, no ground truth
   (:mod:`ptm_ros.model.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and
   the outlier fraction behind it;
@@ -41,12 +45,15 @@ from run_all import DATASETS, REAL_RUNS, prepare_runs, write_bench
 if TYPE_CHECKING:
     from ptm_ros.io.groundtruth import GroundTruthTrajectory
     from ptm_ros.model.geometry import RelativePose
+    from ptm_ros.model.visits import Visit
 
 BENCH = Path(__file__).resolve().parent
 #: Registrations of visits at most this far apart in truth are scored (the scoring's "different" line).
 TRUE_PAIR_M = 4.0
 #: A registration this far off the true relative heading is an alias (a symmetric mismatch), not noise.
 ALIAS_RAD = 0.5
+#: Revisits are pairs of visits of one place in truth at least this many visits apart.
+REVISIT_GAP = 5
 #: The 99 % quantile of χ² with 3 degrees of freedom.
 CHI2_3_99 = 11.345
 WORLDS = ("aliased-loop", "twin-rooms", "room-row", "aliased-ring")
@@ -77,6 +84,28 @@ def measured_ratio(stamps: np.ndarray, corrected: np.ndarray, truth: Any, window
         "mean_square": float(np.mean(err)),
         "ratio": float(np.mean(err) / np.mean(var)),
     }
+
+
+def revisit_ratio(visits: Sequence[Visit], truth: GroundTruthTrajectory) -> dict[str, float]:
+    """The corrected odometry's heading error between the visits of one place in truth, squared, over the
+    default model's heading variance of the path between them, averaged (module docstring)."""
+    from ptm_ros.model.geometry import interpolate_poses, wrap_angle
+    from ptm_ros.model.odometry import OdometryConfig, path_heading_variances
+    from ptm_ros.scoring.evaluation import EvalConfig
+
+    stamps = np.array([v.stamp for v in visits], dtype=float)
+    inside = (stamps >= truth.stamps[0]) & (stamps <= truth.stamps[-1])
+    g = interpolate_poses(truth.stamps, truth.poses_corrected, stamps)
+    heading = np.array([v.pose[2] for v in visits], dtype=float)
+    cum = path_heading_variances(visits, OdometryConfig())
+    i, j = np.triu_indices(len(visits), k=REVISIT_GAP)
+    near = np.hypot(*(g[i, :2] - g[j, :2]).T) < EvalConfig().same_radius
+    keep = near & inside[i] & inside[j]
+    i, j = i[keep], j[keep]
+    if len(i) == 0:
+        return {"revisits": 0}
+    error = wrap_angle((heading[j] - heading[i]) - (g[j, 2] - g[i, 2]))
+    return {"revisits": len(i), "revisit_ratio": float(np.mean(error**2 / (cum[j] - cum[i])))}
 
 
 def registration_errors(
@@ -137,6 +166,7 @@ def one_run(bag: Path, truth_path: Path, window: float) -> dict[str, Any]:
     odom = run_odometry(run)
     out: dict[str, Any] = {"visits": len(visits)}
     truth = load_ground_truth(truth_path)
+    out["revisits"] = revisit_ratio(visits, truth)
     out["measured"] = measured_ratio(
         np.asarray(odom.stamps), corrected_odometry(run, extractor), truth, window
     )
@@ -162,19 +192,25 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         f"Generated {doc['generated']} by `bench/bench_heading_noise.py` ({doc['wall_s'] / 60:.0f} min). "
         f"*Measured*: the laser-corrected odometry's heading error against the ground truth over "
         f"{doc['window_m']:.0f} m stretches of true travel, its mean square over the default model's heading "
-        "variance of the same stretches (what a perfect estimator would learn). *Learned*: the scale "
+        "variance of the same stretches (what a perfect estimator would learn). *Over revisits*: the same "
+        f"error between visits of one place in truth (less than 1.5 m apart, at least {REVISIT_GAP} visits "
+        "apart), squared, over the default model's heading variance of the path between them, averaged: the "
+        "scale a loop's likelihood needs. *Learned*: the scale "
         "`ptm-run` learns at the default parameters from the run's own laser registrations, no ground truth "
         "(`ptm_ros.model.heading_noise`; lattice 2^(m/2), prior log k ~ N(0, 1)). Laser-surprise visits.",
         "",
-        "| run | noise | visits | stretches | measured ratio | learned scale | registrations | outliers "
-        "| filter s (replays) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| run | noise | visits | stretches | measured ratio | revisits | over revisits | learned scale "
+        "| registrations | outliers | filter s (replays) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in doc["runs"]:
         m, lr = r["measured"], r["learned"]
         ratio = f"{m['ratio']:.3f}" if "ratio" in m else "–"
+        rv = r.get("revisits", {})
+        over = f"{rv['revisit_ratio']:.3f}" if "revisit_ratio" in rv else "–"
         lines.append(
             f"| {r['run']} | {r.get('noise', 'real')} | {r['visits']} | {m['stretches']} | {ratio} | "
+            f"{rv.get('revisits', '–')} | {over} | "
             f"{lr['scale']:.3g} | {lr['registrations']} | {lr['outlier_fraction']:.2f} | "
             f"{r['filter_s']:.1f} ({r['replays']}) |"
         )

@@ -19,6 +19,11 @@ Beside them: how far apart the groups are in truth and in the laser-corrected od
 visits across groups), the PTM's probability that the farthest pair is one place, and the laser outcomes
 between the groups (valid matches; failed ones with their mean ``log_bayes``).
 
+Beside the merges, whether the laser's fitness densities (fitted on the logs as logged) still hold under
+the perturbation: the fitness evidence (``log_bayes``) of up to ``FITNESS_PAIRS`` pairs of visits more than
+``FAR_M`` apart in truth and of up to as many less than 1.5 m apart (at least ``MIN_GAP`` visits apart),
+registered as the filter registers them (:func:`fitness_by_truth`).
+
 Writes ``bench/wrong_merges.json`` and ``bench/wrong_merges.md``.
 
     PYTHONPATH=. .venv/bin/python bench/bench_wrong_merges.py [--work out/wrong_merges]
@@ -33,7 +38,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,6 +50,14 @@ if TYPE_CHECKING:
     from ptm_ros.model.geometry import NoMatch, RelativePose
 
 BENCH = Path(__file__).resolve().parent
+
+
+#: Pairs of each truth class whose fitness evidence is measured per run.
+FITNESS_PAIRS = 40
+#: Visits farther apart than this in truth are surely different places (far beyond ptm-eval's 4 m).
+FAR_M = 8.0
+#: Pairs of visits of one place in truth are taken at least this many visits apart.
+MIN_GAP = 5
 
 
 def truth_groups(block: Sequence[int], positions: np.ndarray) -> list[list[int]]:
@@ -111,9 +124,43 @@ def outcomes_between(
     }
 
 
-def wrong_merges(out: Path, truth_path: Path) -> list[dict[str, Any]]:
+def fitness_by_truth(
+    registrar: Callable[[int, int], RelativePose | NoMatch | None],
+    true_xy: np.ndarray,
+    inside: np.ndarray,
+    rng: np.random.Generator,
+) -> dict[str, dict[str, float]]:
+    """The fitness evidence of ``registrar``'s outcomes on up to :data:`FITNESS_PAIRS` random pairs of visits
+    more than :data:`FAR_M` apart in truth (``different``) and up to as many less than ``ptm-eval``'s
+    same-place radius apart and at least :data:`MIN_GAP` visits apart (``same``): per class, the pairs
+    registered, the mean ``log_bayes`` and the share above 0 (evidence for one place)."""
+    from ptm_ros.scoring.evaluation import EvalConfig
+
+    i, j = np.triu_indices(len(true_xy), k=1)
+    ok = inside[i] & inside[j]
+    d = np.hypot(*(true_xy[i] - true_xy[j]).T)
+    classes = {
+        "different": ok & (d > FAR_M),
+        "same": ok & (d < EvalConfig().same_radius) & (j - i >= MIN_GAP),
+    }
+    out = {}
+    for name, mask in classes.items():
+        idx = np.flatnonzero(mask)
+        pick = np.sort(rng.choice(idx, size=min(FITNESS_PAIRS, len(idx)), replace=False))
+        zs = [registrar(int(i[k]), int(j[k])) for k in pick]
+        lb = np.array([z.log_bayes for z in zs if z is not None])
+        out[name] = {
+            "pairs": len(lb),
+            "mean_log_bayes": float(lb.mean()) if len(lb) else np.nan,
+            "share_positive": float(np.mean(lb > 0)) if len(lb) else np.nan,
+        }
+    return out
+
+
+def analyse(out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
     """The wrong merges of the MAP ``ptm-run`` wrote to ``out`` (its ``filter_state.npz`` kept), decomposed
-    (module docstring)."""
+    (``merges``), and the fitness evidence by truth class (``fitness``, pairs drawn with ``seed``; module
+    docstring)."""
     from dataclasses import replace
 
     from ptm_ros.config import PtmConfig
@@ -170,7 +217,12 @@ def wrong_merges(out: Path, truth_path: Path) -> list[dict[str, Any]]:
                 **outcomes_between(groups, session.pairs),
             }
         )
-    return found
+    # after the merges: these registrations join the session's cache, which outcomes_between reads
+    registrar = session.registrar
+    fitness = (
+        {} if registrar is None else fitness_by_truth(registrar, true_xy, inside, np.random.default_rng(seed))
+    )
+    return {"merges": found, "fitness": fitness}
 
 
 def write_md(doc: dict[str, Any], path: Path) -> None:
@@ -207,6 +259,30 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
                 f"{m['delta_total']:+.1f} | {m['delta_prior']:+.1f} | {m['delta_geometry']:+.1f} | "
                 f"{m['delta_laser']:+.1f} | {m['valid']} / {fail} |"
             )
+    lines += [
+        "",
+        "## The laser's fitness evidence by truth class",
+        "",
+        f"Up to {FITNESS_PAIRS} random pairs of visits more than {FAR_M:.0f} m apart in truth (*different*) "
+        f"and as many less than 1.5 m apart and at least {MIN_GAP} visits apart (*same*), registered as the "
+        "filter registers them: the mean fitness evidence (log Bayes factor for one place, "
+        "`laser.fitness_*`, fitted on the logs as logged) and the share of pairs with evidence for one "
+        "place.",
+        "",
+        "| run | log | different: pairs | mean log Bayes | share > 0 | same: pairs | mean log Bayes "
+        "| share > 0 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in doc["runs"]:
+        f = r.get("fitness") or {}
+        if not f:
+            continue
+        d, s = f["different"], f["same"]
+        lines.append(
+            f"| {r['run']} | {r['log']} | {d['pairs']} | {d['mean_log_bayes']:+.2f} | "
+            f"{d['share_positive']:.2f} | {s['pairs']} | {s['mean_log_bayes']:+.2f} | "
+            f"{s['share_positive']:.2f} |"
+        )
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -232,9 +308,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(res, str):
             runs.append({"run": name, "log": label, "error": res})
             continue
-        runs.append(
-            {"run": name, "log": label, "map_f1": res[1]["map_f1"], "merges": wrong_merges(out, truth)}
-        )
+        runs.append({"run": name, "log": label, "map_f1": res[1]["map_f1"], **analyse(out, truth, args.seed)})
         print(f"[wrong-merges] {name} {label}: {runs[-1]}", flush=True)
     doc = {"benchmark": "wrong_merges", "seed": args.seed, **when_and_where(t0), "runs": runs}
     write_bench(doc, args.out, write_md)

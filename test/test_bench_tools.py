@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_calibration import NOISE_LEVELS, Case, Sensors, sim_config
 from bench_exact import _current
 from bench_filter_vs_batch import worst_wrong_pair
-from bench_heading_noise import CHI2_3_99, registration_errors
+from bench_heading_noise import CHI2_3_99, REVISIT_GAP, registration_errors, revisit_ratio
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
@@ -32,6 +32,8 @@ from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
 from ptm_ros.io.worlds import get_world
 from ptm_ros.model.geometry import NoMatch, RelativePose, between
+from ptm_ros.model.odometry import OdometryConfig, path_heading_variances
+from ptm_ros.model.visits import Visit
 from ptm_ros.perception.laser import FLAT_OPTIMUM, Registration
 
 CASE = Case("loop", "aliased", "aliased-loop", "model", 0)
@@ -268,3 +270,32 @@ def test_the_outcomes_between_groups_leave_out_pairs_inside_a_group_and_visits_o
     assert outcomes_between([[0, 1], [2, 3]], pairs) == {"valid": 1, "failed": 2, "failed_log_bayes": -1.5}
     out = outcomes_between([[0, 1]], pairs)
     assert (out["valid"], out["failed"], math.isnan(out["failed_log_bayes"])) == (0, 0, True)
+
+
+def test_the_heading_ratio_over_revisits_is_the_odometrys_error_between_visits_of_one_place():
+    """Three laps of a 4 m square, a visit at each corner: the corrected odometry's heading drifts 0.1 rad
+    per lap. Revisits are the same corner at least REVISIT_GAP (5) visits apart: (0, 8) and (1, 9), two laps
+    apart (0.2 rad), not the visits one lap apart; the ratio is their error squared over the model's heading
+    variance of the path between them, averaged. Without a revisit, none."""
+    assert REVISIT_GAP == 5
+    n = 10
+    corners = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]])[np.arange(n) % 4]
+    true_yaw = np.arange(n) * (math.pi / 2)
+    truth = SimpleNamespace(
+        stamps=np.arange(n, dtype=float), poses_corrected=np.column_stack([corners, true_yaw])
+    )
+    drift = 0.1 * (np.arange(n) // 4)
+    visits = [
+        Visit(
+            k,
+            float(k),
+            (*corners[k], float(true_yaw[k] + drift[k])),
+            travel=4.0 * (k > 0),
+            rotation=math.pi / 2 * (k > 0),
+        )
+        for k in range(n)
+    ]
+    cum = path_heading_variances(visits, OdometryConfig())
+    expected = np.mean([0.2**2 / (cum[8] - cum[0]), 0.2**2 / (cum[9] - cum[1])])
+    assert revisit_ratio(visits, truth) == {"revisits": 2, "revisit_ratio": pytest.approx(expected)}
+    assert revisit_ratio(visits[:8], truth) == {"revisits": 0}
