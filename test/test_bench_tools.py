@@ -26,7 +26,7 @@ from bench_heading_noise import CHI2_3_99, REVISIT_GAP, registration_errors, rev
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
-from bench_wrong_merges import outcomes_between, split_labels, truth_groups
+from bench_wrong_merges import FAR_M, MIN_GAP, fitness_by_truth, outcomes_between, split_labels, truth_groups
 
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
@@ -299,3 +299,34 @@ def test_the_heading_ratio_over_revisits_is_the_odometrys_error_between_visits_o
     expected = np.mean([0.2**2 / (cum[8] - cum[0]), 0.2**2 / (cum[9] - cum[1])])
     assert revisit_ratio(visits, truth) == {"revisits": 2, "revisit_ratio": pytest.approx(expected)}
     assert revisit_ratio(visits[:8], truth) == {"revisits": 0}
+
+
+def test_the_fitness_by_truth_class_asks_only_far_pairs_and_near_pairs_visits_apart():
+    """Visits on a line: pairs beyond FAR_M are "different", pairs within 1.5 m at least MIN_GAP visits
+    apart are "same"; nothing else is registered, visits outside the truth never are, and the figures are
+    those of the registrar's outcomes (None left out)."""
+    xy = np.array([[0.0, 0], [1, 0], [2, 0], [3, 0], [4, 0], [0.5, 0], [20, 0], [30, 0]])
+    inside = np.array([True] * 7 + [False])
+    asked = []
+
+    def registrar(i, j):
+        asked.append((i, j))
+        if (i, j) == (4, 6):
+            return None
+        far = np.hypot(*(xy[i] - xy[j])) > FAR_M
+        return (
+            NoMatch(i, j, log_bayes=-2.0 if far else 1.0)
+            if (i, j) != (0, 6)
+            else NoMatch(i, j, log_bayes=1.0)
+        )
+
+    out = fitness_by_truth(registrar, xy, inside, np.random.default_rng(0))
+    far = {(i, 6) for i in range(6)}
+    assert set(asked) == far | {(0, 5)}  # (0, 5): 0.5 m apart, 5 visits apart; (1, 5) is only 4 apart
+    assert MIN_GAP == 5
+    assert out["different"] == {
+        "pairs": 5,
+        "mean_log_bayes": pytest.approx((4 * -2.0 + 1.0) / 5),
+        "share_positive": 0.2,
+    }
+    assert out["same"] == {"pairs": 1, "mean_log_bayes": 1.0, "share_positive": 1.0}
