@@ -11,6 +11,8 @@ For each real run in ``../shared/datasets`` (converted once under ``--work``) an
   apart, at least ``REVISIT_GAP`` visits apart), its square over the default model's heading variance of
   the path between them, averaged: the scale a loop's likelihood needs (heading errors that cancel over a
   loop count in the stretches' ratio, not in this one);
+  and the same after taking out a constant heading drift per metre of travel, fitted to those errors by
+  least squares (``drift_rad_per_m``): how much of the loops' heading error a random walk does not explain;
 * **learned**: the scale the filter session learns from the run's own laser registrations, no ground truth
   (:mod:`ptm_ros.model.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and
   the outlier fraction behind it;
@@ -105,7 +107,16 @@ def revisit_ratio(visits: Sequence[Visit], truth: GroundTruthTrajectory) -> dict
     if len(i) == 0:
         return {"revisits": 0}
     error = wrap_angle((heading[j] - heading[i]) - (g[j, 2] - g[i, 2]))
-    return {"revisits": len(i), "revisit_ratio": float(np.mean(error**2 / (cum[j] - cum[i])))}
+    var = cum[j] - cum[i]
+    path = np.concatenate([[0.0], np.cumsum([v.travel for v in visits[1:]])])
+    length = path[j] - path[i]
+    drift = float(np.sum(error * length) / np.sum(length * length)) if np.any(length > 0) else 0.0
+    return {
+        "revisits": len(i),
+        "revisit_ratio": float(np.mean(error**2 / var)),
+        "drift_rad_per_m": drift,
+        "ratio_without_drift": float(np.mean((error - drift * length) ** 2 / var)),
+    }
 
 
 def registration_errors(
@@ -195,22 +206,28 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         "variance of the same stretches (what a perfect estimator would learn). *Over revisits*: the same "
         f"error between visits of one place in truth (less than 1.5 m apart, at least {REVISIT_GAP} visits "
         "apart), squared, over the default model's heading variance of the path between them, averaged: the "
-        "scale a loop's likelihood needs. *Learned*: the scale "
+        "scale a loop's likelihood needs; *drift*: a constant heading drift per metre fitted to those errors "
+        "(least squares), and the ratio once it is taken out. *Learned*: the scale "
         "`ptm-run` learns at the default parameters from the run's own laser registrations, no ground truth "
         "(`ptm_ros.model.heading_noise`; lattice 2^(m/2), prior log k ~ N(0, 1)). Laser-surprise visits.",
         "",
-        "| run | noise | visits | stretches | measured ratio | revisits | over revisits | learned scale "
-        "| registrations | outliers | filter s (replays) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| run | noise | visits | stretches | measured ratio | revisits | over revisits | drift (rad/m) "
+        "| without drift | learned scale | registrations | outliers | filter s (replays) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in doc["runs"]:
         m, lr = r["measured"], r["learned"]
         ratio = f"{m['ratio']:.3f}" if "ratio" in m else "–"
         rv = r.get("revisits", {})
         over = f"{rv['revisit_ratio']:.3f}" if "revisit_ratio" in rv else "–"
+        drift = (
+            f"{rv['drift_rad_per_m']:+.4f} | {rv['ratio_without_drift']:.3f}"
+            if "revisit_ratio" in rv
+            else "– | –"
+        )
         lines.append(
             f"| {r['run']} | {r.get('noise', 'real')} | {r['visits']} | {m['stretches']} | {ratio} | "
-            f"{rv.get('revisits', '–')} | {over} | "
+            f"{rv.get('revisits', '–')} | {over} | {drift} | "
             f"{lr['scale']:.3g} | {lr['registrations']} | {lr['outlier_fraction']:.2f} | "
             f"{r['filter_s']:.1f} ({r['replays']}) |"
         )

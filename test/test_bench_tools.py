@@ -276,7 +276,8 @@ def test_the_heading_ratio_over_revisits_is_the_odometrys_error_between_visits_o
     """Three laps of a 4 m square, a visit at each corner: the corrected odometry's heading drifts 0.1 rad
     per lap. Revisits are the same corner at least REVISIT_GAP (5) visits apart: (0, 8) and (1, 9), two laps
     apart (0.2 rad), not the visits one lap apart; the ratio is their error squared over the model's heading
-    variance of the path between them, averaged. Without a revisit, none."""
+    variance of the path between them, averaged, and a constant drift per metre explains it all. Without a
+    revisit, none."""
     assert REVISIT_GAP == 5
     n = 10
     corners = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]])[np.arange(n) % 4]
@@ -297,7 +298,11 @@ def test_the_heading_ratio_over_revisits_is_the_odometrys_error_between_visits_o
     ]
     cum = path_heading_variances(visits, OdometryConfig())
     expected = np.mean([0.2**2 / (cum[8] - cum[0]), 0.2**2 / (cum[9] - cum[1])])
-    assert revisit_ratio(visits, truth) == {"revisits": 2, "revisit_ratio": pytest.approx(expected)}
+    out = revisit_ratio(visits, truth)
+    assert (out["revisits"], out["revisit_ratio"]) == (2, pytest.approx(expected))
+    # both revisits are 32 m of travel apart with 0.2 rad of error: a drift of 0.2 / 32 rad/m explains all
+    assert out["drift_rad_per_m"] == pytest.approx(0.2 / 32.0)
+    assert out["ratio_without_drift"] == pytest.approx(0.0, abs=1e-20)
     assert revisit_ratio(visits[:8], truth) == {"revisits": 0}
 
 
