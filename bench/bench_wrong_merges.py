@@ -6,8 +6,7 @@ that holds a pair of visits ``ptm-eval`` scores as different places (more than 4
 *wrong merge*. Its visits are split into the groups they form in truth (:func:`truth_groups`: chains of
 visits scored as one place kept whole), and the batch model (:class:`ptm_ros.model.posterior.PosteriorModel`,
 at the heading-noise scale the run learned, with the run's own registrations) scores the MAP against the MAP
-with that place split. The difference of the two
-log posteriors, merge minus split, is decomposed into
+with that place split. The difference of the two log posteriors, merge minus split, is decomposed into
 
 * **prior**: the topology prior (Ch. 1.3; the Dirichlet process favours fewer places);
 * **geometry**: the metric likelihood without the laser fitness evidence: odometry, place coincidences,
@@ -97,9 +96,17 @@ def split_labels(labels: Sequence[int], groups: Sequence[Sequence[int]]) -> tupl
     return tuple(canonical(out))
 
 
-def closest(a: Sequence[int], b: Sequence[int], positions: np.ndarray) -> float:
-    """The smallest distance between a visit of ``a`` and one of ``b`` (``positions`` ``(N, 2)``)."""
-    return float(min(np.hypot(*(positions[i] - positions[j])) for i in a for j in b))
+def closest(groups: Sequence[Sequence[int]], positions: np.ndarray) -> float:
+    """The smallest distance between two visits of different ``groups`` (``positions`` ``(N, 2)``)."""
+    return float(
+        min(
+            np.hypot(*(positions[i] - positions[j]))
+            for k, a in enumerate(groups)
+            for b in groups[k + 1 :]
+            for i in a
+            for j in b
+        )
+    )
 
 
 def outcomes_between(
@@ -196,8 +203,9 @@ def analyse(out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
         groups = truth_groups([v for v in block if inside[v]], true_xy)
         if len(groups) < 2:
             continue
-        merged, split = model.terms(labels), model.terms(split_labels(labels, groups))
-        laser = model.laser_evidence(labels) - model.laser_evidence(split_labels(labels, groups))
+        apart = split_labels(labels, groups)
+        merged, split = model.terms(labels), model.terms(apart)
+        laser = model.laser_evidence(labels) - model.laser_evidence(apart)
         far = max(
             ((i, j) for a in groups for b in groups if a is not b for i in a for j in b if i < j),
             key=lambda p: np.hypot(*(true_xy[p[0]] - true_xy[p[1]])),
@@ -205,8 +213,8 @@ def analyse(out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
         found.append(
             {
                 "groups": [list(map(int, g)) for g in groups],
-                "true_apart_m": closest(groups[0], [v for g in groups[1:] for v in g], true_xy),
-                "odometry_apart_m": closest(groups[0], [v for g in groups[1:] for v in g], odom_xy),
+                "true_apart_m": closest(groups, true_xy),
+                "odometry_apart_m": closest(groups, odom_xy),
                 "farthest_pair": [int(far[0]), int(far[1])],
                 "farthest_true_m": float(np.hypot(*(true_xy[far[0]] - true_xy[far[1]]))),
                 "p_same": float(same[far]),

@@ -26,7 +26,15 @@ from bench_heading_noise import CHI2_3_99, REVISIT_GAP, registration_errors, rev
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
-from bench_wrong_merges import FAR_M, MIN_GAP, fitness_by_truth, outcomes_between, split_labels, truth_groups
+from bench_wrong_merges import (
+    FAR_M,
+    MIN_GAP,
+    closest,
+    fitness_by_truth,
+    outcomes_between,
+    split_labels,
+    truth_groups,
+)
 
 from ptm_ros.config import load_config, save_config
 from ptm_ros.io.simulator import SimConfig, simulate
@@ -255,6 +263,8 @@ def test_a_wrong_merge_splits_into_its_groups_in_truth_keeping_chains_of_one_pla
     assert truth_groups([], xy) == []
     labels = (0, 0, 0, 0, 0, 1, 0)
     assert split_labels(labels, [[0, 1, 6], [2, 3, 4], [5]]) == (0, 0, 1, 1, 1, 2, 0)
+    # the closest pair across groups, whichever two groups hold it
+    assert closest([[5], [0, 1, 6], [2, 3, 4]], xy) == pytest.approx(2.3)
 
 
 def test_the_outcomes_between_groups_leave_out_pairs_inside_a_group_and_visits_outside():
