@@ -8,11 +8,11 @@ For each real run in ``../shared/datasets`` (converted once under ``--work``) an
   stretches of ``--window`` m of true travel, its mean square divided by the mean heading variance the
   default model gives the same stretches (``a_th ρ + c_th ℓ``): the scale a perfect estimator would learn;
 * **measured over revisits**: the same error between the visits of one place in truth (less than 1.5 m
-  apart, at least ``REVISIT_GAP`` visits apart), its square over the default model's heading variance of
-  the path between them, averaged: the scale a loop's likelihood needs (heading errors that cancel over a
-  loop count in the stretches' ratio, not in this one);
-  and the same after taking out a constant heading drift per metre of travel, fitted to those errors by
-  least squares (``drift_rad_per_m``): how much of the loops' heading error a random walk does not explain;
+  apart, at least ``REVISIT_GAP`` visits apart), squared over the default model's heading variance of the
+  path between them and averaged: the scale a loop's likelihood needs (errors that cancel over a loop lower
+  the stretches' ratio, not this one). Also a constant heading drift per metre of travel fitted to those
+  errors by least squares (``drift_rad_per_m``) and the ratio once it is taken out: how much of the loops'
+  heading error is a drift, which the model's random walk does not have;
 * **learned**: the scale the filter session learns from the run's own laser registrations, no ground truth
   (:mod:`ptm_ros.model.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and
   the outlier fraction behind it;
@@ -90,7 +90,8 @@ def measured_ratio(stamps: np.ndarray, corrected: np.ndarray, truth: Any, window
 
 def revisit_ratio(visits: Sequence[Visit], truth: GroundTruthTrajectory) -> dict[str, float]:
     """The corrected odometry's heading error between the visits of one place in truth, squared, over the
-    default model's heading variance of the path between them, averaged (module docstring)."""
+    default model's heading variance of the path between them, averaged; the least-squares heading drift per
+    metre of those errors and the same ratio without it (module docstring)."""
     from ptm_ros.model.geometry import interpolate_poses, wrap_angle
     from ptm_ros.model.odometry import OdometryConfig, path_heading_variances
     from ptm_ros.scoring.evaluation import EvalConfig
