@@ -17,10 +17,11 @@ For each real run in ``../shared/datasets`` (converted once under ``--work``) an
   (:mod:`ptm_ros.model.heading_noise`, as ``ptm-run`` at the default parameters), with the registrations and
   the outlier fraction behind it;
 * **registrations**: each valid registration of the run (the pairs the filter asked about) against the
-  true relative pose of its two visits, for the pairs less than ``TRUE_PAIR_M`` apart in truth: its error in
-  translation and heading, and its squared Mahalanobis distance under its own covariance (χ² with 3 degrees
-  of freedom if the covariance were right: ``CHI2_3_99`` is exceeded by 1 % of the pairs). Those more than
-  ``ALIAS_RAD`` off in heading are counted as aliases and left out of the error figures.
+  true relative pose of its two visits, for the pairs closer in truth than ``ptm-eval``'s different-place
+  radius (4 m): its error in translation and heading, and its squared Mahalanobis distance under its own
+  covariance (χ² with 3 degrees of freedom if the covariance were right: ``CHI2_3_99`` is exceeded by 1 % of
+  the pairs). Those more than ``ALIAS_RAD`` off in heading are counted as aliases and left out of the error
+  figures.
 
 Writes ``bench/heading_noise.json`` and ``bench/heading_noise.md``.
 
@@ -50,8 +51,6 @@ if TYPE_CHECKING:
     from ptm_ros.model.visits import Visit
 
 BENCH = Path(__file__).resolve().parent
-#: Registrations of visits at most this far apart in truth are scored (the scoring's "different" line).
-TRUE_PAIR_M = 4.0
 #: A registration this far off the true relative heading is an alias (a symmetric mismatch), not noise.
 ALIAS_RAD = 0.5
 #: Revisits are pairs of visits of one place in truth at least this many visits apart.
@@ -129,13 +128,15 @@ def registration_errors(
     """Valid registrations (``RelativePose``, of visits at ``stamps``) against the truth's relative poses
     (module docstring); ``floor`` the registration covariance's floor ``(σ_xy, σ_θ)``, for comparison."""
     from ptm_ros.model.geometry import between, interpolate_poses, wrap_angle
+    from ptm_ros.scoring.evaluation import EvalConfig
 
+    apart = EvalConfig().different_radius
     t = np.asarray(stamps, dtype=float)
     inside = (t >= truth.stamps[0]) & (t <= truth.stamps[-1])
     g = interpolate_poses(truth.stamps, truth.poses_corrected, t)
     trans, head, maha, aliases = [], [], [], 0
     for z in registrations:
-        if not (inside[z.i] and inside[z.j]) or np.hypot(*(g[z.i, :2] - g[z.j, :2])) >= TRUE_PAIR_M:
+        if not (inside[z.i] and inside[z.j]) or np.hypot(*(g[z.i, :2] - g[z.j, :2])) >= apart:
             continue
         e = np.asarray(z.mean, dtype=float) - between(g[z.i], g[z.j])
         e[2] = wrap_angle(e[2])
@@ -196,6 +197,8 @@ def one_run(bag: Path, truth_path: Path, window: float) -> dict[str, Any]:
 
 
 def write_md(doc: dict[str, Any], path: Path) -> None:
+    from ptm_ros.scoring.evaluation import EvalConfig
+
     lines = [
         "# The noise models against the truth (issue #23)",
         "",
@@ -236,11 +239,12 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         "",
         "## The laser registrations against the truth",
         "",
-        f"Each valid registration of visits less than {TRUE_PAIR_M:.0f} m apart in truth (the pairs the "
-        "filter asked about), against the true relative pose of its visits: the error of its translation (m) "
-        "and heading (rad), and the share of them outside the 99 % ellipsoid of their own covariance (1 % if "
-        f"the covariance were right). Those more than {ALIAS_RAD} rad off in heading are aliases, counted "
-        "apart. The registrations' covariance is the point-to-plane fit's, floored at `laser.min_std_xy` and "
+        f"Each valid registration of visits less than {EvalConfig().different_radius:.0f} m apart in truth "
+        "(the pairs the filter asked about), against the true relative pose of its visits: the error of its "
+        "translation (m) and heading (rad), and the share of them outside the 99 % ellipsoid of their own "
+        f"covariance (1 % if the covariance were right). Those more than {ALIAS_RAD} rad off in heading are "
+        "aliases, counted apart. The registrations' covariance is the point-to-plane fit's, floored at "
+        "`laser.min_std_xy` and "
         "`laser.min_std_yaw` (the floor columns).",
         "",
         "| run | noise | scored | aliases | xy rms | xy median | xy p90 | floor xy | θ rms | θ median "

@@ -20,8 +20,9 @@ between the groups (valid matches; failed ones with their mean ``log_bayes``).
 
 Beside the merges, whether the laser's fitness densities (fitted on the logs as logged) still hold under
 the perturbation: the fitness evidence (``log_bayes``) of up to ``FITNESS_PAIRS`` pairs of visits more than
-``FAR_M`` apart in truth and of up to as many less than 1.5 m apart (at least ``MIN_GAP`` visits apart),
-registered as the filter registers them (:func:`fitness_by_truth`).
+``FAR_M`` apart in truth and of up to as many less than 1.5 m apart (at least
+``bench_heading_noise.REVISIT_GAP`` visits apart), registered as the filter registers them
+(:func:`fitness_by_truth`).
 
 Writes ``bench/wrong_merges.json`` and ``bench/wrong_merges.md``.
 
@@ -42,6 +43,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from bench_heading_noise import REVISIT_GAP
 from bench_perturbed_runs import PERTURBATIONS, perturbed_logs
 from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_bench
 
@@ -55,8 +57,6 @@ BENCH = Path(__file__).resolve().parent
 FITNESS_PAIRS = 40
 #: Visits farther apart than this in truth are surely different places (far beyond ptm-eval's 4 m).
 FAR_M = 8.0
-#: Pairs of visits of one place in truth are taken at least this many visits apart.
-MIN_GAP = 5
 
 
 def truth_groups(block: Sequence[int], positions: np.ndarray) -> list[list[int]]:
@@ -139,8 +139,9 @@ def fitness_by_truth(
 ) -> dict[str, dict[str, float]]:
     """The fitness evidence of ``registrar``'s outcomes on up to :data:`FITNESS_PAIRS` random pairs of visits
     more than :data:`FAR_M` apart in truth (``different``) and up to as many less than ``ptm-eval``'s
-    same-place radius apart and at least :data:`MIN_GAP` visits apart (``same``): per class, the pairs
-    registered, the mean ``log_bayes`` and the share above 0 (evidence for one place)."""
+    same-place radius apart and at least :data:`~bench_heading_noise.REVISIT_GAP` visits apart (``same``):
+    per class, the pairs registered, the mean ``log_bayes`` and the share above 0 (evidence for one
+    place)."""
     from ptm_ros.scoring.evaluation import EvalConfig
 
     i, j = np.triu_indices(len(true_xy), k=1)
@@ -148,7 +149,7 @@ def fitness_by_truth(
     d = np.hypot(*(true_xy[i] - true_xy[j]).T)
     classes = {
         "different": ok & (d > FAR_M),
-        "same": ok & (d < EvalConfig().same_radius) & (j - i >= MIN_GAP),
+        "same": ok & (d < EvalConfig().same_radius) & (j - i >= REVISIT_GAP),
     }
     out = {}
     for name, mask in classes.items():
@@ -272,8 +273,8 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         "## The laser's fitness evidence by truth class",
         "",
         f"Up to {FITNESS_PAIRS} random pairs of visits more than {FAR_M:.0f} m apart in truth (*different*) "
-        f"and as many less than 1.5 m apart and at least {MIN_GAP} visits apart (*same*), registered as the "
-        "filter registers them: the mean fitness evidence (log Bayes factor for one place, "
+        f"and as many less than 1.5 m apart and at least {REVISIT_GAP} visits apart (*same*), registered as "
+        "the filter registers them: the mean fitness evidence (log Bayes factor for one place, "
         "`laser.fitness_*`, fitted on the logs as logged) and the share of pairs with evidence for one "
         "place.",
         "",

@@ -28,7 +28,6 @@ from bench_missed_pairs import heading_class, outcome
 from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
 from bench_wrong_merges import (
     FAR_M,
-    MIN_GAP,
     closest,
     fitness_by_truth,
     outcomes_between,
@@ -317,7 +316,7 @@ def test_the_heading_ratio_over_revisits_is_the_odometrys_error_between_visits_o
 
 
 def test_the_fitness_by_truth_class_asks_only_far_pairs_and_near_pairs_visits_apart():
-    """Visits on a line: pairs beyond FAR_M are "different", pairs within 1.5 m at least MIN_GAP visits
+    """Visits on a line: pairs beyond FAR_M are "different", pairs within 1.5 m at least REVISIT_GAP visits
     apart are "same"; nothing else is registered, visits outside the truth never are, and the figures are
     those of the registrar's outcomes (None left out)."""
     xy = np.array([[0.0, 0], [1, 0], [2, 0], [3, 0], [4, 0], [0.5, 0], [20, 0], [30, 0]])
@@ -338,7 +337,7 @@ def test_the_fitness_by_truth_class_asks_only_far_pairs_and_near_pairs_visits_ap
     out = fitness_by_truth(registrar, xy, inside, np.random.default_rng(0))
     far = {(i, 6) for i in range(6)}
     assert set(asked) == far | {(0, 5)}  # (0, 5): 0.5 m apart, 5 visits apart; (1, 5) is only 4 apart
-    assert MIN_GAP == 5
+    assert REVISIT_GAP == 5
     assert out["different"] == {
         "pairs": 5,
         "mean_log_bayes": pytest.approx((4 * -2.0 + 1.0) / 5),
