@@ -49,6 +49,7 @@ from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_ben
 
 if TYPE_CHECKING:
     from ptm_ros.model.geometry import NoMatch, RelativePose
+    from ptm_ros.model.ptm import Ptm
 
 BENCH = Path(__file__).resolve().parent
 
@@ -165,31 +166,28 @@ def fitness_by_truth(
     return out
 
 
-def analyse(out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
-    """The wrong merges of the MAP ``ptm-run`` wrote to ``out`` (its ``filter_state.npz`` kept), decomposed
-    (``merges``), and the fitness evidence by truth class (``fitness``, pairs drawn with ``seed``; module
-    docstring)."""
+def analyse(ptm: Ptm, out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
+    """The wrong merges of ``ptm``'s MAP (what ``ptm-run`` wrote to ``out``, its ``filter_state.npz`` kept),
+    decomposed (``merges``), and the fitness evidence by truth class (``fitness``, pairs drawn with ``seed``;
+    module docstring). True positions as ``ptm-eval`` takes them
+    (:func:`~ptm_ros.tools.evaluate.true_positions_for`)."""
     from dataclasses import replace
 
     from ptm_ros.config import PtmConfig
     from ptm_ros.inference.persistence import load_filter_state
     from ptm_ros.io.groundtruth import load_ground_truth
-    from ptm_ros.model.geometry import interpolate_poses
     from ptm_ros.model.partitions import blocks
     from ptm_ros.model.posterior import PosteriorModel, same_place_probabilities
-    from ptm_ros.model.ptm import load_ptm
     from ptm_ros.session import FilterSession
+    from ptm_ros.tools.evaluate import true_positions_for
 
-    ptm = load_ptm(out / "ptm.json")
     state, _ = load_filter_state(out / "filter_state.npz")
     config = PtmConfig()
     session = FilterSession(config)
     session.load_state(state)
     visits = session.visits
-    truth = load_ground_truth(truth_path)
-    stamps = np.array([v.stamp for v in visits])
-    inside = (stamps >= truth.stamps.min()) & (stamps <= truth.stamps.max())
-    true_xy = interpolate_poses(truth.stamps, truth.poses_corrected, stamps)[:, :2]
+    true_xy = true_positions_for(ptm, load_ground_truth(truth_path))
+    inside = np.all(np.isfinite(true_xy), axis=1)
     odom_xy = np.array([v.pose[:2] for v in visits])
     model = PosteriorModel(
         visits,
@@ -317,7 +315,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(res, str):
             runs.append({"run": name, "log": label, "error": res})
             continue
-        runs.append({"run": name, "log": label, "map_f1": res[1]["map_f1"], **analyse(out, truth, args.seed)})
+        ptm, score = res
+        runs.append(
+            {"run": name, "log": label, "map_f1": score["map_f1"], **analyse(ptm, out, truth, args.seed)}
+        )
         print(f"[wrong-merges] {name} {label}: {runs[-1]}", flush=True)
     doc = {"benchmark": "wrong_merges", "seed": args.seed, **when_and_where(t0), "runs": runs}
     write_bench(doc, args.out, write_md)
