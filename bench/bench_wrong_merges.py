@@ -22,7 +22,9 @@ Beside the merges, whether the laser's fitness densities (fitted on the logs as 
 the perturbation: the fitness evidence (``log_bayes``) of up to ``FITNESS_PAIRS`` pairs of visits more than
 ``FAR_M`` apart in truth and of up to as many less than 1.5 m apart (at least
 ``bench_heading_noise.REVISIT_GAP`` visits apart), registered as the filter registers them
-(:func:`fitness_by_truth`).
+(:func:`fitness_by_truth`); and among the pairs the filter itself asked the registrar about, how often
+each truth class gives a match that slides along a corridor (:func:`slides_by_truth`) and the fitness
+evidence those failed matches carry.
 
 Writes ``bench/wrong_merges.json`` and ``bench/wrong_merges.md``.
 
@@ -50,6 +52,8 @@ from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_ben
 if TYPE_CHECKING:
     from ptm_ros.model.geometry import NoMatch, RelativePose
     from ptm_ros.model.ptm import Ptm
+    from ptm_ros.model.visits import Visit
+    from ptm_ros.perception.laser import LaserConfig
 
 BENCH = Path(__file__).resolve().parent
 
@@ -166,6 +170,38 @@ def fitness_by_truth(
     return out
 
 
+def slides_by_truth(
+    visits: Sequence[Visit],
+    asked: Sequence[tuple[int, int]],
+    true_xy: np.ndarray,
+    inside: np.ndarray,
+    laser: LaserConfig,
+) -> dict[str, dict[str, float]]:
+    """Among the ``asked`` pairs that ``ptm-eval`` scores (``same``: closer than its same-place radius in
+    truth, ``different``: farther than its different-place radius), registered again to read why a match
+    failed: per class, the pairs registered, how many slide (:data:`~ptm_ros.perception.laser.FLAT_OPTIMUM`)
+    and the fitness evidence they carry (their summed ``log_bayes``)."""
+    from ptm_ros.perception.laser import FLAT_OPTIMUM, fitness_log_bayes, register_patch_pair
+    from ptm_ros.scoring.evaluation import EvalConfig
+
+    radii = EvalConfig()
+    out = {name: {"pairs": 0, "slides": 0, "slides_log_bayes": 0.0} for name in ("same", "different")}
+    for i, j in asked:
+        a, b = visits[i].patch, visits[j].patch
+        if not (inside[i] and inside[j]) or a is None or b is None:
+            continue
+        d = float(np.hypot(*(true_xy[i] - true_xy[j])))
+        name = "same" if d < radii.same_radius else "different" if d > radii.different_radius else None
+        reg = register_patch_pair(a, b, laser) if name is not None else None
+        if name is None or reg is None:
+            continue
+        out[name]["pairs"] += 1
+        if not reg.valid and reg.reason.startswith(FLAT_OPTIMUM):
+            out[name]["slides"] += 1
+            out[name]["slides_log_bayes"] += fitness_log_bayes(reg.inlier_fraction, laser)
+    return out
+
+
 def analyse(ptm: Ptm, out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
     """The wrong merges of ``ptm``'s MAP (what ``ptm-run`` wrote to ``out``, its ``filter_state.npz`` kept),
     decomposed (``merges``), and the fitness evidence by truth class (``fitness``, pairs drawn with ``seed``;
@@ -224,12 +260,13 @@ def analyse(ptm: Ptm, out: Path, truth_path: Path, seed: int) -> dict[str, Any]:
                 **outcomes_between(groups, session.pairs),
             }
         )
+    slides = slides_by_truth(visits, sorted(session.pairs), true_xy, inside, config.laser)
     # after the merges: these registrations join the session's cache, which outcomes_between reads
     registrar = session.registrar
     fitness = (
         {} if registrar is None else fitness_by_truth(registrar, true_xy, inside, np.random.default_rng(seed))
     )
-    return {"merges": found, "fitness": fitness}
+    return {"merges": found, "fitness": fitness, "slides": slides}
 
 
 def write_md(doc: dict[str, Any], path: Path) -> None:
@@ -290,6 +327,28 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
             f"{d['share_positive']:.2f} | {s['pairs']} | {s['mean_log_bayes']:+.2f} | "
             f"{s['share_positive']:.2f} |"
         )
+    lines += [
+        "",
+        "## Matches that slide, among the pairs the filter asked about",
+        "",
+        "The pairs the filter asked the registrar about, scored by `ptm-eval`'s radii (*same* < 1.5 m, "
+        "*different* > 4 m in truth): how many failed only because the match slides along a corridor (a "
+        "flat optimum), and the fitness evidence they carry for one place (summed log Bayes factors).",
+        "",
+        "| run | log | same: pairs | slide | share | their evidence | different: pairs | slide | share "
+        "| their evidence |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in doc["runs"]:
+        f = r.get("slides") or {}
+        if not f:
+            continue
+        cells = []
+        for name in ("same", "different"):
+            c = f[name]
+            share = c["slides"] / c["pairs"] if c["pairs"] else float("nan")
+            cells.append(f"{c['pairs']} | {c['slides']} | {share:.3f} | {c['slides_log_bayes']:+.1f}")
+        lines.append(f"| {r['run']} | {r['log']} | " + " | ".join(cells) + " |")
     path.write_text("\n".join(lines) + "\n")
 
 

@@ -31,6 +31,7 @@ from bench_wrong_merges import (
     closest,
     fitness_by_truth,
     outcomes_between,
+    slides_by_truth,
     split_labels,
     truth_groups,
 )
@@ -344,3 +345,36 @@ def test_the_fitness_by_truth_class_asks_only_far_pairs_and_near_pairs_visits_ap
         "share_positive": 0.2,
     }
     assert out["same"] == {"pairs": 1, "mean_log_bayes": 1.0, "share_positive": 1.0}
+
+
+def test_slides_are_counted_per_truth_class_among_the_pairs_asked(monkeypatch):
+    """Each asked pair scored by ptm-eval's radii is registered again; a flat optimum counts as a slide with
+    the fitness evidence it would carry, other failures and valid matches do not; unscored pairs, visits
+    outside the truth and pairs without a patch are left out."""
+    import ptm_ros.perception.laser as laser
+    from ptm_ros.perception.laser import LaserConfig, fitness_log_bayes
+
+    xy = np.array([[0.0, 0], [1, 0], [10, 0], [2.5, 0], [20, 0], [0.5, 0]])
+    inside = np.array([True, True, True, True, False, True])
+    visits = [SimpleNamespace(patch=None if k == 5 else np.zeros((1, 2)) + k) for k in range(6)]
+    verdicts = {
+        (0, 1): FLAT_OPTIMUM + ": slides",
+        (0, 2): FLAT_OPTIMUM + ": slides",
+        (1, 2): "inlier fraction",
+    }
+    registered = []
+
+    def register(a, b, cfg):
+        i, j = int(a[0, 0]), int(b[0, 0])
+        registered.append((i, j))
+        reason = verdicts.get((i, j), "")
+        return SimpleNamespace(valid=not reason, reason=reason, inlier_fraction=0.6)
+
+    monkeypatch.setattr(laser, "register_patch_pair", register)
+    asked = [(0, 1), (0, 2), (1, 2), (0, 3), (0, 4), (0, 5), (2, 3)]
+    out = slides_by_truth(visits, asked, xy, inside, LaserConfig())
+    # (0, 3): 2.5 m, unscored; (0, 4): outside the truth; (0, 5): no patch
+    assert registered == [(0, 1), (0, 2), (1, 2), (2, 3)]
+    lb = fitness_log_bayes(0.6)
+    assert out["same"] == {"pairs": 1, "slides": 1, "slides_log_bayes": pytest.approx(lb)}
+    assert out["different"] == {"pairs": 3, "slides": 1, "slides_log_bayes": pytest.approx(lb)}
