@@ -834,6 +834,39 @@ def test_fitness_densities_are_normalised_and_the_ratio_matches_them():
     assert fitness_log_bayes(math.nan) == fitness_log_bayes(0.0)  # nothing overlapped
 
 
+@pytest.mark.parametrize("a", [0.5, 1.0, 1.6, 6.5])
+@pytest.mark.parametrize("b", [0.5, 1.0, 1.6, 31.3])
+def test_the_beta_density_is_scipys_at_the_ends_and_between(a, b):
+    """``beta_pdf`` equals ``scipy.stats.beta.pdf`` (infinite or zero at the ends as it is, 0^0 = 1)."""
+    from scipy.stats import beta
+
+    from ptm_ros.perception.laser import beta_pdf
+
+    for f in (0.0, 1e-12, 0.01, 0.15, 0.5, 0.99, 1.0 - 1e-12, 1.0):
+        expected = float(beta.pdf(f, a, b))
+        got = beta_pdf(f, a, b)
+        if math.isinf(expected) or expected == 0.0:
+            assert got == expected
+        else:
+            assert math.isclose(got, expected, rel_tol=1e-11)
+
+
+def test_registering_and_scoring_does_not_import_scipy_stats():
+    """The fitness evidence comes from scipy.special: scipy.stats (about 0.3 s to import) stays out of a
+    visit's update."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from ptm_ros.perception.laser import fitness_log_bayes, register_patch_pair, LaserConfig\n"
+        "fitness_log_bayes(0.5)\n"
+        "print('scipy.stats' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 def test_laser_outcome_kinds():
     """A valid registration gives a RelativePose with the fitness evidence, an invalid one a NoMatch (or
     None when the fitness model is off)."""
