@@ -851,7 +851,7 @@ def test_the_beta_density_is_scipys_at_the_ends_and_between(a, b):
             assert math.isclose(got, expected, rel_tol=1e-11)
 
 
-def test_registering_and_scoring_does_not_import_scipy_stats():
+def test_the_laser_module_and_its_fitness_evidence_leave_scipy_stats_unimported():
     """The fitness evidence comes from scipy.special: scipy.stats (about 0.3 s to import) stays out of a
     visit's update."""
     import subprocess
