@@ -91,18 +91,18 @@ def revisit_ratio(visits: Sequence[Visit], truth: GroundTruthTrajectory) -> dict
     """The corrected odometry's heading error between the visits of one place in truth, squared, over the
     default model's heading variance of the path between them, averaged; the least-squares heading drift per
     metre of those errors and the same ratio without it (module docstring)."""
+    from ptm_ros.io.groundtruth import within_span
     from ptm_ros.model.geometry import interpolate_poses, wrap_angle
     from ptm_ros.model.odometry import OdometryConfig, path_heading_variances
-    from ptm_ros.scoring.evaluation import EvalConfig
+    from ptm_ros.scoring.evaluation import pair_truth
 
     stamps = np.array([v.stamp for v in visits], dtype=float)
-    inside = (stamps >= truth.stamps[0]) & (stamps <= truth.stamps[-1])
     g = interpolate_poses(truth.stamps, truth.poses_corrected, stamps)
     heading = np.array([v.pose[2] for v in visits], dtype=float)
     cum = path_heading_variances(visits, OdometryConfig())
-    i, j = np.triu_indices(len(visits), k=REVISIT_GAP)
-    near = np.hypot(*(g[i, :2] - g[j, :2]).T) < EvalConfig().same_radius
-    keep = near & inside[i] & inside[j]
+    xy = np.where(within_span(truth, stamps, 0.0)[:, None], g[:, :2], np.nan)  # no truth: unscored
+    i, j, same = pair_truth(xy)  # what ptm-eval scores as one place
+    keep = same & (j - i >= REVISIT_GAP)
     i, j = i[keep], j[keep]
     if len(i) == 0:
         return {"revisits": 0}
@@ -127,12 +127,13 @@ def registration_errors(
 ) -> dict[str, float]:
     """Valid registrations (``RelativePose``, of visits at ``stamps``) against the truth's relative poses
     (module docstring); ``floor`` the registration covariance's floor ``(σ_xy, σ_θ)``, for comparison."""
+    from ptm_ros.io.groundtruth import within_span
     from ptm_ros.model.geometry import between, interpolate_poses, wrap_angle
     from ptm_ros.scoring.evaluation import EvalConfig
 
     apart = EvalConfig().different_radius
     t = np.asarray(stamps, dtype=float)
-    inside = (t >= truth.stamps[0]) & (t <= truth.stamps[-1])
+    inside = within_span(truth, t, 0.0)
     g = interpolate_poses(truth.stamps, truth.poses_corrected, t)
     trans, head, maha, aliases = [], [], [], 0
     for z in registrations:

@@ -177,22 +177,21 @@ def slides_by_truth(
     inside: np.ndarray,
     laser: LaserConfig,
 ) -> dict[str, dict[str, float]]:
-    """Among the ``asked`` pairs that ``ptm-eval`` scores (``same``: closer than its same-place radius in
-    truth, ``different``: farther than its different-place radius), registered again to read why a match
+    """Among the ``asked`` pairs that ``ptm-eval`` scores (:func:`~ptm_ros.scoring.evaluation.pair_truth`;
+    visits outside the truth, ``inside`` false, unscored), registered again to read why a match
     failed: per class, the pairs registered, how many slide (:data:`~ptm_ros.perception.laser.FLAT_OPTIMUM`)
     and the fitness evidence they carry (their summed ``log_bayes``)."""
     from ptm_ros.perception.laser import FLAT_OPTIMUM, fitness_log_bayes, register_patch_pair
-    from ptm_ros.scoring.evaluation import EvalConfig
+    from ptm_ros.scoring.evaluation import pair_truth
 
-    radii = EvalConfig()
+    scored = np.where(inside[:, None], true_xy, np.nan)  # no truth: unscored
+    truth_class = {
+        (int(i), int(j)): "same" if s else "different" for i, j, s in zip(*pair_truth(scored), strict=True)
+    }
     out = {name: {"pairs": 0, "slides": 0, "slides_log_bayes": 0.0} for name in ("same", "different")}
     for i, j in asked:
-        a, b = visits[i].patch, visits[j].patch
-        if not (inside[i] and inside[j]) or a is None or b is None:
-            continue
-        d = float(np.hypot(*(true_xy[i] - true_xy[j])))
-        name = "same" if d < radii.same_radius else "different" if d > radii.different_radius else None
-        reg = register_patch_pair(a, b, laser) if name is not None else None
+        a, b, name = visits[i].patch, visits[j].patch, truth_class.get((i, j))
+        reg = None if name is None or a is None or b is None else register_patch_pair(a, b, laser)
         if name is None or reg is None:
             continue
         out[name]["pairs"] += 1
