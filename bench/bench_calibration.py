@@ -13,7 +13,9 @@ Figures (:func:`ptm_ros.scoring.evaluation.calibration_summary`) overall, per fa
 per variant and per noise level: ECE (10 equal-width bins) and its chance level (a calibrated mapper's mean
 ECE on the same stated probabilities), Brier score, overconfident failures (consistent mass < 0.05),
 mean mass on the true topology, MAP-right rate against the mean stated MAP probability, and the failing
-MAPs' kind (false merges only, missed merges only, both). Writes ``--out`` (``bench/calibration.json``),
+MAPs' kind (false merges only, missed merges only, both); and the pair calibration (``ptm-eval``'s
+``pair_calibration``: how often the visit pairs stated at each P(same place) are one place), pooled over all
+runs and per family x variant. Writes ``--out`` (``bench/calibration.json``),
 ``bench/calibration.md`` and the reliability diagram ``bench/calibration.png`` (beside ``--out``).
 
 The runs are taken seed-major over the grid (all cells with seed 0, then seed 1, ...), so ``--runs N``
@@ -53,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from run_all import pair_calibration_section
 
 from ptm_ros.io.simulator import OdometryNoiseConfig, SimConfig
 from ptm_ros.scoring.evaluation import CalibrationSummary
@@ -385,6 +388,13 @@ def wrong_maps_section(wrong: dict[str, dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
+def pair_groups(rows: Sequence[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """The runs with a pair calibration (records of ``ptm-eval``'s ``calibration_record``), all of them and
+    per family and variant."""
+    ok = [r for r in rows if r["exit_code"] == 0 and r.get("pair_calibration")]
+    return {"all": ok, **group(ok, lambda r: f"{r['family']} {r['variant']}")} if ok else {}
+
+
 def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Namespace, wall: float) -> None:
     from ptm_ros.io.calibration_plot import write_reliability_diagram
     from ptm_ros.scoring.evaluation import OVERCONFIDENT_MASS
@@ -466,6 +476,8 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         ),
         "",
         *wrong_maps_section(record["wrong_maps_by_world"]),
+        *pair_calibration_section(pair_groups(rows), "pooled over seeds and noise levels"),
+        "",
         f"![reliability diagram]({png.name})",
         "",
     ]

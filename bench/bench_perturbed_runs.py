@@ -14,7 +14,8 @@ could have recorded, then runs ``ptm-run`` on them at the default parameters wit
 Per run and log: MAP F1 (precision, recall), the MAP probability and the mass on topologies with no scored
 pair wrong, the smoothed MAP trajectory's and the odometry's ATE, the visits, the laser odometry's matched
 and rejected scans and its ATE at the visits (:func:`laser_odometry_ate`), the learned heading-noise scale
-and the registrations (valid / made).
+and the registrations (valid / made); and the pair calibration (``ptm-eval``'s ``pair_calibration``),
+pooled over seeds, runs and logs in the last table.
 
 Over inference seeds ``--seeds`` (0, 1, 2). Writes ``bench/perturbed_runs.json`` and
 ``bench/perturbed_runs.md`` (``--out``). About 12 minutes.
@@ -37,7 +38,15 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from run_all import DATASETS, REAL_RUNS, ptm_run_scored, shared_data_ready, when_and_where, write_bench
+from run_all import (
+    DATASETS,
+    REAL_RUNS,
+    pair_calibration_section,
+    ptm_run_scored,
+    shared_data_ready,
+    when_and_where,
+    write_bench,
+)
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -165,6 +174,7 @@ def score(bag: Path, truth: Path, out: Path, seed: int) -> dict[str, Any]:
         "heading_scale": doc["inference"].get("heading_noise", {}).get("scale", math.nan),
         "registrations": diag.get("registrations"),
         "registrations_valid": diag.get("registrations_valid"),
+        "pair_calibration": s["pair_calibration"],
     }
 
 
@@ -215,8 +225,20 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
         ok = [r for r in rows if "error" not in r]
         if ok:
             lines.append(_seeds_row(run, log, ok))
+    lines += pair_calibration_lines(doc["rows"])
     lines += ["", "## Commands", "", "    PYTHONPATH=. .venv/bin/python bench/bench_perturbed_runs.py", ""]
     path.write_text("\n".join(lines))
+
+
+def pair_calibration_lines(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """The markdown section of the pair calibration, pooled over the seeds and runs of each log, over the
+    logs of each run, and over everything (:func:`run_all.pair_calibration_section`)."""
+    ok = [r for r in rows if r.get("pair_calibration")]
+    groups: dict[str, list[dict[str, Any]]] = {"all": ok} if ok else {}
+    for key in ("log", "run"):
+        for r in ok:
+            groups.setdefault(f"{key}: {r[key]}", []).append(r)
+    return pair_calibration_section(groups, "pooled over seeds, runs and logs")
 
 
 def _seeds_row(run: str, log: str, rows: Sequence[dict[str, Any]]) -> str:

@@ -56,12 +56,15 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import functools
+import itertools
 import json
+import operator
 import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -151,6 +154,55 @@ def write_bench(doc: dict, out: Path, write_md: Callable[[dict, Path], None]) ->
     out.write_text(json.dumps(doc, indent=1))
     write_md(doc, out.with_suffix(".md"))
     print(out.with_suffix(".md").read_text())
+
+
+def pair_calibration_section(groups: Mapping[str, Sequence[Mapping[str, Any]]], pooled: str) -> list[str]:
+    """A markdown section: per group (label -> records holding ``ptm-eval``'s ``pair_calibration``), the
+    pooled pair calibration (:class:`ptm_ros.scoring.evaluation.PairReliability`); ``pooled`` says over what
+    (e.g. "pooled over seeds"). Empty without a record."""
+    from ptm_ros.scoring.evaluation import PairReliability
+
+    tables = {
+        label: functools.reduce(operator.add, (PairReliability.from_dict(r["pair_calibration"]) for r in rs))
+        for label, rs in groups.items()
+        if rs
+    }
+    if not tables:
+        return []
+    edges = next(iter(tables.values())).edges
+    mids = [f"{lo:g}–{hi:g}" for lo, hi in itertools.pairwise(edges[1:-1])]
+    lines = [
+        "",
+        "## Pair calibration",
+        "",
+        "How often the visit pairs the PTM states at each P(same place) are one place in truth (`ptm-eval`'s "
+        f"`pair_calibration`; scored pairs: same < 1.5 m, different > 4 m), {pooled}. "
+        "*Doubtful*: pairs stated between 0.02 and 0.98; *gap*: their ECE (the pair-weighted mean over the "
+        "middle bins of |share one place − mean stated P|); *confident false merges*: different pairs stated "
+        "≥ 0.98; *confident misses*: same pairs stated < 0.02. Middle bins: share one place / mean stated P "
+        "(pairs). The pairs of one run are not independent (one merge decides many).",
+        "",
+        "| group | pairs | same | doubtful | gap | confident false merges | confident misses | "
+        + " | ".join(mids)
+        + " |",
+        "|---|---|---|---|---|---|---|" + "---|" * len(mids),
+    ]
+    for label, t in tables.items():
+        cells = [
+            label,
+            str(sum(t.count)),
+            str(sum(t.same)),
+            str(t.doubtful),
+            "–" if not t.doubtful else f"{t.doubtful_gap:.2f}",
+            str(t.confident_false_merges),
+            str(t.confident_misses),
+        ]
+        cells += [
+            "–" if not b.count else f"{b.accuracy:.2f} / {b.mean_probability:.2f} ({b.count})"
+            for b in t.bins[1:-1]
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def run_components(names: list[str] | None) -> list[dict]:

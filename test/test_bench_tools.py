@@ -25,7 +25,7 @@ from bench_filter_vs_batch import worst_wrong_pair
 from bench_heading_noise import CHI2_3_99, REVISIT_GAP, registration_errors, revisit_ratio
 from bench_laser_odometry import LogInput, ScanPass, against_truth, laser_odometry_pass
 from bench_missed_pairs import heading_class, outcome
-from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate
+from bench_perturbed_runs import drifted, every_nth_scan, laser_odometry_ate, pair_calibration_lines
 from bench_wrong_merges import (
     FAR_M,
     closest,
@@ -112,6 +112,27 @@ def test_perturbed_logs_drop_every_other_scan_and_nothing_else():
     lines = ["# header", *(_flaser(k, 0, 0, k) for k in range(5)), "PARAM x 1"]
     kept = every_nth_scan(lines, 2)
     assert kept == ["# header", lines[1], lines[3], lines[5], "PARAM x 1"]
+
+
+def test_pair_calibration_tables_pool_over_seeds_runs_and_logs():
+    from ptm_ros.scoring.evaluation import PairReliability
+
+    a = PairReliability.of([0.0, 0.5, 0.6, 1.0], [False, True, False, True])
+    b = PairReliability.of([0.05, 0.55, 0.99], [True, True, False])
+    rows = [
+        {"run": "intel", "log": "as logged", "seed": 0, "pair_calibration": a.as_dict()},
+        {"run": "aces", "log": "as logged", "seed": 0, "pair_calibration": b.as_dict()},
+        {"run": "aces", "log": "drift", "seed": 0, "error": "failed"},
+    ]
+    lines = pair_calibration_lines(rows)
+    table = {line.split(" | ")[0].lstrip("| "): line.split(" | ") for line in lines if line.startswith("| ")}
+    # all: 7 pairs, 4 one place, 4 doubtful; one confident false merge (0.99), no confident miss.
+    assert table["all"][1:7] == ["7", "4", "4", f"{(a + b).doubtful_gap:.2f}", "1", "0"]
+    assert (
+        table["log: as logged"][1] == "7" and table["run: intel"][1] == "4" and table["run: aces"][1] == "3"
+    )
+    assert table["all"][10] == "0.67 / 0.55 (3)"  # the 0.5-0.7 bin: 0.5, 0.6, 0.55, two of them one place
+    assert pair_calibration_lines([{"run": "x", "log": "y", "error": "failed"}]) == []
 
 
 def test_perturbed_logs_drift_by_the_bias_per_metre_and_the_scale():

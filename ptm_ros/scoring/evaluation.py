@@ -109,6 +109,20 @@ the mean ECE over redraws ``y_r^* \\sim \\text{Bernoulli}(p_r)`` of the outcomes
 (:func:`chance_calibration_errors`, with an explicit ``np.random.Generator``): an ECE well above it is
 miscalibration, not bad luck. An *overconfident failure* is a run whose consistent mass (no scored pair
 wrong) is below :data:`OVERCONFIDENT_MASS`: the posterior all but excludes the truth.
+
+Pair calibration. On a real run the MAP topology is almost never exactly right (a true place is a
+chain of visits, its borders a matter of metres), so the MAP calibration above needs simulated worlds
+with exact places. The posterior's *pairwise* statement can be checked on any run with a trajectory:
+each scored pair has ``P(i ~ j) = Σ_k w_k [L_k(i) = L_k(j)]`` (the renormalised masses ``w_k`` of the
+listed topologies, as for the expected counts) and an outcome, same or different place in truth. The
+pairs are binned by that probability at :data:`PAIR_BIN_EDGES`: almost every pair sits in the end bins
+(``P < 0.02``, ``P ≥ 0.98``), and the doubts in between are what the posterior's honesty is about. Per
+bin the table gives the pairs, their mean stated probability and the share that is one place; the
+*doubtful gap* is the ECE of the middle bins alone, ``Σ_{b mid} |Σ_{B_b} (y − p)| / Σ_{b mid} |B_b|``.
+The confident errors are the different pairs stated ``P ≥ 0.98`` (confident false merges) and the same
+pairs stated ``P < 0.02`` (confident misses). Bin sums add over runs (:class:`PairReliability`), so many
+runs pool into one table; the pairs of one run are not independent outcomes (one merge decides many
+pairs), so no Bernoulli chance level is given for them.
 """
 
 from __future__ import annotations
@@ -116,6 +130,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -135,6 +150,9 @@ SCORE_SCHEMA = "ptm_ros.eval/1"
 OVERCONFIDENT_MASS = 0.05
 #: Default number of equal-width probability bins of the calibration figures.
 CALIBRATION_BINS = 10
+
+#: Bin edges of the pair calibration (module docstring): the end bins hold the confident statements.
+PAIR_BIN_EDGES = (0.0, 0.02, 0.1, 0.3, 0.5, 0.7, 0.9, 0.98, 1.0)
 
 #: Upper bound on the number of booleans held at once when comparing topologies pairwise.
 _CHUNK_ELEMENTS = 1 << 22
@@ -235,6 +253,7 @@ class Score:
     attainable_consistent_mass: float = 0.0
     config: EvalConfig = field(default_factory=EvalConfig)
     true_labels: Labels | None = field(default=None, repr=False)  # the true topology, with place ids
+    pairs: PairReliability | None = field(default=None, repr=False)  # the pair calibration
 
     @property
     def n_pairs(self) -> int:
@@ -280,6 +299,8 @@ class Score:
             "n_contradictory_pairs": self.n_contradictory_pairs,
             "attainable_consistent_mass": self.attainable_consistent_mass,
         }
+        if self.pairs is not None:
+            doc["pair_calibration"] = self.pairs.as_dict()
         if per_topology:
             doc["topologies"] = [
                 {
@@ -382,6 +403,151 @@ def topology_counts(
     return out
 
 
+def pair_probabilities(
+    labels: NDArray[np.integer], weights: ArrayLike, i: NDArray[np.intp], j: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """``P(i ~ j)`` of each pair ``(i[m], j[m])``: the summed ``weights`` ``(K,)`` of the label rows
+    ``(K, N)`` that put both visits in one place (weights summing to 1 give the posterior's marginal)."""
+    labels = np.atleast_2d(labels)
+    w = np.asarray(weights, dtype=float)
+    if w.shape != (labels.shape[0],):
+        msg = f"one weight per topology: {w.shape} weights for {labels.shape[0]} topologies"
+        raise ModelError(msg)
+    out = np.zeros(len(i))
+    step = max(1, _CHUNK_ELEMENTS // max(1, len(i)))
+    for start in range(0, labels.shape[0], step):
+        rows = labels[start : start + step]
+        out += w[start : start + step] @ (rows[:, i] == rows[:, j])
+    return np.clip(out, 0.0, 1.0)  # rounding of weights summing to 1
+
+
+@dataclass(frozen=True)
+class PairReliability:
+    """The pair calibration of one or more runs (module docstring): per bin of ``edges``, the scored
+    pairs, the sum of their stated ``P(i ~ j)`` and how many are one place in truth. ``a + b`` pools two.
+    """
+
+    count: tuple[int, ...]
+    probability_sum: tuple[float, ...]
+    same: tuple[int, ...]
+    edges: tuple[float, ...] = PAIR_BIN_EDGES
+
+    def __post_init__(self) -> None:
+        n = len(self.edges) - 1
+        if n < 3 or any(b <= a for a, b in pairwise(self.edges)):
+            msg = f"pair bin edges must increase and make at least 3 bins, got {self.edges}"
+            raise ConfigError(msg)
+        if not (len(self.count) == len(self.probability_sum) == len(self.same) == n):
+            msg = f"pair calibration needs {n} bins of counts, probability sums and same pairs"
+            raise ModelError(msg)
+        if any(s < 0 or s > c for s, c in zip(self.same, self.count, strict=True)):
+            msg = f"same pairs {self.same} must lie between 0 and the pairs of their bin {self.count}"
+            raise ModelError(msg)
+
+    @classmethod
+    def of(
+        cls, probabilities: ArrayLike, same: ArrayLike, edges: tuple[float, ...] = PAIR_BIN_EDGES
+    ) -> PairReliability:
+        """The table of pairs stated ``probabilities`` whose truth is ``same`` (booleans)."""
+        p = np.asarray(probabilities, dtype=float)
+        y = np.asarray(same)
+        n_bins = len(edges) - 1
+        if p.size:
+            p, y = _calibration_inputs(p, y)
+        b = np.clip(np.searchsorted(np.asarray(edges), p, side="right") - 1, 0, n_bins - 1)
+        return cls(
+            count=tuple(int(v) for v in np.bincount(b, minlength=n_bins)),
+            probability_sum=tuple(float(v) for v in np.bincount(b, weights=p, minlength=n_bins)),
+            same=tuple(round(v) for v in np.bincount(b, weights=y.astype(float), minlength=n_bins)),
+            edges=tuple(edges),
+        )
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> PairReliability:
+        """The table of :meth:`as_dict` (a record of ``ptm-eval --calibration``)."""
+        bins = doc["bins"]
+        edges = (*(float(b["lo"]) for b in bins), float(bins[-1]["hi"]))
+        return cls(
+            count=tuple(int(b["count"]) for b in bins),
+            probability_sum=tuple(float(b["probability_sum"]) for b in bins),
+            same=tuple(int(b["same"]) for b in bins),
+            edges=edges,
+        )
+
+    def __add__(self, other: PairReliability) -> PairReliability:
+        if other.edges != self.edges:
+            msg = f"cannot pool pair tables with different bins: {self.edges} and {other.edges}"
+            raise ModelError(msg)
+        return PairReliability(
+            count=tuple(a + b for a, b in zip(self.count, other.count, strict=True)),
+            probability_sum=tuple(
+                a + b for a, b in zip(self.probability_sum, other.probability_sum, strict=True)
+            ),
+            same=tuple(a + b for a, b in zip(self.same, other.same, strict=True)),
+            edges=self.edges,
+        )
+
+    @property
+    def bins(self) -> tuple[ReliabilityBin, ...]:
+        """Per bin: the pairs, their mean stated probability and the share one place (NaN when empty)."""
+        nan = float("nan")
+        return tuple(
+            ReliabilityBin(lo, hi, c, ps / c if c else nan, s / c if c else nan)
+            for (lo, hi), c, ps, s in zip(
+                pairwise(self.edges), self.count, self.probability_sum, self.same, strict=True
+            )
+        )
+
+    @property
+    def confident_false_merges(self) -> int:
+        """Different pairs stated at least ``edges[-2]`` (0.98) one place."""
+        return self.count[-1] - self.same[-1]
+
+    @property
+    def confident_misses(self) -> int:
+        """Same pairs stated below ``edges[1]`` (0.02) one place."""
+        return self.same[0]
+
+    @property
+    def doubtful(self) -> int:
+        """Pairs in the middle bins."""
+        return sum(self.count[1:-1])
+
+    @property
+    def doubtful_gap(self) -> float:
+        """The ECE of the middle bins alone (NaN without doubtful pairs)."""
+        if not self.doubtful:
+            return float("nan")
+        gaps = (abs(s - ps) for s, ps in zip(self.same[1:-1], self.probability_sum[1:-1], strict=True))
+        return float(sum(gaps) / self.doubtful)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON values: the summary figures and the bins (empty bins' means None)."""
+
+        def num(v: float) -> float | None:
+            return None if math.isnan(v) else v
+
+        return {
+            "pairs": sum(self.count),
+            "doubtful_pairs": self.doubtful,
+            "doubtful_gap": num(self.doubtful_gap),
+            "confident_false_merges": self.confident_false_merges,
+            "confident_misses": self.confident_misses,
+            "bins": [
+                {
+                    "lo": b.lo,
+                    "hi": b.hi,
+                    "count": b.count,
+                    "probability_sum": ps,
+                    "same": s,
+                    "mean_probability": num(b.mean_probability),
+                    "share_same": num(b.accuracy),
+                }
+                for b, ps, s in zip(self.bins, self.probability_sum, self.same, strict=True)
+            ],
+        }
+
+
 def score_ptm(
     ptm: Ptm,
     true_xy: ArrayLike,
@@ -425,6 +591,7 @@ def score_ptm(
     )
     w = probs / listed
     expected = PairCounts(*(float(v) for v in w @ counts))
+    pairs = PairReliability.of(pair_probabilities(labels, w, i, j), same)
     mean_f1 = float(sum(wk * s.counts.f1 for wk, s in zip(w, scores, strict=True)))
     consistent_mass = float(sum(s.probability for s in scores if s.consistent))
     contra = contradictory_pairs(xy, i, j, config)
@@ -465,6 +632,7 @@ def score_ptm(
         n_contradictory_pairs=int(contra.sum()),
         attainable_consistent_mass=attainable_mass,
         true_labels=truth,
+        pairs=pairs,
     )
 
 

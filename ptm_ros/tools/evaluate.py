@@ -25,6 +25,7 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
 * ``n_contradictory_pairs`` — scored pairs inside a single-linkage cluster spanning more than the
   different-place radius (no topology scores them all right); ``attainable_consistent_mass`` — mass of
   listed topologies with no wrong scored pair outside them;
+* ``pair_calibration`` — how often the pairs stated at each ``P(i ~ j)`` are one place (below);
 * ``topologies`` (unless ``--no-topologies``) — per listed topology: ``rank`` (0 = MAP),
   ``probability``, ``num_places``, ``tp``, ``fp``, ``fn``, ``tn``, ``precision``, ``recall``, ``f1``,
   ``consistent``;
@@ -42,7 +43,16 @@ keys), ``n_runs``, ``n_runs_without_true_topology`` (visits not all within ``--s
 no exact truth, left out of the calibration figures) and ``calibration``
 (:meth:`ptm_ros.scoring.evaluation.CalibrationSummary.as_dict`: ``ece``, ``chance_ece``, ``chance_ece_p95``,
 ``brier``, ``map_right_rate``, ``mean_map_probability``, ``overconfident_failures``,
-``mean_true_topology_mass``, ``bins``); ``--plot FILE`` writes the reliability diagram (PNG).
+``mean_true_topology_mass``, ``bins``; ``null`` when no run has an exact truth, e.g. real runs) and
+``pair_calibration``: the runs' pair tables pooled (below); ``--plot FILE`` writes the reliability
+diagram (PNG) of the MAP, or of the pairs when no run has an exact truth.
+
+``pair_calibration`` (in both modes; :class:`ptm_ros.scoring.evaluation.PairReliability`, definitions in
+:mod:`ptm_ros.scoring.evaluation`, "Pair calibration"): ``pairs``, ``doubtful_pairs`` (stated between
+0.02 and 0.98), ``doubtful_gap`` (their ECE), ``confident_false_merges`` (different pairs stated
+≥ 0.98), ``confident_misses`` (same pairs stated < 0.02) and ``bins`` (``lo``, ``hi``, ``count``,
+``probability_sum``, ``same``, ``mean_probability``, ``share_same``). Unlike the MAP calibration it
+needs no exact places: a real run's trajectory is enough.
 
 Exit status: 0 on success, 2 on bad input (unreadable or invalid ptm.json or ground truth, landmark
 no landmark inside the ground truth's time span, bad thresholds), with the reason on stderr.
@@ -51,7 +61,9 @@ no landmark inside the ground truth's time span, bad thresholds), with the reaso
 from __future__ import annotations
 
 import argparse
+import functools
 import json
+import operator
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -63,7 +75,7 @@ if TYPE_CHECKING:
 
     from ptm_ros.io.groundtruth import GroundTruthTrajectory
     from ptm_ros.model.ptm import Ptm
-    from ptm_ros.scoring.evaluation import CalibrationSummary, EvalConfig, OdometryFit, Score
+    from ptm_ros.scoring.evaluation import CalibrationSummary, EvalConfig, OdometryFit, PairReliability, Score
 
 PROG = "ptm-eval"
 #: Schema tag of the JSON printed by ``ptm-eval --calibration``.
@@ -174,7 +186,8 @@ def calibration_record(
     ids), ``map_false_merges`` / ``map_missed_merges`` (visit pairs the MAP wrongly joins / keeps apart,
     None without them); ``consistent_mass``, ``true_topology_mass``, ``overconfident_failure``
     (consistent mass < :data:`ptm_ros.scoring.evaluation.OVERCONFIDENT_MASS`); ``n_visits``,
-    ``n_true_places``, ``map_num_places``, ``listed_mass``, ``posterior_f1``.
+    ``n_true_places``, ``map_num_places``, ``listed_mass``, ``posterior_f1``; ``pair_calibration``: the
+    run's pair table (:class:`ptm_ros.scoring.evaluation.PairReliability`, any ground truth).
     """
     from ptm_ros.io.groundtruth import load_ground_truth
     from ptm_ros.scoring.evaluation import OVERCONFIDENT_MASS, EvalConfig, map_errors_against_truth, score_ptm
@@ -197,6 +210,7 @@ def calibration_record(
         "true_topology_mass": score.true_topology_mass,
         "overconfident_failure": score.consistent_mass < OVERCONFIDENT_MASS,
         "posterior_f1": score.expected.f1,
+        "pair_calibration": None if score.pairs is None else score.pairs.as_dict(),
     }
 
 
@@ -219,6 +233,18 @@ def summarize_records(
         n_bins=n_bins,
         redraws=redraws,
     )
+
+
+def pooled_pairs(records: Sequence[dict[str, Any]]) -> PairReliability:
+    """The pair calibration of all ``records`` (:func:`calibration_record`) pooled into one table."""
+    from ptm_ros.errors import ConfigError
+    from ptm_ros.scoring.evaluation import PairReliability
+
+    tables = [PairReliability.from_dict(r["pair_calibration"]) for r in records if r["pair_calibration"]]
+    if not tables:
+        msg = "no run to score"
+        raise ConfigError(msg)
+    return functools.reduce(operator.add, tables)
 
 
 def find_runs(paths: Sequence[Path]) -> list[Path]:
@@ -386,13 +412,14 @@ def calibration_main(args: argparse.Namespace) -> int:
             )
             runs.append({"ptm": str(path), "ground_truth": str(gt), **record})
         summary = summarize_records(runs, np.random.default_rng(args.seed), n_bins=args.bins)
-        if summary is None:
-            msg = "no run has an exact true topology (every visit within --same-radius of a place)"
-            raise ConfigError(msg)
+        pairs = pooled_pairs(runs)
         if args.plot is not None:
-            from ptm_ros.io.calibration_plot import write_reliability_diagram
+            from ptm_ros.io.calibration_plot import write_pair_reliability_diagram, write_reliability_diagram
 
-            write_reliability_diagram(args.plot, {"all runs": summary})
+            if summary is not None:
+                write_reliability_diagram(args.plot, {"all runs": summary})
+            else:  # real runs: no exact true topology, the pairs only
+                write_pair_reliability_diagram(args.plot, {"all runs": pairs})
     except (PtmError, OSError) as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         return 2
@@ -400,7 +427,8 @@ def calibration_main(args: argparse.Namespace) -> int:
         "schema": CALIBRATION_SCHEMA,
         "n_runs": len(runs),
         "n_runs_without_true_topology": sum(r["map_right"] is None for r in runs),
-        "calibration": summary.as_dict(),
+        "calibration": None if summary is None else summary.as_dict(),
+        "pair_calibration": pairs.as_dict(),
         "runs": runs,
     }
     print(json.dumps(doc, indent=args.indent))
