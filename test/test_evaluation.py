@@ -887,12 +887,15 @@ def test_a_score_with_place_ids_keeps_the_true_topology():
 def brute_pair_table(
     xy: np.ndarray, tops: list[tuple[tuple[int, ...], float]], edges: tuple[float, ...]
 ) -> tuple[list[int], list[float], list[int]]:
-    """Per bin of ``edges``: scored pairs, summed P(i ~ j) and same pairs, by a plain loop over pairs."""
+    """Per bin of ``edges``: scored pairs outside the contradictory chains, summed P(i ~ j) and same
+    pairs, by a plain loop over pairs."""
     total = sum(p for _, p in tops)
     count, psum, same = [0] * (len(edges) - 1), [0.0] * (len(edges) - 1), [0] * (len(edges) - 1)
+    chains = single_linkage_places(xy, 1.5)
+    spans = {c: max(math.dist(a, b) for a in xy[chains == c] for b in xy[chains == c]) for c in set(chains)}
     for i, j in itertools.combinations(range(len(xy)), 2):
         d = math.dist(xy[i], xy[j])
-        if 1.5 <= d <= 4.0:
+        if 1.5 <= d <= 4.0 or (chains[i] == chains[j] and spans[chains[i]] > 4.0):
             continue
         p = sum(w for t, w in tops if t[i] == t[j]) / total
         b = next(k for k in range(len(edges) - 1) if p < edges[k + 1] or k == len(edges) - 2)
@@ -936,6 +939,12 @@ def test_pair_calibration_by_hand() -> None:
     # A confident wrong merge and a confident miss are counted as such.
     s = score_ptm(make(XY4, [((0, 0, 1, 2), 1.0)]), XY4)
     assert s.pairs is not None and (s.pairs.confident_false_merges, s.pairs.confident_misses) == (1, 1)
+    # A chain 1.2 m apart spanning 4.8 m (no topology scores it right) and a far visit: the chain's
+    # contradictory pairs (4 same, 1 different) are left out, its other pairs (1.5-4 m) are unscored.
+    chain = np.array([[1.2 * k, 0.0] for k in range(5)] + [[0.0, 20.0]])
+    s = score_ptm(make(chain, [((0, 0, 0, 1, 1, 2), 0.6), ((0, 0, 0, 0, 0, 1), 0.4)]), chain)
+    assert s.n_contradictory_pairs == 5 and s.n_scored_pairs == 10 and s.pairs is not None
+    assert sum(s.pairs.count) == 5 and s.pairs.count[0] == 5  # the far visit's pairs, stated 0
 
 
 def test_pair_tables_pool_by_addition_and_round_trip_through_json() -> None:

@@ -113,8 +113,9 @@ wrong) is below :data:`OVERCONFIDENT_MASS`: the posterior all but excludes the t
 Pair calibration. On a real run the MAP topology is almost never exactly right (a true place is a
 chain of visits, its borders a matter of metres), so the MAP calibration above needs simulated worlds
 with exact places. The posterior's *pairwise* statement can be checked on any run with a trajectory:
-each scored pair has ``P(i ~ j) = Σ_k w_k [L_k(i) = L_k(j)]`` (the renormalised masses ``w_k`` of the
-listed topologies, as for the expected counts) and an outcome, same or different place in truth. The
+each scored pair outside the contradictory ones (which no posterior can state right) has
+``P(i ~ j) = Σ_k w_k [L_k(i) = L_k(j)]`` (the renormalised masses ``w_k`` of the listed topologies, as
+for the expected counts) and an outcome, same or different place in truth. The
 pairs are binned by that probability at :data:`PAIR_BIN_EDGES`: almost every pair sits in the end bins
 (``P < 0.02``, ``P ≥ 0.98``), and the doubts in between are what the posterior's honesty is about. Per
 bin the table gives the pairs, their mean stated probability and the share that is one place; the
@@ -591,12 +592,12 @@ def score_ptm(
     )
     w = probs / listed
     expected = PairCounts(*(float(v) for v in w @ counts))
-    pairs = PairReliability.of(pair_probabilities(labels, w, i, j), same)
     mean_f1 = float(sum(wk * s.counts.f1 for wk, s in zip(w, scores, strict=True)))
     consistent_mass = float(sum(s.probability for s in scores if s.consistent))
     contra = contradictory_pairs(xy, i, j, config)
     keep = ~contra
     attainable = topology_counts(labels, i[keep], j[keep], same[keep])
+    pairs = PairReliability.of(pair_probabilities(labels, w, i[keep], j[keep]), same[keep])
     attainable_mass = float(probs[(attainable[:, 1] + attainable[:, 2]) == 0].sum())
 
     true_mass: float | None = None
