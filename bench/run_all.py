@@ -176,7 +176,7 @@ def pair_calibration_section(groups: Mapping[str, Sequence[Mapping[str, Any]]], 
         "## Pair calibration",
         "",
         "How often the visit pairs the PTM states at each P(same place) are one place in truth (`ptm-eval`'s "
-        f"`pair_calibration`; scored pairs: same < 1.5 m, different > 4 m, outside the chains of visits no "
+        "`pair_calibration`; scored pairs: same < 1.5 m, different > 4 m, outside the chains of visits no "
         f"topology can score right), {pooled}. "
         "*Doubtful*: pairs stated between 0.02 and 0.98; *gap*: their ECE (the pair-weighted mean over the "
         "middle bins of |share one place − mean stated P|); *confident false merges*: different pairs stated "
