@@ -12,17 +12,18 @@ bottom panel counts the pairs on a log scale (the end bins hold nearly all of th
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ptm_ros.scoring.evaluation import CalibrationSummary, PairReliability
+from ptm_ros.scoring.evaluation import CalibrationSummary, PairReliability, ReliabilityBin
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
+    from numpy.typing import NDArray
 
 
 def _panels() -> tuple[Figure, Axes, Axes]:
@@ -48,23 +49,40 @@ def _save(fig: Figure, path: str | Path) -> Path:
     return out
 
 
+def _group(  # noqa: PLR0917 - one curve's parts
+    top: Axes,
+    bottom: Axes,
+    bins: Sequence[ReliabilityBin],
+    sizes: NDArray[np.float64],
+    label: str,
+    slot: tuple[int, int],
+) -> None:
+    """One group's curve over its non-empty ``bins`` (marker areas ``sizes``, one per bin) above, and its
+    bars of counts below, in bar slot ``slot = (group, groups)`` of each bin."""
+    shown = np.array([b.count > 0 for b in bins])
+    x = np.array([b.mean_probability for b in bins])[shown]
+    y = np.array([b.accuracy for b in bins])[shown]
+    line = top.plot(x, y, marker="", linewidth=1.2, label=label)[0]
+    top.scatter(x, y, s=sizes[shown], color=line.get_color(), alpha=0.8, zorder=3)
+    widths = np.array([b.hi - b.lo for b in bins]) / (slot[1] + 1)
+    lefts = np.array([b.lo for b in bins]) + widths * (slot[0] + 0.5)
+    bottom.bar(lefts, [b.count for b in bins], width=widths, align="edge", color=line.get_color())
+
+
 def write_reliability_diagram(
     path: str | Path, summaries: Mapping[str, CalibrationSummary], *, title: str = "MAP calibration"
 ) -> Path:
     """Write the reliability diagram of ``summaries`` (label -> summary, drawn in order) to ``path``."""
     fig, top, bottom = _panels()
-    n_groups = max(1, len(summaries))
     for g, (label, s) in enumerate(summaries.items()):
-        bins = [b for b in s.bins if b.count > 0]
-        x = np.array([b.mean_probability for b in bins])
-        y = np.array([b.accuracy for b in bins])
-        size = 12.0 + 300.0 * np.array([b.count for b in bins]) / max(1, s.n_runs)
-        line = top.plot(x, y, marker="", linewidth=1.2)[0]
-        top.scatter(x, y, s=size, color=line.get_color(), alpha=0.8, zorder=3)
-        line.set_label(f"{label}: ECE {s.ece:.2f} (chance {s.chance_ece:.2f}), n={s.n_runs}")
-        width = 1.0 / s.n_bins / (n_groups + 1)
-        lefts = np.array([b.lo for b in s.bins]) + width * (g + 0.5)
-        bottom.bar(lefts, [b.count for b in s.bins], width=width, align="edge", color=line.get_color())
+        _group(
+            top,
+            bottom,
+            s.bins,
+            12.0 + 300.0 * np.array([b.count for b in s.bins]) / max(1, s.n_runs),
+            f"{label}: ECE {s.ece:.2f} (chance {s.chance_ece:.2f}), n={s.n_runs}",
+            (g, len(summaries)),
+        )
     top.set_ylabel("fraction of runs whose MAP topology is the true one")
     top.set_title(title)
     top.legend(loc="upper left", fontsize=7)
@@ -78,19 +96,10 @@ def write_pair_reliability_diagram(
 ) -> Path:
     """Write the pair reliability diagram of ``tables`` (label -> pooled table, in order) to ``path``."""
     fig, top, bottom = _panels()
-    n_groups = max(1, len(tables))
     for g, (label, t) in enumerate(tables.items()):
-        bins = [b for b in t.bins if b.count > 0]
-        x = np.array([b.mean_probability for b in bins])
-        y = np.array([b.accuracy for b in bins])
-        size = 12.0 + 40.0 * np.log10(np.array([b.count for b in bins], dtype=float))
-        line = top.plot(x, y, marker="", linewidth=1.2)[0]
-        top.scatter(x, y, s=size, color=line.get_color(), alpha=0.8, zorder=3)
         gap = "none doubtful" if not t.doubtful else f"doubtful gap {t.doubtful_gap:.2f} over {t.doubtful}"
-        line.set_label(f"{label}: {sum(t.count)} pairs, {gap}")
-        widths = np.diff(t.edges) / (n_groups + 1)
-        lefts = np.array(t.edges[:-1]) + widths * (g + 0.5)
-        bottom.bar(lefts, np.asarray(t.count), width=widths, align="edge", color=line.get_color())
+        size = 12.0 + 40.0 * np.log10(np.maximum(np.array(t.count, dtype=float), 1.0))
+        _group(top, bottom, t.bins, size, f"{label}: {sum(t.count)} pairs, {gap}", (g, len(tables)))
     top.set_ylabel("share of visit pairs that are one place in truth")
     top.set_title(title)
     top.legend(loc="upper left", fontsize=7)
