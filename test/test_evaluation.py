@@ -939,6 +939,10 @@ def test_pair_calibration_by_hand() -> None:
     # A confident wrong merge and a confident miss are counted as such.
     s = score_ptm(make(XY4, [((0, 0, 1, 2), 1.0)]), XY4)
     assert s.pairs is not None and (s.pairs.confident_false_merges, s.pairs.confident_misses) == (1, 1)
+    assert s.pairs.summary() == (
+        "pair calibration: 0 of 6 pairs stated 0.02-0.98; confident false merges (different, stated "
+        ">= 0.98) 1, confident misses (same, stated < 0.02) 1"
+    )
     # A chain 1.2 m apart spanning 4.8 m (no topology scores it right) and a far visit: the chain's
     # contradictory pairs (4 same, 1 different) are left out, its other pairs (1.5-4 m) are unscored.
     chain = np.array([[1.2 * k, 0.0] for k in range(5)] + [[0.0, 20.0]])

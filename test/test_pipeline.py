@@ -481,6 +481,7 @@ def test_ptm_run_shows_every_phase_on_stderr_unless_quiet(tmp_path, capsys):
     assert (
         re.search(r"ESS \d\.\d\d/100", out)
         and "(consistent mass = the posterior mass of the topologies" in out
+        and "pair calibration: " in out
     )
 
 

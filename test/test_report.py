@@ -162,6 +162,8 @@ def test_the_report_speaks_plainly(tmp_path: Path) -> None:
         in md
     )
     assert CONSISTENT_MASS_MEANING.split(" = ", 1)[1] in md
+    assert score.pairs is not None and f"- {score.pairs.summary()}" in md
+    assert "pair calibration: " in md and "confident misses (same, stated < 0.02)" in md
     trace = step_trace()  # two landmarks declared by surprise, fewer than the 8 visits: no accounting
     write_report(tmp_path / "t", base, surprise_trace=trace)
     md = (tmp_path / "t" / REPORT_MD).read_text(encoding="utf-8")

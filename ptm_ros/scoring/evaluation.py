@@ -522,6 +522,16 @@ class PairReliability:
         gaps = (abs(s - ps) for s, ps in zip(self.same[1:-1], self.probability_sum[1:-1], strict=True))
         return float(sum(gaps) / self.doubtful)
 
+    def summary(self) -> str:
+        """One line: the doubtful pairs and their gap, the confident errors."""
+        lo, hi = self.edges[1], self.edges[-2]
+        gap = "" if not self.doubtful else f", gap {self.doubtful_gap:.2f}"
+        return (
+            f"pair calibration: {self.doubtful} of {sum(self.count)} pairs stated {lo:g}-{hi:g}{gap}; "
+            f"confident false merges (different, stated >= {hi:g}) {self.confident_false_merges}, "
+            f"confident misses (same, stated < {lo:g}) {self.confident_misses}"
+        )
+
     def as_dict(self) -> dict[str, Any]:
         """Plain JSON values: the summary figures and the bins (empty bins' means None)."""
 

@@ -289,6 +289,8 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
         lines.append(f"  ({CONSISTENT_MASS_MEANING})")
         if s.get("true_topology_mass") is not None:
             lines.append(f"mass on the true topology = {s['true_topology_mass']:.3f}")
+        if result.score.pairs is not None:
+            lines.append(result.score.pairs.summary())
     truth = result.score.true_labels if result.score is not None else None
     lines.extend(timeline_lines(ptm, truth))
     lines.extend(greedy_notes(ptm, truth))
