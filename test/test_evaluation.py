@@ -6,6 +6,7 @@ import itertools
 import json
 import math
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -989,3 +990,27 @@ def test_cli_calibration_pools_the_pairs_and_runs_without_exact_truth(
     assert code == 0 and doc is not None, err
     assert doc["calibration"] is None and doc["pair_calibration"]["pairs"] >= 1
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_calibration_finds_the_carmen_ground_truth_ptm_run_scored_against(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Real runs scored by ``ptm-run --ground-truth FILE`` record the file (``trajectory_error``): the
+    calibration mode finds it, each run its own, and pools their pairs."""
+    gt_a = write_carmen_gt(tmp_path / "a.txt", [0.0, 10.0, 20.0], [(0.0, 0.0), (10.0, 0.0), (0.0, 0.0)])
+    gt_b = write_carmen_gt(tmp_path / "b.txt", [0.0, 10.0, 20.0], [(0.0, 0.0), (0.0, 10.0), (0.0, 20.0)])
+    landmarks = [Landmark(i, t, (100.0, 0.0, 0.0)) for i, t in enumerate((0.0, 10.0, 19.9))]
+    for name, gt in (("a", gt_a), ("b", gt_b)):
+        ptm = make_ptm(landmarks, {(0, 1, 0): 0.7, (0, 1, 2): 0.3})
+        ptm = replace(ptm, extra={"trajectory_error": {"ate_smoothed_m": 0.1, "ground_truth": str(gt)}})
+        save_ptm(ptm, tmp_path / "runs" / name / "ptm.json")
+    code, doc, err = run_cli(["--calibration", str(tmp_path / "runs")], capsys)
+    assert code == 0 and doc is not None, err
+    assert [r["ground_truth"] for r in doc["runs"]] == [str(gt_a), str(gt_b)]
+    assert doc["calibration"] is None  # CARMEN: no places, no exact truth
+    # Run a revisits A (0 ~ 2 one place, stated 0.7); on run b's straight path visits 0 and 2 are 20 m apart.
+    pairs = doc["pair_calibration"]
+    assert pairs["doubtful_pairs"] == 2 and pairs["bins"][5]["same"] == 1 and pairs["bins"][5]["count"] == 2
+    gt_a.unlink()  # a recorded file that is gone is no ground truth
+    code, _, err = run_cli(["--calibration", str(tmp_path / "runs" / "a")], capsys)
+    assert code == 2 and "no ground truth" in err

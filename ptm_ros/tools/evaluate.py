@@ -37,7 +37,8 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
 ``ptm-eval --calibration RUN [RUN ...] [--plot FILE]`` scores many runs of simulated bags at once (issue
 #23): each RUN is a ``ptm.json``, a run directory holding one, or a directory searched recursively for
 them; each run's ground truth is ``--ground-truth`` when given, else the ``ground_truth.json`` beside
-the ``ptm.json``, else the one in the bag named by the ``ptm.json`` (``bag``). It prints (schema
+the ``ptm.json``, else the file ``ptm-run --ground-truth`` scored it against (a real run's), else the one
+in the bag named by the ``ptm.json`` (``bag``). It prints (schema
 ``ptm_ros.calibration/1``): ``runs`` (per run: ``ptm``, ``ground_truth``, and :func:`calibration_record`'s
 keys), ``n_runs``, ``n_runs_without_true_topology`` (visits not all within ``--same-radius`` of a place:
 no exact truth, left out of the calibration figures) and ``calibration``
@@ -294,8 +295,9 @@ def map_quality_of_run(
 
 
 def ground_truth_of(ptm_path: Path) -> Path:
-    """A run's ground truth: ``ground_truth.json`` beside ``ptm_path``, else the one in the bag named by
-    the ptm.json's ``bag``. Raises :class:`DataError` when neither exists."""
+    """A run's ground truth: ``ground_truth.json`` beside ``ptm_path``, else the file ``ptm-run`` scored it
+    against (the ptm.json's ``trajectory_error.ground_truth``: a real run's CARMEN file), else the one in
+    the bag named by the ptm.json's ``bag``. Raises :class:`DataError` when none exists."""
     from ptm_ros.errors import DataError
     from ptm_ros.io.groundtruth import SIM_FILENAME
 
@@ -303,12 +305,21 @@ def ground_truth_of(ptm_path: Path) -> Path:
     if beside.is_file():
         return beside
     try:
-        bag = json.loads(ptm_path.read_text(encoding="utf-8")).get("bag")
-    except (OSError, ValueError, AttributeError):
-        bag = None
+        doc = json.loads(ptm_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        doc = None
+    doc = doc if isinstance(doc, dict) else {}
+    scored = doc.get("trajectory_error")
+    scored = scored.get("ground_truth") if isinstance(scored, dict) else None
+    if isinstance(scored, str) and Path(scored).is_file():
+        return Path(scored)
+    bag = doc.get("bag")
     if isinstance(bag, str) and (Path(bag) / SIM_FILENAME).is_file():
         return Path(bag) / SIM_FILENAME
-    msg = f"{ptm_path}: no ground truth beside it nor in its bag ({bag}); give --ground-truth"
+    msg = (
+        f"{ptm_path}: no ground truth beside it, recorded by ptm-run nor in its bag ({bag}); "
+        "give --ground-truth"
+    )
     raise DataError(msg)
 
 
