@@ -34,7 +34,7 @@ Printed JSON (schema ``ptm_ros.eval/1``; key names are stable):
   :mod:`ptm_ros.maps.map_quality`'s ``leak``, ``wall_precision``, ``wall_recall``, ``free_area_ratio`` and
   their counts), ``null`` when the run has no map, no scans or no recorded alignment.
 
-``ptm-eval --calibration RUN [RUN ...] [--plot FILE]`` scores many runs of simulated bags at once (issue
+``ptm-eval --calibration RUN [RUN ...] [--plot FILE]`` scores many runs at once, simulated or real (issue
 #23): each RUN is a ``ptm.json``, a run directory holding one, or a directory searched recursively for
 them; each run's ground truth is ``--ground-truth`` when given, else the ``ground_truth.json`` beside
 the ``ptm.json``, else the file ``ptm-run --ground-truth`` scored it against (a real run's), else the one
