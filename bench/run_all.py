@@ -56,10 +56,8 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
-import functools
 import itertools
 import json
-import operator
 import shutil
 import subprocess
 import sys
@@ -160,13 +158,9 @@ def pair_calibration_section(groups: Mapping[str, Sequence[Mapping[str, Any]]], 
     """A markdown section: per group (label -> records holding ``ptm-eval``'s ``pair_calibration``), the
     pooled pair calibration (:class:`ptm_ros.scoring.evaluation.PairReliability`); ``pooled`` says over what
     (e.g. "pooled over seeds"). Empty without a record."""
-    from ptm_ros.scoring.evaluation import PairReliability
+    from ptm_ros.tools.evaluate import pooled_pairs
 
-    tables = {
-        label: functools.reduce(operator.add, (PairReliability.from_dict(r["pair_calibration"]) for r in rs))
-        for label, rs in groups.items()
-        if rs
-    }
+    tables = {label: pooled_pairs(rs) for label, rs in groups.items() if rs}
     if not tables:
         return []
     edges = next(iter(tables.values())).edges

@@ -194,22 +194,19 @@ def _score_rows(score: Score) -> list[tuple[str, str, str]]:
 
 
 def _score_notes(score: Score) -> list[str]:
-    return (
-        [
-            f"consistent mass: {score.consistent_mass:.3f} ({CONSISTENT_MASS_MEANING.split(' = ', 1)[1]})",
-            f"mass of the exactly-true topology: {_fmt(score.true_topology_mass)}",
-            f"mass-weighted mean F1: {score.mean_f1:.3f}",
-            f"scored pairs: {score.n_scored_pairs} of {score.n_pairs} ({score.n_same_pairs} same, "
-            f"{score.n_different_pairs} different; same < {score.config.same_radius} m, "
-            f"different > {score.config.different_radius} m)",
-        ]
-        + (
-            [f"visits without ground truth (unscored): {score.n_visits_without_truth}"]
-            if score.n_visits_without_truth
-            else []
-        )
-        + ([score.pairs.summary()] if score.pairs is not None else [])
-    )
+    notes = [
+        f"consistent mass: {score.consistent_mass:.3f} ({CONSISTENT_MASS_MEANING.split(' = ', 1)[1]})",
+        f"mass of the exactly-true topology: {_fmt(score.true_topology_mass)}",
+        f"mass-weighted mean F1: {score.mean_f1:.3f}",
+        f"scored pairs: {score.n_scored_pairs} of {score.n_pairs} ({score.n_same_pairs} same, "
+        f"{score.n_different_pairs} different; same < {score.config.same_radius} m, "
+        f"different > {score.config.different_radius} m)",
+    ]
+    if score.n_visits_without_truth:
+        notes.append(f"visits without ground truth (unscored): {score.n_visits_without_truth}")
+    if score.pairs is not None:
+        notes.append(score.pairs.summary())
+    return notes
 
 
 def _topology_rows(ptm: Ptm, score: Score | None, config: ReportConfig) -> list[tuple[str, ...]]:
