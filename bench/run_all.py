@@ -22,7 +22,8 @@
    (``bench_filter_vs_batch.py``: ``filter_vs_batch.{json,md}``), the heading noise and the laser
    registrations against the truth (``bench_heading_noise.py``: ``heading_noise.{json,md}``) and each wrong
    merge of the perturbed real runs decomposed by the batch model (``bench_wrong_merges.py``:
-   ``wrong_merges.{json,md}``), when present.
+   ``wrong_merges.{json,md}``) and the odometry check on those runs, reported and used
+   (``bench_translation_noise.py``: ``translation_noise.{json,md}``), when present.
 2. The pipeline on every simulated world and on every real run in ``../shared/datasets`` (when
    present), scored against ground truth beside two reference methods a user might use instead:
    greedy nearest-neighbour data association on odometry and robust pose-graph loop closure over the
@@ -95,6 +96,7 @@ COMPONENTS = (
     "bench_filter_vs_batch.py",
     "bench_heading_noise.py",
     "bench_wrong_merges.py",
+    "bench_translation_noise.py",
 )
 SIM_WORLDS = (("aliased-loop", 1), ("two-loop", 1), ("multi-loop", 1))
 REAL_RUNS = (

@@ -61,7 +61,7 @@ from ptm_ros.inference.rbpf import FilterState, Prefetch, RbpfConfig, TopologyFi
 from ptm_ros.model.appearance import AppearanceModel
 from ptm_ros.model.geometry import Registrar, RelativePose
 from ptm_ros.model.heading_noise import (
-    HeadingScale,
+    NoiseScale,
     heading_residuals,
     heading_scale,
     profiled_outlier,
@@ -88,6 +88,7 @@ from ptm_ros.model.ptm import (
     make_ptm,
     timeline_list,
 )
+from ptm_ros.model.translation_noise import TRANSLATION_KEY, translation_residuals, translation_scale
 from ptm_ros.model.visits import Visit
 from ptm_ros.perception.laser import PatchRegistrar, WorkerPool
 from ptm_ros.reporting.doubts import doubts_dict, find_doubts
@@ -104,13 +105,13 @@ VERSUS_KEY = "versus_rbpf"
 #: ``ptm.extra`` key of the visits the map is unsure of (:func:`ptm_ros.reporting.doubts.doubts_dict`).
 DOUBTS_KEY = "doubts"
 #: ``ptm.inference`` key of the learned heading-noise scale
-# (:class:`ptm_ros.model.heading_noise.HeadingScale`).
+# (:class:`ptm_ros.model.heading_noise.NoiseScale`).
 HEADING_KEY = "heading_noise"
 #: The learned heading-noise scale moves (and the filter replays) only when the estimate is this many
 #: lattice steps (factors √2) away from the one in use, so that it does not flip between neighbours.
 HEADING_HYSTERESIS = 2
 #: The heading-noise scale before anything is learned: the model as configured.
-UNLEARNED = HeadingScale(1.0, 0, 0.0, 0)
+UNLEARNED = NoiseScale(1.0, 0, 0.0, 0)
 
 
 @dataclass(frozen=True)
@@ -336,7 +337,7 @@ class FilterSession:
         return self._rebuild(self._filter.appearance)
 
     @property
-    def heading(self) -> HeadingScale:
+    def heading(self) -> NoiseScale:
         """The heading-noise scale in use (:data:`UNLEARNED` until one is learned)."""
         return self._heading
 
@@ -421,7 +422,7 @@ class FilterSession:
             self.replays = int(state["replays"])
             self.wall_s = float(state["wall_s"])
             heading = state.get("heading")  # absent in states saved before it was learned
-            self._heading = UNLEARNED if heading is None else HeadingScale.from_dict(heading)
+            self._heading = UNLEARNED if heading is None else NoiseScale.from_dict(heading)
             if state["filter"] is not None:
                 self._filter = self._restore_filter(
                     state["filter"], appearance_from_state(state["appearance"])
@@ -476,8 +477,17 @@ class FilterSession:
             self.config,
             greedy=self.greedy,
             **({HEADING_KEY: self._heading.as_dict()} if self.config.model.odometry.learn_heading else {}),
+            **({} if self._registrar is None else {TRANSLATION_KEY: self.translation_noise().as_dict()}),
             **({} if self._run is not None else {"replays": self.replays}),
         )
+
+    def translation_noise(self) -> NoiseScale:
+        """The translation-noise scale the valid registrations so far suggest at the heading scale in use
+        (:func:`ptm_ros.model.translation_noise.translation_scale`): a check of the odometry model, not
+        used by the filter."""
+        valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+        cfg = self.config.model.odometry
+        return translation_scale(translation_residuals(self._visits, valid, cfg), self._heading.scale, cfg)
 
     def to_ptm(self, *, frame_id: str = "odom", **extra: Any) -> Ptm:
         """The current PTM (as :func:`build_ptm` writes it)."""
@@ -682,7 +692,10 @@ def _infer_batch(
     heading: dict[str, Any] = {}
     if session is not None and learn:
         model_config = replace(config.model, odometry=session.odometry_config())
-        heading = {HEADING_KEY: session.heading.as_dict()}
+        heading = {
+            HEADING_KEY: session.heading.as_dict(),
+            TRANSLATION_KEY: session.translation_noise().as_dict(),
+        }
     model = PosteriorModel(visits, model_config, registrar=registrar, seed=inf.seed)
     if inf.method == "exact":
         logp = exact_posterior(model, progress=progress)

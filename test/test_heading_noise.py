@@ -17,7 +17,7 @@ from ptm_ros.model.heading_noise import (
     OUTLIER_FRACTIONS,
     SCALE_STEPS,
     HeadingResiduals,
-    HeadingScale,
+    NoiseScale,
     heading_residuals,
     heading_scale,
     profiled_outlier,
@@ -85,7 +85,7 @@ def test_the_scale_is_recovered_through_aliases(true_scale):
 
 def test_without_registrations_the_model_is_kept_and_few_move_it_little():
     empty = HeadingResiduals(np.zeros(0), np.zeros(0), np.zeros(0))
-    assert heading_scale(empty, 1.0) == HeadingScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
+    assert heading_scale(empty, 1.0) == NoiseScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
     one = HeadingResiduals(np.array([0.0]), np.array([0.04]), np.array([1e-4]))
     assert heading_scale(one, 1.0).scale >= 0.25  # one perfect match: not a collapse of the model
     assert heading_scale(one, 0.1).scale == 1.0  # a confident prior keeps it

@@ -73,11 +73,12 @@ class HeadingResiduals:
 
 
 @dataclass(frozen=True)
-class HeadingScale:
-    """A learned heading-noise scale.
+class NoiseScale:
+    """A learned noise scale: the heading's here, the translation's in
+    :mod:`ptm_ros.model.translation_noise`.
 
     Attributes:
-        scale: ``k``, the factor on ``a_th``, ``b_th`` and ``c_th``.
+        scale: ``k``, the factor on the noise's variances (here ``a_th``, ``b_th`` and ``c_th``).
         step: ``m`` of the lattice, ``k = 2^(m/2)``.
         outlier_fraction: the profiled ``ε`` at ``k``.
         registrations: how many registrations it was learned from.
@@ -89,7 +90,7 @@ class HeadingScale:
     registrations: int
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> HeadingScale:
+    def from_dict(cls, d: Mapping[str, Any]) -> NoiseScale:
         """Inverse of :meth:`as_dict`."""
         return cls(float(d["scale"]), int(d["step"]), float(d["outlier_fraction"]), int(d["registrations"]))
 
@@ -122,20 +123,30 @@ def scale_log_likelihoods(residuals: HeadingResiduals, scales: FloatArray, outli
     return np.asarray(mix.sum(axis=1), dtype=float)
 
 
-def heading_scale(residuals: HeadingResiduals, prior_sd: float) -> HeadingScale:
+def heading_scale(residuals: HeadingResiduals, prior_sd: float) -> NoiseScale:
     """The posterior mode of ``k`` over the lattice :data:`SCALE_STEPS`, profiled over ``ε`` in
     :data:`OUTLIER_FRACTIONS`, with the prior :math:`\\log k \\sim N(0, s^2)`, ``s = prior_sd`` (module
     docstring); the prior's mode (``k = 1``) without residuals."""
-    steps = np.array(SCALE_STEPS, dtype=float)
-    scales = 2.0 ** (steps / 2.0)
-    log_prior = -0.5 * (np.log(scales) / prior_sd) ** 2
     if len(residuals) == 0:
-        return HeadingScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
-    table = _outlier_table(residuals, scales)
+        return NoiseScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
+    return lattice_mode(_outlier_table(residuals, lattice_scales()), len(residuals), prior_sd)
+
+
+def lattice_scales() -> FloatArray:
+    """The scales of :data:`SCALE_STEPS`, ``k = 2^(m/2)``."""
+    return np.asarray(2.0 ** (np.array(SCALE_STEPS, dtype=float) / 2.0), dtype=float)
+
+
+def lattice_mode(table: FloatArray, registrations: int, prior_sd: float) -> NoiseScale:
+    r"""The posterior mode over :func:`lattice_scales` of a ``(len(OUTLIER_FRACTIONS), len(SCALE_STEPS))``
+    table of log likelihoods, profiled over the outlier fraction (rows), with the prior
+    :math:`\log k \sim N(0, s^2)`, ``s = prior_sd``."""
+    steps = np.array(SCALE_STEPS)
+    log_prior = -0.5 * (np.log(lattice_scales()) / prior_sd) ** 2
     best_eps = np.argmax(table, axis=0)
-    score = table[best_eps, np.arange(len(scales))] + log_prior
-    k = int(np.argmax(score))
-    return HeadingScale(float(scales[k]), int(steps[k]), OUTLIER_FRACTIONS[int(best_eps[k])], len(residuals))
+    k = int(np.argmax(table[best_eps, np.arange(len(steps))] + log_prior))
+    step = int(steps[k])
+    return NoiseScale(2.0 ** (step / 2.0), step, OUTLIER_FRACTIONS[int(best_eps[k])], registrations)
 
 
 def profiled_outlier(residuals: HeadingResiduals, step: int) -> float:

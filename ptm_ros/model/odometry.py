@@ -431,14 +431,16 @@ def relative_odometry(visits: Sequence[Visit]) -> FloatArray:
 
 def odometry_covariances(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
     """``(N-1, 3, 3)`` diagonal covariances ``Σ_k`` of the relative odometry (from visit k+1's travel)."""
-    var = _odometry_variances(visits, config)
+    var = odometry_variances(visits, config)
     cov = np.zeros((len(var), 3, 3))
     idx = np.arange(3)
     cov[:, idx, idx] = var
     return cov
 
 
-def _odometry_variances(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
+def odometry_variances(visits: Sequence[Visit], config: OdometryConfig) -> FloatArray:
+    """``(N-1, 3)`` the variances of eq. 17 of each relative odometry ``o_k`` (x, y, heading; from visit
+    k+1's travel and rotation)."""
     travel = np.array([v.travel for v in visits[1:]], dtype=float)
     rotation = np.array([v.rotation for v in visits[1:]], dtype=float)
     var_xy = config.a_xy * travel + config.b_xy
@@ -450,7 +452,7 @@ def path_heading_variances(visits: Sequence[Visit], config: OdometryConfig) -> F
     """``(N,)`` cumulative heading variance of the odometry from visit 0 to each visit (eq. 17's heading
     variances summed), so that the heading variance of the path from visit ``i`` to visit ``j`` is
     ``c[j] - c[i]``."""
-    return np.concatenate([[0.0], np.cumsum(_odometry_variances(visits, config)[:, 2])])
+    return np.concatenate([[0.0], np.cumsum(odometry_variances(visits, config)[:, 2])])
 
 
 def heading_residuals_of(
@@ -538,7 +540,7 @@ def _build_problem(
         raise ModelError(msg)
 
     # relative constraints: odometry (diagonal whitening) then laser pairs of the same place
-    var = _odometry_variances(visits, config)
+    var = odometry_variances(visits, config)
     odo_w = np.zeros((n - 1, 3, 3))
     idx3 = np.arange(3)
     odo_w[:, idx3, idx3] = 1.0 / np.sqrt(var)

@@ -41,6 +41,7 @@ from ptm_ros.errors import DataError, ModelError
 from ptm_ros.inference.convergence import srq_deviation
 from ptm_ros.model.partitions import num_places
 from ptm_ros.model.ptm import Ptm, ptm_timeline
+from ptm_ros.model.translation_noise import TRANSLATION_KEY, WEAK_GEOMETRY_SCALE
 from ptm_ros.perception.laser import WorkerPool
 from ptm_ros.reporting.chain_trace import CHAINS_KEY, SRQ_THIN_KEY, TRACE, chain_srq, chain_states
 from ptm_ros.reporting.figures import ess_fraction, sig
@@ -176,10 +177,32 @@ def _summary(ptm: Ptm, notes: Sequence[str] = (), declared: int | None = None) -
     lines = [inference_line(ptm.inference), visits_line(ptm, declared)]
     if top is not None:
         lines.append(f"most probable topology: p = {top.probability:.3f}, {num_places(top.labels)} places")
+    check = translation_check_line(ptm.inference.get(TRANSLATION_KEY))
+    if check:
+        lines.append(check)
     wall = ptm.timing.get("wall_s")
     if isinstance(wall, (int, float)):
         lines.append(f"wall time: {wall:.2f} s")
     return lines + list(notes)
+
+
+def translation_check_line(noise: object) -> str | None:
+    """``odometry check: …``, the translation-noise scale the registrations suggest
+    (:mod:`ptm_ros.model.translation_noise`), with a warning from :data:`WEAK_GEOMETRY_SCALE` up; None
+    without one."""
+    if not isinstance(noise, Mapping) or not noise.get("registrations"):
+        return None
+    scale = float(noise["scale"])
+    line = (
+        f"odometry check: the translation noise (variance) that {noise['registrations']} laser registrations "
+        f"suggest is {sig(scale)}x the model's"
+    )
+    if scale >= WEAK_GEOMETRY_SCALE:
+        line += (
+            " (the odometry is worse than its noise model: the metric evidence is weaker than the posterior "
+            "assumes, and its probabilities of places are overconfident where they rest on it)"
+        )
+    return line
 
 
 def _score_rows(score: Score) -> list[tuple[str, str, str]]:

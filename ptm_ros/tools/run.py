@@ -262,10 +262,11 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
     """Human-readable lines: visits, the most probable topologies, the score if any, how the mass moved as
     the visits arrived (:func:`timeline_lines`), the greedy baseline's answer beside it, and
     (``total_s``) the run's whole wall time with its phases."""
+    from ptm_ros.model.translation_noise import TRANSLATION_KEY
     from ptm_ros.perception.landmarks import landmark_accounting
     from ptm_ros.reporting.doubts import doubt_lines, find_doubts
     from ptm_ros.reporting.plots import label_string
-    from ptm_ros.reporting.report import CONSISTENT_MASS_MEANING, inference_line
+    from ptm_ros.reporting.report import CONSISTENT_MASS_MEANING, inference_line, translation_check_line
     from ptm_ros.tools.outputs import MAP_QUALITY_KEY, greedy_notes, inference_notes, map_quality_notes
 
     ptm = result.ptm
@@ -275,7 +276,9 @@ def format_summary(result, top: int, total_s: float | None = None) -> str:
     accounting = landmark_accounting(len(ptm.landmarks), skipped if isinstance(skipped, dict) else {})
     if accounting:
         lines.append(accounting)
-    lines += [inference_line(ptm.inference), "most probable topologies:"]
+    lines.append(inference_line(ptm.inference))
+    check = translation_check_line(ptm.inference.get(TRANSLATION_KEY))
+    lines += [*([check] if check else []), "most probable topologies:"]
     for rank, t in enumerate(ptm.topologies[:top]):
         places = len(set(t.labels))
         lines.append(f"  #{rank + 1} p = {t.probability:.4f}  places = {places:3d}  {label_string(t.labels)}")
