@@ -65,9 +65,10 @@ def write_md(doc: dict[str, Any], path: Path) -> None:
     def score(r: dict[str, Any]) -> str:
         if "error" in r:
             return "failed"
+        gap = "–" if r["doubtful_gap"] is None else f"{r['doubtful_gap']:.2f}"  # no doubtful pair
         return (
             f"{r['map_f1']:.3f} ({r['map_precision']:.2f}) | {r['confident_false_merges']} / "
-            f"{r['confident_misses']} | {r['doubtful_pairs']}, {r['doubtful_gap']:.2f}"
+            f"{r['confident_misses']} | {r['doubtful_pairs']}, {gap}"
         )
 
     lines = [

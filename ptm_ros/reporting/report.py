@@ -200,7 +200,7 @@ def translation_check_line(noise: object) -> str | None:
     if scale >= WEAK_GEOMETRY_SCALE:
         line += (
             " (the odometry is worse than its noise model: the metric evidence is weaker than the posterior "
-            "assumes, and its probabilities of places are overconfident where they rest on it)"
+            "assumes, and its probabilities of places may be overconfident where they rest on it)"
         )
     return line
 
