@@ -30,13 +30,6 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The tests marked slow first, each group in file order: pytest-xdist hands the tests out in this
-    order, so the long ones start early and the short ones fill the workers' last minutes (longest first
-    scheduling) instead of one long test running alone at the end."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-
-
 #: The logs of the processes a test started (fixture ``process_logs``), kept on its item for the report.
 PROCESS_LOGS = pytest.StashKey[ProcessLogs]()
 
