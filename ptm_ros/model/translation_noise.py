@@ -37,6 +37,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ptm_ros.model.geometry import FloatArray, RelativePose, wrap_angle
 from ptm_ros.model.heading_noise import OUTLIER_FRACTIONS, NoiseScale, lattice_mode, lattice_scales
@@ -81,36 +82,47 @@ def translation_residuals(
         return TranslationResiduals(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
     u = poses_array(visits)
     var = np.concatenate([np.zeros((1, 3)), odometry_variances(visits, config)])  # var[m]: step into m
-    # prefix sums over m of v, v·p and v·p pᵀ (world frame), to sum over the path from i+1 to j
-    v_th = var[:, 2]
-    p = u[:, :2]
+    i = np.array([z.i for z in kept])
+    j = np.array([z.j for z in kept])
+    sxy = np.cumsum(var[:, 0])
+    rot = _to_frame(u[i, 2])
+    predicted_xy = np.einsum("rab,rb->ra", rot, u[j, :2] - u[i, :2])
+    means = np.array([z.mean for z in kept], dtype=float)
+    error = np.column_stack([means[:, :2] - predicted_xy, wrap_angle(means[:, 2] - (u[j, 2] - u[i, 2]))])
+    covs = np.array([z.cov for z in kept], dtype=float)
+    return TranslationResiduals(
+        error, sxy[j] - sxy[i], _path_heading_terms(u[:, :2], var[:, 2], i, j, rot), covs
+    )
+
+
+def _to_frame(yaw: FloatArray) -> FloatArray:
+    """``(R, 2, 2)`` rotations from the world into frames of headings ``yaw``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], 1)
+
+
+def _path_heading_terms(
+    p: FloatArray, v_th: FloatArray, i: NDArray[np.intp], j: NDArray[np.intp], rot: FloatArray
+) -> FloatArray:
+    r"""``(R, 3, 3)`` :math:`H_{ij} = \sum_{m=i+1}^{j} v^\theta_m g_m g_m^\top` (module docstring) for visit
+    positions ``p`` ``(N, 2)`` and heading variances ``v_th`` ``(N,)`` of the step into each visit (0 for
+    the first), ``rot`` the rotations into the frames of visits ``i``: prefix sums of ``v``, ``v p`` and
+    ``v p pᵀ`` make each sum over the path two lookups."""
     s0 = np.cumsum(v_th)
     s1 = np.cumsum(v_th[:, None] * p, axis=0)
     s2 = np.cumsum(v_th[:, None, None] * p[:, :, None] * p[:, None, :], axis=0)
-    sxy = np.cumsum(var[:, 0])
-    i = np.array([z.i for z in kept])
-    j = np.array([z.j for z in kept])
     w0, w1, w2 = s0[j] - s0[i], s1[j] - s1[i], s2[j] - s2[i]
     pj = p[j]
     # Σ v d dᵀ and Σ v d with d = p_j − p_m, world frame
     dd = w0[:, None, None] * pj[:, :, None] * pj[:, None, :] - pj[:, :, None] * w1[:, None, :]
     dd = dd - w1[:, :, None] * pj[:, None, :] + w2
     d1 = w0[:, None] * pj - w1
-    # into the frame of visit i, then g = (J d, 1) with J the quarter turn
-    c, s = np.cos(u[i, 2]), np.sin(u[i, 2])
-    rot = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], 1)  # world → frame i
-    quarter = np.array([[0.0, -1.0], [1.0, 0.0]])
-    jr = quarter @ rot
-    heading = np.zeros((len(kept), 3, 3))
-    heading[:, :2, :2] = jr @ dd @ np.swapaxes(jr, 1, 2)
-    heading[:, :2, 2] = np.einsum("rab,rb->ra", jr, d1)
-    heading[:, 2, :2] = heading[:, :2, 2]
-    heading[:, 2, 2] = w0
-    predicted_xy = np.einsum("rab,rb->ra", rot, p[j] - p[i])
-    means = np.array([z.mean for z in kept], dtype=float)
-    error = np.column_stack([means[:, :2] - predicted_xy, wrap_angle(means[:, 2] - (u[j, 2] - u[i, 2]))])
-    covs = np.array([z.cov for z in kept], dtype=float)
-    return TranslationResiduals(error, sxy[j] - sxy[i], heading, covs)
+    jr = np.array([[0.0, -1.0], [1.0, 0.0]]) @ rot  # into frame i, then the quarter turn: g = (J d, 1)
+    out = np.zeros((len(i), 3, 3))
+    out[:, :2, :2] = jr @ dd @ np.swapaxes(jr, 1, 2)
+    out[:, :2, 2] = out[:, 2, :2] = np.einsum("rab,rb->ra", jr, d1)
+    out[:, 2, 2] = w0
+    return out
 
 
 def inlier_log_densities(
