@@ -149,13 +149,12 @@ def perturbed_logs(work: Path) -> Iterator[tuple[str, str, Path, Path]]:
             yield name, label, perturbed_bag(DATASETS / log, label, work), DATASETS / gt
 
 
-def score(bag: Path, truth: Path, out: Path, seed: int) -> dict[str, Any]:
-    """``ptm-run`` at the defaults but the inference ``seed`` (``--force``: a drifted odometry no longer
-    moves as the ground truth's raw one), its figures."""
+def score(bag: Path, truth: Path, out: Path, seed: int, *options: str) -> dict[str, Any]:
+    """``ptm-run`` at the defaults but the inference ``seed`` and ``options`` (``--force``: a drifted
+    odometry no longer moves as the ground truth's raw one), its figures."""
     import json
 
-    options = ("--seed", str(seed), "--force", "--no-report", "--no-map")
-    res = ptm_run_scored(bag, truth, out, *options)
+    res = ptm_run_scored(bag, truth, out, "--seed", str(seed), "--force", "--no-report", "--no-map", *options)
     if isinstance(res, str):
         return {"error": res}
     _, s = res
@@ -172,6 +171,7 @@ def score(bag: Path, truth: Path, out: Path, seed: int) -> dict[str, Any]:
         "laser_matched": lo.get("matched"),
         "laser_rejected": lo.get("rejected"),
         "heading_scale": doc["inference"].get("heading_noise", {}).get("scale", math.nan),
+        "translation_noise": doc["inference"].get("translation_noise"),
         "registrations": diag.get("registrations"),
         "registrations_valid": diag.get("registrations_valid"),
         "pair_calibration": s["pair_calibration"],

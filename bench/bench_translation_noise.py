@@ -26,8 +26,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from bench_perturbed_runs import perturbed_logs
-from run_all import ptm_run_scored, shared_data_ready, when_and_where, write_bench
+from bench_perturbed_runs import perturbed_logs, score
+from run_all import shared_data_ready, when_and_where, write_bench
 
 from ptm_ros.model.odometry import OdometryConfig
 
@@ -36,21 +36,19 @@ REPO = BENCH.parent
 
 
 def scored(bag: Path, truth: Path, out: Path, *options: str) -> dict[str, Any]:
-    """``ptm-run`` at seed 0 with ``options``: the MAP's score, the pair calibration's summary and the
-    odometry check."""
-    res = ptm_run_scored(bag, truth, out, "--seed", "0", "--force", "--no-report", "--no-map", *options)
-    if isinstance(res, str):
-        return {"error": res}
-    ptm, s = res
-    pairs = s["pair_calibration"]
+    """``ptm-run`` at seed 0 with ``options`` (:func:`bench_perturbed_runs.score`): the MAP's score, the
+    pair calibration's summary and the odometry check."""
+    res = score(bag, truth, out, 0, *options)
+    if "error" in res:
+        return res
+    pairs = res["pair_calibration"]
     return {
-        **{k: s[k] for k in ("map_f1", "map_precision", "map_recall")},
+        **{k: res[k] for k in ("map_f1", "map_precision", "map_recall")},
         **{
             k: pairs[k]
             for k in ("doubtful_pairs", "doubtful_gap", "confident_false_merges", "confident_misses")
         },
-        "translation_noise": ptm.inference.get("translation_noise"),
-        "heading_scale": ptm.inference.get("heading_noise", {}).get("scale"),
+        **{k: res[k] for k in ("translation_noise", "heading_scale")},
     }
 
 

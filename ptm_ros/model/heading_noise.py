@@ -104,6 +104,10 @@ class NoiseScale:
         }
 
 
+#: The estimate without residuals: the prior's mode (the model as configured), at the smallest fraction.
+PRIOR_MODE = NoiseScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
+
+
 def heading_residuals(
     visits: Sequence[Visit], registrations: Iterable[RelativePose], config: OdometryConfig
 ) -> HeadingResiduals:
@@ -128,7 +132,7 @@ def heading_scale(residuals: HeadingResiduals, prior_sd: float) -> NoiseScale:
     :data:`OUTLIER_FRACTIONS`, with the prior :math:`\\log k \\sim N(0, s^2)`, ``s = prior_sd`` (module
     docstring); the prior's mode (``k = 1``) without residuals."""
     if len(residuals) == 0:
-        return NoiseScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
+        return PRIOR_MODE
     return lattice_mode(_outlier_table(residuals, lattice_scales()), len(residuals), prior_sd)
 
 

@@ -40,7 +40,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ptm_ros.model.geometry import FloatArray, RelativePose, wrap_angle
-from ptm_ros.model.heading_noise import OUTLIER_FRACTIONS, NoiseScale, lattice_mode, lattice_scales
+from ptm_ros.model.heading_noise import (
+    OUTLIER_FRACTIONS,
+    PRIOR_MODE,
+    NoiseScale,
+    lattice_mode,
+    lattice_scales,
+)
 from ptm_ros.model.odometry import OdometryConfig, odometry_variances
 from ptm_ros.model.visits import Visit, poses_array
 
@@ -146,7 +152,7 @@ def translation_scale(
     """The posterior mode of ``k`` (module docstring) at the heading scale in use, with the heading's prior
     (``heading_prior_sd``) and alias volume (``registration_volume``); ``k = 1`` without residuals."""
     if len(residuals) == 0:
-        return NoiseScale(1.0, 0, OUTLIER_FRACTIONS[0], 0)
+        return PRIOR_MODE
     log_in = inlier_log_densities(residuals, lattice_scales(), heading_scale)
     log_vol = math.log(config.registration_volume)
     table = np.stack(
