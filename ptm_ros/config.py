@@ -120,8 +120,28 @@ class InferenceConfig(Settings):
         100,
         ge=1,
         doc=(
-            "RBPF: N, the most distinct topologies kept after each visit (also in the filter pass that "
-            "gives MCMC its starts and learns the heading noise)."
+            "RBPF: N, the distinct topologies kept after each visit, the fewest with ``particles_max`` (also "
+            "in the filter pass that gives MCMC its starts and learns the heading noise)."
+        ),
+    )
+    particles_max: int = setting(
+        0,
+        ge=0,
+        doc=(
+            "RBPF, ``optimal`` resampling: the most distinct topologies kept where the posterior is spread, "
+            "so that resampling thins at most ``thinned_mass`` of it at random; at or below ``particles`` "
+            "(the default, 0): ``particles`` always. What it buys and costs on the real runs: "
+            "bench/real_seeds.md."
+        ),
+    )
+    thinned_mass: float = setting(
+        0.001,
+        ge=0,
+        lt=1,
+        doc=(
+            "RBPF, with ``particles_max``: the probability that optimal resampling may thin at random "
+            "(children kept with probability w/c only) before it keeps more than ``particles`` topologies "
+            "(:func:`ptm_ros.inference.resampling.particle_count`)."
         ),
     )
     resample: str = setting(

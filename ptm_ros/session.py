@@ -538,6 +538,8 @@ def rbpf_config(config: PtmConfig) -> RbpfConfig:
     inf = config.inference
     return RbpfConfig(
         particles=inf.particles,
+        particles_max=inf.particles_max,
+        thinned_mass=inf.thinned_mass,
         resample=inf.resample,
         record_top=inf.timeline,
         reweight=inf.reweight,
@@ -575,6 +577,11 @@ def rbpf_inference(
         details={
             "resample": inf.resample,
             "n_topologies": flt.n_topologies,
+            **(
+                {"particles_peak": max((h.n_topologies for h in flt.history), default=0)}
+                if inf.particles_max > inf.particles
+                else {}
+            ),
             "ess": flt.history[-1].ess if flt.history else 0.0,
             "log_evidence": flt.log_evidence,
             "update_ms_median": float(np.median(updates) * 1e3) if len(updates) else 0.0,
@@ -725,7 +732,11 @@ def _filter_pass(
     every = replace(
         config,
         model=replace(config.model, use_laser=registrar is not None and config.model.use_laser),
-        inference=replace(config.inference, method="rbpf", top=config.inference.particles),
+        inference=replace(
+            config.inference,
+            method="rbpf",
+            top=max(config.inference.particles, config.inference.particles_max),
+        ),
     )
     session = FilterSession(every, fitted_to=visits, registrar=registrar)
     return filter_visits(session, visits, progress=progress)

@@ -14,7 +14,7 @@ from scipy.special import logsumexp
 from ptm_ros.errors import ConfigError, ModelError, RegistrationError
 from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
 from ptm_ros.inference.rbpf import FilterState, RbpfConfig, TopologyFilter, _separation_update, run_filter
-from ptm_ros.inference.resampling import optimal_resample, top_resample
+from ptm_ros.inference.resampling import optimal_resample, particle_count, thinned_mass, top_resample
 from ptm_ros.io.synthetic import grid_route, simulate_route, truth_registrar
 from ptm_ros.model.appearance import (
     AppearanceConfig,
@@ -182,6 +182,54 @@ def test_top_resample_and_errors():
         optimal_resample([0.0, np.nan], 1, np.random.default_rng(0))
     with pytest.raises(ModelError, match=">= 1"):
         optimal_resample([0.0, 0.0], 0, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("n", [1, 3, 5, 8, 10, 12, 20])  # 11 puts a weight at c exactly
+def test_thinned_mass_is_the_mass_below_the_threshold(n):
+    """The mass optimal resampling thins at random: the weights below the brute-force threshold c (those
+    kept with probability w / c only); none when it keeps every state."""
+    c = fc_threshold_brute(WEIGHTS, n) if n < len(WEIGHTS) else 0.0
+    expected = float(WEIGHTS[c > WEIGHTS].sum())
+    assert math.isclose(thinned_mass(np.log(WEIGHTS) - 4.0, n), expected, rel_tol=1e-9, abs_tol=1e-15)
+    if expected > 0.0:  # ... and the rest is what every draw keeps with its own weight
+        idx, lw = optimal_resample(np.log(WEIGHTS), n, np.random.default_rng(n))
+        own = np.isclose(np.exp(lw), WEIGHTS[idx], rtol=1e-12) & (WEIGHTS[idx] >= c)
+        assert math.isclose(float(WEIGHTS[idx][own].sum()), 1.0 - expected, rel_tol=1e-9)
+
+
+def test_particle_count_is_the_smallest_that_thins_little_enough():
+    """Against a scan over every count: the smallest n in [n_min, n_max] whose thinned mass is at most the
+    bound, else the cap; heavy and light tails, zero weights, caps below n_min and above the states."""
+    rng = np.random.default_rng(5)
+    cases = [(1, 50, 0.1), (10, 300, 0.01), (20, 10, 0.0), (3, 1000, 0.0), (2, 40, 0.3)]
+    for _ in range(12):
+        lw = rng.normal(0.0, rng.uniform(0.5, 4.0), int(rng.integers(5, 300)))
+        lw[rng.random(len(lw)) < 0.1] = -np.inf
+        lw[0] = 0.0
+        masses = [thinned_mass(lw, n) for n in range(1, 1001)]
+        assert np.all(np.diff(masses) <= 1e-15)  # falls as n grows: a bisection finds the smallest
+        for n_min, n_max, bound in cases:
+            top = max(n_min, n_max)
+            scan = next((n for n in range(n_min, top + 1) if masses[n - 1] <= bound), top)
+            assert particle_count(lw, n_min, n_max, bound) == scan
+
+
+def test_the_filter_keeps_more_topologies_where_the_posterior_is_spread():
+    """``particles_max``: with nothing to be thinned at random the filter of one particle keeps every child,
+    so it is the full filter; with a bound and a cap, some update keeps more than ``particles`` on this
+    ambiguous square (it returns to each corner) and none more than the cap."""
+    visits, _ = simulate_route(ROUTE8, [(0, 0), (4, 0), (4, 4), (0, 4)], ODO8, seed=4)
+    ref = full_filter(visits, ODO8).ptm_weights()
+    prior = make_prior(PRIOR)
+    every = RbpfConfig(particles=1, particles_max=bell(len(visits)), thinned_mass=0.0)
+    assert total_variation(run_filter(visits, every, prior, ODO8, seed=0).ptm_weights(), ref) < 1e-9
+    adaptive = run_filter(
+        visits, RbpfConfig(particles=5, particles_max=40, thinned_mass=0.01), prior, ODO8, seed=0
+    )
+    held = [h.n_topologies for h in adaptive.history]
+    assert 5 < max(held) <= 40
+    fixed = run_filter(visits, RbpfConfig(particles=5), prior, ODO8, seed=0)
+    assert max(h.n_topologies for h in fixed.history) <= 5
 
 
 PRIORS = [DirichletProcessPrior(0.7), YuleSimonPrior(0.3), OccupancyPrior(rate=5.0, max_places=12)]

@@ -141,6 +141,8 @@ def test_the_report_speaks_plainly(tmp_path: Path) -> None:
         "method: rbpf (particles 100, seed 0, resampling optimal, distinct topologies held 100, "
         "ESS 13.3/100, log evidence 278.9 nats, update time median 176 ms, 95th percentile 201 ms)"
     )
+    adaptive = inference_line({**RBPF_INFERENCE, "particles_peak": 840})  # with inference.particles_max
+    assert adaptive.startswith("method: rbpf (particles 100, most held 840, seed 0,")
     mcmc = {"method": "mcmc", "seed": 3, "estimate": "visited", "samples": 8000, "doubling_tv": 0.00123456}
     assert inference_line(mcmc) == "method: mcmc (seed 3, estimate visited, samples 8000)"  # TVs: own line
     other = {"method": "magic", "tv": 0.123456789, "done": True, "states": [1, 2]}

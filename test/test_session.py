@@ -259,3 +259,26 @@ def test_the_ptm_carries_the_filters_timeline_and_the_greedy_answer(sim_visits, 
     for v in sim_visits[4:]:
         resumed.add(v)
     assert resumed.greedy == live.greedy and ptm_timeline(resumed.to_ptm()) == steps
+
+
+def test_particles_max_reaches_the_filter_and_ptm_json(sim_visits):
+    """``inference.particles_max`` above ``particles``: the session's filter keeps more topologies where the
+    posterior is spread, up to the cap, and the PTM reports the most it held (schema-valid); off, neither."""
+    from jsonschema import Draft202012Validator
+
+    from ptm_ros.model.ptm import ptm_schema, to_json_dict
+
+    held = {}
+    for cap in (0, 200):
+        config = load_config(
+            None, {"model": {"use_laser": False}, "inference": {"particles": 5, "particles_max": cap}}
+        )
+        session = FilterSession(config, fitted_to=sim_visits)
+        for v in sim_visits:
+            session.add(v)
+        assert session.filter is not None
+        held[cap] = max(h.n_topologies for h in session.filter.history)
+        doc = to_json_dict(session.to_ptm())
+        assert [e.message for e in Draft202012Validator(ptm_schema()).iter_errors(doc)] == []
+        assert ("particles_peak" in doc["inference"]) == (cap > 0)
+    assert held[0] <= 5 < held[200] <= 200

@@ -51,7 +51,12 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    * appearance: the predictive of eq. 46, per distinct block (:func:`block_log_predictives`, equal to
      :func:`~ptm_ros.model.appearance.appearance_log_predictive`, vectorised).
 3. *Select* at most ``N`` children by Fearnhead–Clifford optimal resampling for discrete states
-   (:func:`optimal_resample`): distinct topologies, unbiased weights.
+   (:func:`optimal_resample`): distinct topologies, unbiased weights. With ``particles_max`` above
+   ``particles``, ``N`` adapts to the posterior's spread (:func:`particle_count`): the smallest
+   ``N ≥ particles`` (up to ``particles_max``) at which the children thinned at random, each kept with
+   probability ``w / c`` only, hold at most ``thinned_mass`` of the probability. A fixed ``N`` drops, by
+   chance, hypotheses that are unlikely now and that a later loop confirms; where the posterior is spread
+   the resampling seed then decides the MAP.
 4. *Update* the selected children. Revisit of ``k``: the coincidence update (EKF), then, if the registrar
    measures ``z = x_{last(k)} \ominus x_n`` (pair ``(last(k), n)``, the batch model's chaining rule), the
    weight is multiplied by its predictive :math:`N(z;\ h(\hat\xi),\ H P H^\top + R)` times ``V_reg``
@@ -165,6 +170,7 @@ from ptm_ros.inference.resampling import (
     IntArray,
     logsumexp,
     optimal_resample,
+    particle_count,
     top_resample,
 )
 from ptm_ros.inference.reweighting import Reweighted, reweigh, sampled_evidence
@@ -204,7 +210,21 @@ class RbpfConfig(Settings):
     """Settings of the particle filter."""
 
     particles: int = setting(
-        100, ge=1, doc="N, the largest number of distinct topologies kept after each visit"
+        100, ge=1, doc="N, the distinct topologies kept after each visit (the fewest, with ``particles_max``)"
+    )
+    particles_max: int = setting(
+        0,
+        ge=0,
+        doc=(
+            "the most distinct topologies kept where the posterior is spread (``optimal`` resampling; module "
+            "docstring, step 3); at or below ``particles`` (the default): always ``particles``"
+        ),
+    )
+    thinned_mass: float = setting(
+        0.001,
+        ge=0,
+        lt=1,
+        doc="the probability that optimal resampling may thin at random before it keeps more topologies",
     )
     resample: str = setting(
         "optimal",
@@ -929,7 +949,9 @@ class TopologyFilter:
 
         # 3. select distinct children
         if self.config.resample == "optimal":
-            sel, sel_lw = optimal_resample(cand_lw, self.config.particles, self._rng)
+            rc = self.config
+            keep = particle_count(cand_lw, rc.particles, rc.particles_max, rc.thinned_mass)
+            sel, sel_lw = optimal_resample(cand_lw, keep, self._rng)
         else:
             sel, sel_lw = top_resample(cand_lw, self.config.particles)
         par, kk, proxy = cand_par[sel], cand_k[sel], cand_proxy[sel]

@@ -87,6 +87,47 @@ def optimal_resample(log_weights: ArrayLike, n: int, rng: np.random.Generator) -
     return idx[order_out], new_lw[order_out]
 
 
+def thinned_mass(log_weights: ArrayLike, n: int) -> float:
+    """The share of the probability that :func:`optimal_resample` keeping ``n`` of ``log_weights`` thins at
+    random: the states below its threshold ``c``, each kept with probability ``w / c`` only; 0 when ``n``
+    keeps every state of positive weight."""
+    return _thinned(_sorted_weights(_check_log_weights(log_weights, n)), n)
+
+
+def particle_count(log_weights: ArrayLike, n_min: int, n_max: int, max_thinned: float) -> int:
+    """How many states :func:`optimal_resample` should keep: the smallest ``n`` in ``[n_min, n_max]``
+    whose :func:`thinned_mass` is at most ``max_thinned``, else ``n_max`` (``n_min`` when ``n_max`` is
+    below it). The thinned mass falls as ``n`` grows (the threshold ``c`` falls, so more states clear it),
+    which makes the smallest such ``n`` a bisection's."""
+    if n_max <= n_min:
+        return n_min
+    w = _sorted_weights(_check_log_weights(log_weights, n_min))
+    lo, hi = n_min, min(n_max, len(w))
+    if hi <= lo or _thinned(w, lo) <= max_thinned:
+        return n_min
+    while hi - lo > 1:  # thinned(lo) > max_thinned; thinned(hi) <= max_thinned unless hi is the cap
+        mid = (lo + hi) // 2
+        if _thinned(w, mid) <= max_thinned:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+def _sorted_weights(lw: FloatArray) -> FloatArray:
+    """The normalised weights of positive value, in descending order."""
+    w = np.exp(lw - logsumexp(lw))
+    return np.sort(w[w > 0.0])[::-1]
+
+
+def _thinned(w_sorted: FloatArray, n: int) -> float:
+    """:func:`thinned_mass` of normalised weights in descending order."""
+    if len(w_sorted) <= n:
+        return 0.0
+    first, _ = _fc_threshold(w_sorted, n)
+    return float(np.sum(w_sorted[first:]))
+
+
 def top_resample(log_weights: ArrayLike, n: int) -> tuple[IntArray, FloatArray]:
     """Keep the ``n`` heaviest states (ties by index), renormalised: a deterministic, biased beam."""
     lw = _check_log_weights(log_weights, n)

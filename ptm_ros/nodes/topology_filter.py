@@ -271,8 +271,10 @@ class TopologyFilterNode(Node):
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(Trigger, "~/save_state", self._on_save_state)
         self.create_timer(1.0, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        inf = self.config.inference
         self.get_logger().info(
-            f"RBPF with {self.config.inference.particles} particles, seed {self.config.inference.seed}"
+            f"RBPF with {inf.particles} particles (up to {max(inf.particles, inf.particles_max)} where the "
+            f"posterior is spread), seed {inf.seed}"
         )
         if resume and self.inbox.state_file is not None:
             self._react(self.inbox.resume(self.inbox.state_file))

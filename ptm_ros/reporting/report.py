@@ -98,6 +98,7 @@ def _fmt(v: float | None) -> str:
 INFERENCE_WORDS: dict[str, dict[str, tuple[str, str]]] = {
     "rbpf": {
         "particles": ("particles", ""),
+        "particles_peak": ("most held", ""),
         "seed": ("seed", ""),
         "resample": ("resampling", ""),
         "n_topologies": ("distinct topologies held", ""),
