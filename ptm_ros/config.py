@@ -186,6 +186,12 @@ class InferenceConfig(Settings):
         doc="the ``mcmc`` sampler: proposals, MC³ chains, starts, estimate and stopping rule.",
     )
 
+    @property
+    def particles_cap(self) -> int:
+        """The most distinct topologies the RBPF may hold after a visit: ``particles_max``, or ``particles``
+        when that is not above it."""
+        return max(self.particles, self.particles_max)
+
 
 @dataclass(frozen=True)
 class PtmConfig(Settings):

@@ -579,7 +579,7 @@ def rbpf_inference(
             "n_topologies": flt.n_topologies,
             **(
                 {"particles_peak": max((h.n_topologies for h in flt.history), default=0)}
-                if inf.particles_max > inf.particles
+                if inf.particles_cap > inf.particles
                 else {}
             ),
             "ess": flt.history[-1].ess if flt.history else 0.0,
@@ -732,11 +732,7 @@ def _filter_pass(
     every = replace(
         config,
         model=replace(config.model, use_laser=registrar is not None and config.model.use_laser),
-        inference=replace(
-            config.inference,
-            method="rbpf",
-            top=max(config.inference.particles, config.inference.particles_max),
-        ),
+        inference=replace(config.inference, method="rbpf", top=config.inference.particles_cap),
     )
     session = FilterSession(every, fitted_to=visits, registrar=registrar)
     return filter_visits(session, visits, progress=progress)

@@ -273,7 +273,7 @@ class TopologyFilterNode(Node):
         self.create_timer(1.0, self._publish_diagnostics, clock=Clock(clock_type=ClockType.STEADY_TIME))
         inf = self.config.inference
         self.get_logger().info(
-            f"RBPF with {inf.particles} particles (up to {max(inf.particles, inf.particles_max)} where the "
+            f"RBPF with {inf.particles} particles (up to {inf.particles_cap} where the "
             f"posterior is spread), seed {inf.seed}"
         )
         if resume and self.inbox.state_file is not None:
