@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import call
 from ros_helpers import ProcessLogs
+from run_cache import once_per_run
 
 from ptm_ros.config import load_config
 from ptm_ros.io.bag import read_run
@@ -66,7 +69,13 @@ def datasets_dir() -> Path:
 def multi_loop_run(tmp_path_factory):
     """A simulated multi-loop run (20 visits) through the bag round trip: the run, the default config, its
     visits, the corrected odometry, the true topology (visits of one simulated place share a label) and
-    the simulator's true poses at the odometry stamps."""
+    the simulator's true poses at the odometry stamps (made once per run: :func:`run_cache.once_per_run`)."""
+    return once_per_run(
+        tmp_path_factory, "conftest.multi_loop_run", lambda: _multi_loop_run(tmp_path_factory)
+    )
+
+
+def _multi_loop_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "two"
     sim = simulate(get_world("multi-loop"), SimConfig(), np.random.default_rng(0), visits=20)
     write_run(sim, out)
@@ -86,6 +95,27 @@ def multi_loop_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def demo_run(tmp_path_factory) -> tuple[Path, Path, str, str]:
+    """A private copy of ``bags/demo`` (for the orphan check of the one test that replays it) and
+    ``ptm-run`` on it with ``make demo``'s parameters (config/demo.yaml; the map, the report, the progress
+    bars): ``(bag, output directory, stdout, stderr)``; made once per run."""
+
+    def make() -> tuple[Path, Path, str, str]:
+        from ptm_ros.tools import run as run_cli
+
+        bag = tmp_path_factory.mktemp("demo_run") / "demo"
+        shutil.copytree(REPO / "bags" / "demo", bag)
+        out = bag.parent / "run"
+        code, printed, err = call(
+            run_cli.main, [bag, "--out", out, "--params", REPO / "config" / "demo.yaml"]
+        )
+        assert code == 0, err
+        return bag, out, printed, err
+
+    return once_per_run(tmp_path_factory, "conftest.demo_run", make)
+
+
+@pytest.fixture(scope="session")
 def sim_bag(tmp_path_factory):
     """A short simulated t-junction run (5 visits of its places, seed 4)."""
     out = tmp_path_factory.mktemp("nodes") / "tj"
@@ -94,7 +124,26 @@ def sim_bag(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def sim_visits(sim_bag):
-    """Equidistant visits of :func:`sim_bag`, with signatures and laser patches."""
-    # equidistant visits: enough of them on this short bag (laser surprise finds only its 2 junctions)
-    return detect_visits(read_run(sim_bag), load_config(None, {"detector": {"kind": "equidistant"}}))
+def sim_extraction(sim_bag, tmp_path_factory):
+    """Equidistant visits of :func:`sim_bag`, with signatures and laser patches, and the bag's odometry as
+    they saw it (laser-corrected, as the detector publishes it): made once per run."""
+
+    def make():
+        # equidistant visits: enough of them on this short bag (laser surprise finds only its 2 junctions)
+        run, config = read_run(sim_bag), load_config(None, {"detector": {"kind": "equidistant"}})
+        extractor = run_extractor(run, config)
+        return detect_visits(run, config, extractor=extractor), corrected_odometry(run, extractor)
+
+    return once_per_run(tmp_path_factory, "conftest.sim_extraction", make)
+
+
+@pytest.fixture(scope="session")
+def sim_visits(sim_extraction):
+    """The visits of :func:`sim_extraction`."""
+    return sim_extraction[0]
+
+
+@pytest.fixture(scope="session")
+def sim_odometry(sim_extraction):
+    """The corrected odometry of :func:`sim_extraction`, a pose per odometry sample of :func:`sim_bag`."""
+    return sim_extraction[1]

@@ -29,6 +29,7 @@ from cli_helpers import call, one_error_line
 from hypothesis import HealthCheck, Phase, currently_in_test_context, event, given, settings
 from hypothesis import strategies as st
 from ros_helpers import BRINGUP, Inbox, ProcessLogs, assert_no_orphans, dds_env, ros_context
+from run_cache import once_per_run
 
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
@@ -55,14 +56,18 @@ def assert_one_line_or_ok(code: int, err: str, prog: str) -> None:
 
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory) -> tuple[Path, dict]:
-    """A tiny simulated bag (t-junction, four visits) and its ptm.json."""
-    root = tmp_path_factory.mktemp("fuzz_clean")
-    bag = write_run(
-        simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(0), visits=4), root / "bag"
-    )
-    code, _, err = call(run_tool.main, [bag, "--out", root / "out", *RUN_ARGS])
-    assert code == 0, err
-    return bag, json.loads((root / "out" / "ptm.json").read_text())
+    """A tiny simulated bag (t-junction, four visits) and its ptm.json (made once per run)."""
+
+    def make() -> tuple[Path, dict]:
+        root = tmp_path_factory.mktemp("fuzz_clean")
+        bag = write_run(
+            simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(0), visits=4), root / "bag"
+        )
+        code, _, err = call(run_tool.main, [bag, "--out", root / "out", *RUN_ARGS])
+        assert code == 0, err
+        return bag, json.loads((root / "out" / "ptm.json").read_text())
+
+    return once_per_run(tmp_path_factory, f"{__name__}.clean", make)
 
 
 def stream_skips(skipped: dict[str, int], stream: str) -> int:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import ast
 import json
-import shutil
 import subprocess
 from dataclasses import replace
 from pathlib import Path
@@ -23,9 +22,9 @@ from ros_helpers import (
     dds_env,
     next_domain_id,
 )
+from run_cache import once_per_run
 
 from ptm_ros.config import PtmConfig, load_config
-from ptm_ros.io.bag import read_run
 from ptm_ros.io.simulator import SimConfig, simulate, write_run
 from ptm_ros.io.worlds import get_world
 from ptm_ros.maps.mapping import every_sample
@@ -34,7 +33,6 @@ from ptm_ros.maps.occupancy import aligned_windows as aligned
 from ptm_ros.model.ptm import load_ptm, ptm_schema
 from ptm_ros.tools import bringup
 from ptm_ros.tools import run as run_cli
-from ptm_ros.tools.pipeline import detect_visits
 
 REPO = Path(__file__).resolve().parents[1]
 #: What only ptm-bringup writes into DIR: the nodes' parameter file (ptm-run has no nodes).
@@ -48,6 +46,26 @@ def sim_bag(tmp_path_factory):
     out = tmp_path_factory.mktemp("bringup") / "tj"
     write_run(simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(7), visits=5), out)
     return out
+
+
+#: The inference parameters of :func:`sim_bag_run`, which the node suite gets in a ROS parameter file.
+PLAIN_PARAMS = "inference: {seed: 3, particles: 40}\n"
+
+
+@pytest.fixture(scope="module")
+def sim_bag_run(sim_bag, tmp_path_factory) -> Path:
+    """ptm-run's output directory on :func:`sim_bag` with :data:`PLAIN_PARAMS` (no report), made once per
+    run."""
+
+    def make() -> Path:
+        root = tmp_path_factory.mktemp("run")
+        plain = root / "plain.yaml"
+        plain.write_text(PLAIN_PARAMS)
+        code, _, err = call(run_cli.main, [sim_bag, "--out", root / "run", "--params", plain, "--no-report"])
+        assert code == 0, err
+        return root / "run"
+
+    return once_per_run(tmp_path_factory, f"{__name__}.sim_bag_run", make)
 
 
 def run_logged(cmd: list[str], logs: ProcessLogs, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
@@ -77,15 +95,13 @@ def stopped_codes(log: str) -> dict[str, int | None]:
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path, process_logs):
-    # a ROS parameter file with a per-node section; ptm-run gets the same configuration in plain form
+def test_bringup_over_dds_equals_ptm_run(sim_bag, sim_bag_run, tmp_path, process_logs):
+    # a ROS parameter file with a per-node section; ptm-run got the same configuration in plain form
     ros_params = tmp_path / "ros.yaml"
     ros_params.write_text(
-        "/**:\n  ros__parameters:\n    inference: {seed: 3, particles: 40}\n"
+        f"/**:\n  ros__parameters:\n    {PLAIN_PARAMS}"
         "landmark_detector:\n  ros__parameters:\n    sensor_qos: reliable\n"
     )
-    plain = tmp_path / "plain.yaml"
-    plain.write_text("inference: {seed: 3, particles: 40}\n")
     out = tmp_path / "bringup"
     cmd = [*BRINGUP, "--bag", str(sim_bag), "--rate", "0", "--params", str(ros_params), "--out", str(out)]
     try:
@@ -96,13 +112,9 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path, process_logs):
     assert proc.returncode == 0, "ptm-bringup failed (its full log follows the traceback)"
     for name in ("[map_publisher]", "[topology_filter]", "[landmark_detector]", "[player]"):
         assert name in log
-    assert (
-        run_cli.main([str(sim_bag), "--out", str(tmp_path / "run"), "--params", str(plain), "--no-report"])
-        == 0
-    )
     # The occupancy map drawn online by the map publisher (keyframe scans along the MAP topology's
     # smoothed trajectory) agrees with ptm-run's (every scan) on nearly every cell both know.
-    on_map, off_map = load_map(out / "map.yaml"), load_map(tmp_path / "run" / "map.yaml")
+    on_map, off_map = load_map(out / "map.yaml"), load_map(sim_bag_run / "map.yaml")
     assert on_map.resolution == off_map.resolution and (out / "map.png").is_file()
     a, b = aligned(on_map.data, on_map.origin, off_map.data, off_map.origin, off_map.resolution)
     known = (a != UNKNOWN) & (b != UNKNOWN)
@@ -111,7 +123,7 @@ def test_bringup_over_dds_equals_ptm_run(sim_bag, tmp_path, process_logs):
     assert "map.yaml" in proc.stdout
 
     online = load_ptm(out / "ptm.json")
-    offline = load_ptm(tmp_path / "run" / "ptm.json")
+    offline = load_ptm(sim_bag_run / "ptm.json")
     assert online.landmarks == offline.landmarks and len(online.landmarks) >= 4
     assert [t.labels for t in online.topologies] == [t.labels for t in offline.topologies]
     p_on = np.array([t.probability for t in online.topologies])
@@ -200,7 +212,7 @@ def test_bringup_writes_the_counts_of_bad_scans_that_ptm_run_writes(sim_bag, tmp
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path, process_logs):
+def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, sim_bag_run, tmp_path, process_logs):
     out = tmp_path / "interrupted"
     run = BringupProcess(
         ["--bag", str(sim_bag), "--rate", "2", "--out", str(out), "--no-report"], dds_env(next_domain_id())
@@ -217,13 +229,13 @@ def test_sigint_during_a_replay_maps_the_visits_so_far(sim_bag, tmp_path, proces
     assert "input ended; mapping the last visits" in run.log
     assert stopped_codes(run.log) == {"map_publisher": 0, "topology_filter": 0, "landmark_detector": 0}
     ptm = load_ptm(out / "ptm.json")
-    full = detect_visits(read_run(sim_bag), PtmConfig())  # ptm-run's visits of the whole bag
+    full = load_ptm(sim_bag_run / "ptm.json").landmarks  # ptm-run's visits of the whole bag
     k = len(ptm.landmarks)
     assert 2 <= k < len(full)  # the visits completed before the interrupt, in order
     # the visits completed before the interrupt are ptm-run's; the last one may have been declared by the
     # end-of-input flush while its landmark was still being localised (a shorter window than offline)
     assert [(lm.stamp, lm.pose) for lm in ptm.landmarks[: k - 1]] == [
-        (v.stamp, v.input_pose) for v in full[: k - 1]
+        (lm.stamp, lm.pose) for lm in full[: k - 1]
     ]
 
 
@@ -363,21 +375,19 @@ def route_ids(path: Path) -> tuple[list[int], list[tuple[int, int, int]], np.nda
 
 @pytest.mark.dds
 @pytest.mark.slow
-def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(tmp_path, process_logs):
+def test_bringup_writes_what_ptm_run_writes_on_the_demo_bag(demo_run, tmp_path, process_logs):
     """Issue #24, one set of outputs wherever the map was made: ``make demo``'s ptm-bringup and ptm-run on
     the bundled bag write the same files, with the same PTM, map, route graph, trajectory errors and
     figures (ptm-bringup: from what the nodes published; the same writer functions)."""
-    bag = tmp_path / "demo"  # a copy: the orphan check below looks for processes naming this path only
-    shutil.copytree(REPO / "bags" / "demo", bag)
+    bag, off, _, _ = demo_run  # ptm-run's outputs on a copy: the orphan check looks for its processes
     params = REPO / "config" / "demo.yaml"
-    up, off = tmp_path / "bringup", tmp_path / "run"
+    up = tmp_path / "bringup"
     cmd = [*BRINGUP, "--bag", str(bag), "--rate", "0", "--params", str(params), "--out", str(up)]
     try:
         proc = run_logged(cmd, process_logs)
     finally:
         assert_no_orphans(str(up), str(bag))
     assert proc.returncode == 0, "ptm-bringup failed (its full log follows the traceback)"
-    assert run_cli.main([str(bag), "--out", str(off), "--params", str(params), "--quiet"]) == 0
 
     # the same files (ptm-run's report figures include the surprise trace and the map)
     written = {p.name for p in up.iterdir()}

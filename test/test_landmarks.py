@@ -10,6 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from run_cache import once_per_run
 
 from ptm_ros.errors import DataError, ModelError
 from ptm_ros.inference.persistence import visit_from_state, visit_to_state
@@ -63,6 +64,34 @@ def run_extractor(streams, cfg, order, spacing=4.0, laser_odometry=None, config=
     return out + ext.flush(), ext
 
 
+@pytest.fixture(scope="module")
+def merged(sim):
+    """The run's messages in (stamp, topic) order."""
+    odom, scans, images, _ = messages(sim)
+    return sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
+
+
+def visits_and_counters(sim, merged, **options):
+    """The visits of ``merged`` and the extractor's diagnostics (:func:`run_extractor`'s ``options``)."""
+    visits, ext = run_extractor(None, messages(sim)[3], merged, **options)
+    return visits, ext.diagnostics
+
+
+@pytest.fixture(scope="module")
+def reference(sim, merged, tmp_path_factory):
+    """The visits and diagnostics of :func:`merged` at the defaults, laser odometry on."""
+    return once_per_run(tmp_path_factory, f"{__name__}.reference", lambda: visits_and_counters(sim, merged))
+
+
+@pytest.fixture(scope="module")
+def raw(sim, merged, tmp_path_factory):
+    """The visits and diagnostics of :func:`merged` with the laser odometry off."""
+    off = LaserOdometryConfig(enabled=False)
+    return once_per_run(
+        tmp_path_factory, f"{__name__}.raw", lambda: visits_and_counters(sim, merged, laser_odometry=off)
+    )
+
+
 def interleave(streams, rng, max_lead):
     """A random arrival order: each topic in order, topics running ahead of each other by < max_lead s."""
     idx = [0] * len(streams)
@@ -94,10 +123,9 @@ def assert_same_visits(a, b):
 
 
 @pytest.mark.slow
-def test_visits_do_not_depend_on_arrival_order(sim):
+def test_visits_do_not_depend_on_arrival_order(sim, reference):
     odom, scans, images, cfg = messages(sim)
-    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
-    reference, _ = run_extractor(None, cfg, merged)
+    reference, _ = reference
     assert len(reference) >= 4
     for seed in range(3):
         order = interleave([odom, scans, images], np.random.default_rng(seed), max_lead=3.0)
@@ -106,13 +134,12 @@ def test_visits_do_not_depend_on_arrival_order(sim):
         assert ext.diagnostics.skipped == {}
 
 
-def test_patches_built_elsewhere_give_the_same_visits(sim):
+def test_patches_built_elsewhere_give_the_same_visits(sim, merged, reference):
     """With ``patches`` (here a thread whose every patch takes a while) the extractor goes on while a
     patch is built and returns each visit once its patch is ready: the same visits, in the same order,
     with the same counters as building them in place."""
-    odom, scans, images, cfg = messages(sim)
-    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
-    reference, ref_ext = run_extractor(None, cfg, merged)
+    cfg = messages(sim)[3]
+    reference, ref_diagnostics = reference
     submitted = []
 
     class SlowPool:
@@ -127,13 +154,11 @@ def test_patches_built_elsewhere_give_the_same_visits(sim):
         visits, ext = run_extractor(None, cfg, merged, patches=SlowPool(pool))
     assert len(reference) >= 4 and submitted == ["passage_patch"] * len(reference)
     assert_same_visits(reference, visits)
-    assert ext.diagnostics == ref_ext.diagnostics
+    assert ext.diagnostics == ref_diagnostics
 
 
-def test_visit_content(sim):
-    odom, scans, images, cfg = messages(sim)
-    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
-    visits, ext = run_extractor(None, cfg, merged, laser_odometry=LaserOdometryConfig(enabled=False))
+def test_visit_content(sim, raw):
+    visits, diagnostics = raw
     stamps = list(sim.odom_stamps)
     prev = None
     for v in visits:
@@ -146,18 +171,16 @@ def test_visit_content(sim):
             assert math.isclose(v.travel, path_length(sim.odom_poses[prev : k + 1]), rel_tol=1e-12)
             assert 4.0 <= v.travel < 4.2
         prev = k
-    assert ext.diagnostics.visits == len(visits)
+    assert diagnostics.visits == len(visits)
 
 
 @pytest.mark.slow
-def test_laser_odometry_corrects_the_visit_poses(sim):
+def test_laser_odometry_corrects_the_visit_poses(sim, reference, raw):
     """With scans, visit poses are the odometry corrected by scan matching: the relative poses between
     consecutive visits are closer to the truth than the wheel odometry's, and the firing stamps agree."""
-    odom, scans, images, cfg = messages(sim)
-    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
-    corrected, ext = run_extractor(None, cfg, merged)
-    raw, _ = run_extractor(None, cfg, merged, laser_odometry=LaserOdometryConfig(enabled=False))
-    counters = ext.diagnostics.laser_odometry
+    scans = messages(sim)[1]
+    (corrected, diagnostics), (raw, _) = reference, raw
+    counters = diagnostics.laser_odometry
     assert counters["matched"] + counters["gated"] > 0.9 * len(scans)  # matched or inside the motion gate
     stamps = list(sim.odom_stamps)
 
@@ -289,8 +312,10 @@ def test_odometry_beyond_any_run_is_counted_not_raised():
 @pytest.mark.slow
 def test_buffers_stay_bounded_on_a_long_run(sim):
     odom, scans, _, cfg = messages(sim)
-    ext = VisitExtractor(  # buffers of the extractor itself: laser odometry (a bounded window) off for speed
+    # buffers of the extractor itself: laser odometry (a bounded window) and the patches' ICP off for speed
+    ext = VisitExtractor(
         EquidistantDetector(EquidistantConfig(spacing=2.0)),
+        laser=LaserConfig(refine=False),
         config=ExtractorConfig(use_images=False),
         laser_odometry=LaserOdometryConfig(enabled=False),
     )
@@ -312,15 +337,14 @@ def test_buffers_stay_bounded_on_a_long_run(sim):
 
 
 @pytest.mark.slow
-def test_signature_spread_against_the_panorama_one_place_width_away(sim):
-    odom, scans, images, cfg = messages(sim)
-    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
+def test_signature_spread_against_the_panorama_one_place_width_away(sim, merged, raw):
+    cfg = messages(sim)[3]
     target = 0.9
     no_lo = LaserOdometryConfig(enabled=False)
     visits, _ = run_extractor(
         None, cfg, merged, laser_odometry=no_lo, config=ExtractorConfig(spread_distance=target)
     )
-    without, _ = run_extractor(None, cfg, merged, laser_odometry=no_lo)
+    without, _ = raw
     assert all(v.signature_spread is None for v in without)  # spread_distance 0: none
     with_spread = [v for v in visits if v.signature_spread is not None]
     assert len(with_spread) >= len(visits) - 1
@@ -337,10 +361,8 @@ def test_signature_spread_against_the_panorama_one_place_width_away(sim):
         assert np.all(v.signature_spread > 0.0)
 
 
-def test_visit_json_round_trip(sim):
-    odom, scans, images, cfg = messages(sim)
-    merged = sorted(odom + scans + images, key=lambda m: (m[1], "osi".index(m[0])))
-    visits, _ = run_extractor(None, cfg, merged, config=ExtractorConfig(spread_distance=0.9))
+def test_visit_json_round_trip(sim, merged):
+    visits, _ = run_extractor(None, messages(sim)[3], merged, config=ExtractorConfig(spread_distance=0.9))
     assert any(v.signature_spread is not None for v in visits)
     for v in visits:
         back = visit_from_json(visit_to_json(v))

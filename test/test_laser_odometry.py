@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -25,6 +26,7 @@ from ptm_ros.perception.laser_odometry import (
     LaserOdometry,
     LaserOdometryConfig,
     LaserOdometryCounters,
+    OffsetEstimate,
     OffsetScore,
     RunInput,
     YawCorrections,
@@ -403,16 +405,12 @@ def test_scan_time_poses_interpolate_the_odometry_at_the_offset():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("laser_odometry", [True, False])
-def test_extractor_works_in_the_scans_time_frame(tmp_path, laser_odometry):
+def test_extractor_works_in_the_scans_time_frame(sim_bag, laser_odometry):
     from ptm_ros.config import load_config
     from ptm_ros.io.bag import read_run
-    from ptm_ros.io.simulator import write_run
     from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
 
-    write_run(
-        simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(4), visits=5), tmp_path / "b"
-    )
-    run = read_run(tmp_path / "b")
+    run = read_run(sim_bag)  # t-junction, 5 visits
     over = {"laser_odometry": {"time_offset": -0.15, "enabled": laser_odometry}}
     config = load_config(None, {**over, "detector": {"kind": "equidistant"}})
     extractor = run_extractor(run, config)
@@ -491,14 +489,32 @@ def test_offset_slope_is_the_offset_error_under_a_slow_drift():
     assert offset_slope(standing, still) == (0.0, 0.0)  # never turned: nothing to learn from
 
 
+def _first_300(delay: float) -> RunInput:
+    """The odometry and the first 300 scans of :func:`_delayed_run`."""
+    run = _delayed_run(delay)
+    return RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], _points(run)[:300])
+
+
+@pytest.fixture(scope="module")
+def learned() -> Callable[[float], tuple[RunInput, OffsetEstimate]]:
+    """``learned(delay)``: :func:`_first_300` and what learn_time_offset learns from it (once a module)."""
+    cache: dict[float, tuple[RunInput, OffsetEstimate]] = {}
+
+    def get(delay: float) -> tuple[RunInput, OffsetEstimate]:
+        if delay not in cache:
+            data = _first_300(delay)
+            cache[delay] = data, learn_time_offset(data)
+        return cache[delay]
+
+    return get
+
+
 @pytest.mark.parametrize("delay", [0.0, 0.15])
-def test_the_time_offset_is_learned_from_the_run(delay):
+def test_the_time_offset_is_learned_from_the_run(delay, learned):
     """learn_time_offset on the first 300 scans finds the delay of a simulated laser (the regression's
     estimate picks the candidates, their heading corrections choose), and 0 for one on time after a
     single pass."""
-    run = _delayed_run(delay)
-    points = _points(run)[:300]
-    est = learn_time_offset(RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], points))
+    est = learned(delay)[1]
     assert est.scans == 300 and est.scores[0].offset == 0.0 and est.scores[0].matched > 280
     assert est.offset == -delay
     if delay:
@@ -509,11 +525,10 @@ def test_the_time_offset_is_learned_from_the_run(delay):
         assert len(est.scores) == 1 and abs(est.first) < LaserOdometryConfig().learn_step / 2
 
 
-def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate():
+def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate(learned):
     """With workers, the candidates after the first run there (``ptm-run``'s worker processes): the same
     passes, so the same estimate, scores and all."""
-    run = _delayed_run(0.15)
-    data = RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], _points(run)[:300])
+    data, alone = learned(0.15)
     sent: list[float] = []
 
     class Recording(ThreadPoolExecutor):
@@ -522,7 +537,7 @@ def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate():
             return super().submit(fn, *args, **kwargs)
 
     with Recording(max_workers=2) as pool:
-        assert learn_time_offset(data, workers=pool) == learn_time_offset(data)
+        assert learn_time_offset(data, workers=pool) == alone
     assert sent == [-0.15, -0.2]  # the first candidate, -0.1, ran here
 
 

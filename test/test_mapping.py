@@ -25,6 +25,22 @@ def loop_run(multi_loop_run):
     return multi_loop_run[:5]
 
 
+@pytest.fixture(scope="module")
+def registrar(loop_run):
+    """The registrar of :func:`loop_run`'s visits, each pair registered once a module."""
+    _, config, visits, _, _ = loop_run
+    return cached(make_registrar(visits, config))
+
+
+@pytest.fixture(scope="module")
+def full_map(loop_run, registrar):
+    """ptm-run's map of :func:`loop_run` along its true topology: the smoothed and refined trajectory at
+    every odometry sample and its occupancy grid."""
+    run, config, visits, odom, labels = loop_run
+    trajectory = map_trajectory(run, visits, tuple(labels), config, registrar, odometry=odom)
+    return trajectory, occupancy_grid(run, trajectory, config)
+
+
 def feed(online: OnlineMap, run, odom) -> None:
     """The odometry samples and scans in stamp order, as the map publisher receives them."""
     sc = run.scans
@@ -39,11 +55,9 @@ def feed(online: OnlineMap, run, odom) -> None:
 
 
 @pytest.mark.slow
-def test_online_map_equals_ptm_run_map_from_the_same_samples(loop_run):
+def test_online_map_equals_ptm_run_map_from_the_same_samples(loop_run, registrar, full_map):
     run, config, visits, odom, labels = loop_run
-    registrar = cached(make_registrar(visits, config))
-    offline_traj = map_trajectory(run, visits, tuple(labels), config, registrar, odometry=odom)
-    offline_grid = occupancy_grid(run, offline_traj, config)
+    offline_traj, offline_grid = full_map
 
     every = MappingConfig(keyframe_xy=0.0, keyframe_yaw=0.0)
     online = OnlineMap(every)
@@ -65,12 +79,9 @@ def test_online_map_equals_ptm_run_map_from_the_same_samples(loop_run):
 
 
 @pytest.mark.slow
-def test_default_online_map_keeps_keyframes_and_matches_the_full_map(loop_run):
+def test_default_online_map_keeps_keyframes_and_matches_the_full_map(loop_run, registrar, full_map):
     run, config, visits, odom, labels = loop_run
-    registrar = cached(make_registrar(visits, config))
-    full = occupancy_grid(
-        run, map_trajectory(run, visits, tuple(labels), config, registrar, odometry=odom), config
-    )
+    full_traj, full = full_map
     online = OnlineMap(MappingConfig())
     feed(online, run, odom)
     c = online.counters
@@ -90,7 +101,6 @@ def test_default_online_map_keeps_keyframes_and_matches_the_full_map(loop_run):
     res_plain = online.build(visits, labels, config.model, config.occupancy, registration=registrar)
     np.testing.assert_allclose(res_plain.trajectory[on], full_plain[at], atol=1e-6)
     # … and, refined by the keyframes' scan matches (fewer scans online than offline), nearly so.
-    full_traj = map_trajectory(run, visits, tuple(labels), config, registrar, odometry=odom)
     np.testing.assert_allclose(res.trajectory[on, :2], full_traj[at, :2], atol=0.05)
     # Same classes on nearly every cell both maps know (keyframes: fewer passes over each cell).
     assert res.grid is not None and full is not None
@@ -159,7 +169,7 @@ def test_config_is_checked(field, value):
 
 
 @pytest.mark.slow
-def test_the_detector_stream_draws_the_map_of_every_sample(loop_run):
+def test_the_detector_stream_draws_the_map_of_every_sample(loop_run, registrar):
     """The detector sends a few odometry samples per metre and the keyframe scans (KeyframeStream); the
     map publisher's map from them is the map of the full-rate streams."""
     run, config, visits, odom, labels = loop_run
@@ -184,7 +194,6 @@ def test_the_detector_stream_draws_the_map_of_every_sample(loop_run):
     feed(full, run, odom)
     assert streamed.counters.resets == streamed.counters.poses_invalid == streamed.counters.scans_unposed == 0
     np.testing.assert_array_equal(streamed.keyframe_scans().stamps, full.keyframe_scans().stamps)
-    registrar = cached(make_registrar(visits, config))
     a = streamed.build(visits, labels, config.model, config.occupancy, registration=registrar)
     b = full.build(visits, labels, config.model, config.occupancy, registration=registrar)
     at_a = np.searchsorted(a.stamps, [v.stamp for v in visits])

@@ -48,7 +48,7 @@ from ptm_ros.perception.landmarks import (
 )
 from ptm_ros.session import FilterSession
 from ptm_ros.settings import Settings, setting
-from ptm_ros.tools.pipeline import corrected_odometry, detect_visits, run_extractor
+from ptm_ros.tools.pipeline import detect_visits
 
 # --------------------------------------------------------------------------------------------- fixtures
 
@@ -698,7 +698,7 @@ def odometry_msg(stamp, pose, frame="odom"):
 
 
 @pytest.mark.dds
-def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkeypatch, capfd):
+def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, sim_odometry, tmp_path, monkeypatch, capfd):
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import OccupancyGrid as GridMsg
     from nav_msgs.msg import Odometry
@@ -767,10 +767,7 @@ def test_filter_and_map_publisher_over_dds(sim_bag, sim_visits, tmp_path, monkey
         # The metric map: the visits' odometry (laser-corrected, as the detector publishes it) and the scans.
         reply = ros.call(probe, Trigger, "/map_publisher/save_map")
         assert not reply.success and "no map yet" in reply.message  # no odometry or scan yet
-        run = read_run(sim_bag)
-        extractor = run_extractor(run, load_config(None, {"detector": {"kind": "equidistant"}}))
-        detect_visits(run, config, extractor=extractor)
-        odom = corrected_odometry(run, extractor)
+        run, odom = read_run(sim_bag), sim_odometry
         odom_pub = probe.create_publisher(Odometry, "landmark_odom", common.MAP_STREAM_QOS)
         scan_pub = probe.create_publisher(LaserScan, "landmark_scans", common.MAP_STREAM_QOS)
         wait_for(lambda: odom_pub.get_subscription_count() > 0 and scan_pub.get_subscription_count() > 0)
@@ -825,7 +822,7 @@ def nav2_static_layer_costs(data: np.ndarray, *, trinary_costmap: bool = True) -
 @pytest.mark.dds
 @pytest.mark.parametrize("mode", ["trinary", "scale"])
 def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
-    mode, sim_bag, sim_visits, tmp_path, monkeypatch
+    mode, sim_bag, sim_visits, sim_odometry, tmp_path, monkeypatch
 ):
     """A subscriber with nav2's static-layer QoS (reliable, transient local, depth 1) joining after the
     map was drawn reads walls as lethal, unseen cells as no-information, and exactly the cells of the
@@ -859,9 +856,7 @@ def test_map_reaches_a_nav2_static_layer_with_the_saved_maps_cells(
         for v in sim_visits:
             visits.publish(String(data=visit_to_json(v)))
         run = read_run(sim_bag)
-        extractor = run_extractor(run, load_config(None, {"detector": {"kind": "equidistant"}}))
-        detect_visits(run, no_laser(), extractor=extractor)
-        for t, pose in zip(run.odometry.stamps, corrected_odometry(run, extractor), strict=True):
+        for t, pose in zip(run.odometry.stamps, sim_odometry, strict=True):
             odom_pub.publish(odometry_msg(t, pose))
         sc = run.scans
         for msg in scan_msgs(sc):

@@ -13,6 +13,8 @@ from types import SimpleNamespace
 import jsonschema
 import numpy as np
 import pytest
+from cli_helpers import call
+from run_cache import once_per_run
 from scipy.optimize import minimize
 
 from ptm_ros.config import PtmConfig, load_config
@@ -340,19 +342,31 @@ def test_mcmc_and_rbpf_agree_with_exact_on_a_small_run(tjunction_bag, tmp_path):
     assert inference_notes(ptms["rbpf"].inference) == [] == inference_notes(ptms["exact"].inference)
 
 
+#: The model of the MCMC runs started from the filter: importance sampling, the separation prior
+#: integrated, as the filter does.
+NO_LASER = {"use_laser": False}
+
+
+@pytest.fixture(scope="module")
+def tjunction_exact_no_laser(tjunction_bag, tmp_path_factory) -> Ptm:
+    """The exact PTM of :func:`tjunction_bag` under :data:`NO_LASER`."""
+    exact_cfg = small_config(model=NO_LASER, inference={"method": "exact", "top": 10_000})
+    return run_offline(tjunction_bag, tmp_path_factory.mktemp("exact"), exact_cfg, write_report=False).ptm
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("start", [{"initial": "rbpf"}, {"initial": "auto", "auto_filter_visits": 3}])
-def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(tjunction_bag, tmp_path, start):
+def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(
+    tjunction_bag, tjunction_exact_no_laser, tmp_path, start
+):
     """``initial: rbpf`` (or ``auto`` on a run longer than ``auto_filter_visits``): the chains start from
     the filter's topologies and ptm.json compares the PTMs."""
     from ptm_ros.model.posterior import total_variation
 
-    model = {"use_laser": False}  # importance sampling: the separation prior integrated, as the filter does
     inference = {"method": "mcmc", "top": 10_000, "particles": 50, "mcmc": {**start, "chains": 2}}
-    ptm = run_offline(tjunction_bag, tmp_path / "m", small_config(model=model, inference=inference)).ptm
+    ptm = run_offline(tjunction_bag, tmp_path / "m", small_config(model=NO_LASER, inference=inference)).ptm
     jsonschema.validate(json.loads((tmp_path / "m" / "ptm.json").read_text()), ptm_schema())
-    exact_cfg = small_config(model=model, inference={"method": "exact", "top": 10_000})
-    exact = run_offline(tjunction_bag, tmp_path / "e", exact_cfg, write_report=False).ptm
+    exact = tjunction_exact_no_laser
     versus = ptm.inference["versus_rbpf"]
     assert ptm.inference["initial"] == "rbpf"
     assert 1 <= versus["rbpf_topologies"] <= 50
@@ -446,6 +460,7 @@ def test_ptm_json_with_non_finite_or_misshapen_values_is_refused(edit, match):
 
 
 DEMO_BAG = Path(__file__).resolve().parents[1] / "bags" / "demo"
+DEMO_PARAMS = DEMO_BAG.parents[1] / "config" / "demo.yaml"
 #: The phases of ptm-run on the demo bag (a particle filter, a map, a ground truth, a report), in order.
 DEMO_PHASES = (
     "reading the bag",
@@ -459,19 +474,33 @@ DEMO_PHASES = (
 )
 
 
+@pytest.fixture(scope="module")
+def demo_quiet(tmp_path_factory):
+    """``make demo``'s ptm-run (config/demo.yaml) on the demo bag, quiet, without the map: the output
+    directory and what it printed, ``(dir, stdout, stderr)``."""
+
+    def run() -> tuple[Path, str, str]:
+        out = tmp_path_factory.mktemp("demo") / "quiet"
+        code, printed, err = call(
+            run_cli.main, [DEMO_BAG, "--out", out, "--params", DEMO_PARAMS, "--quiet", "--no-map"]
+        )
+        assert code == 0, err
+        return out, printed, err
+
+    return once_per_run(tmp_path_factory, f"{__name__}.demo_quiet", run)
+
+
 @pytest.mark.slow
-def test_ptm_run_shows_every_phase_on_stderr_unless_quiet(tmp_path, capsys):
+def test_ptm_run_shows_every_phase_on_stderr_unless_quiet(demo_run, demo_quiet):
     """Issue #25: a named progress bar per phase on stderr (stdout keeps the summary), none with --quiet;
     the summary's figures rounded, the consistent mass explained, the ESS a share of the particles."""
-    assert run_cli.main([str(DEMO_BAG), "--out", str(tmp_path / "loud")]) == 0
-    loud = capsys.readouterr()
+    loud = SimpleNamespace(out=demo_run[2], err=demo_run[3])  # ptm-run with the map and the report
     bars = [ln.split(":")[0] for ln in loud.err.replace("\r", "\n").splitlines() if "%|" in ln]
     shown = list(dict.fromkeys(bars))  # each bar redraws itself: its first line, in order
     assert shown == list(DEMO_PHASES), loud.err
     assert "%|" not in loud.out
-    quiet_argv = [str(DEMO_BAG), "--out", str(tmp_path / "quiet"), "--quiet", "--no-map", "--no-report"]
-    assert run_cli.main(quiet_argv) == 0  # the phases that write nothing here were shown above
-    quiet = capsys.readouterr()
+    # the same run with --quiet (and without the map, whose phases were shown above)
+    quiet = SimpleNamespace(out=demo_quiet[1], err=demo_quiet[2])
     assert all(ln.startswith("ptm-run: ") for ln in quiet.err.splitlines()), quiet.err  # notes only
     assert "%|" not in quiet.err
     assert not [ln for ln in quiet.err.splitlines() for p in DEMO_PHASES if ln.startswith(f"{p}:")]
@@ -496,7 +525,7 @@ DEMO_LOW, DEMO_SPLIT, DEMO_HIGH = 0.75, (0.1, 0.9), 0.9
 
 
 @pytest.mark.slow
-def test_the_demo_bag_splits_the_mass_until_the_robot_returns_while_greedy_commits_wrong(tmp_path, capsys):
+def test_the_demo_bag_splits_the_mass_until_the_robot_returns_while_greedy_commits_wrong(demo_quiet):
     """Issue #25, ``make demo`` shows why a PTM: on ``bags/demo`` (two junctions alike, told apart only
     when the robot returns to the first) the filter's PTM after each visit splits its mass between the
     loop closure and the truth for a stretch of visits and ends on the truth, while the greedy baseline
@@ -507,12 +536,7 @@ def test_the_demo_bag_splits_the_mass_until_the_robot_returns_while_greedy_commi
     from ptm_ros.scoring.evaluation import first_wrong_visit, timeline_masses
     from ptm_ros.tools.evaluate import score_against_ground_truth
 
-    params = DEMO_BAG.parents[1] / "config" / "demo.yaml"
-    out = tmp_path / "demo"
-    assert (
-        run_cli.main([str(DEMO_BAG), "--out", str(out), "--params", str(params), "--quiet", "--no-map"]) == 0
-    )
-    printed = capsys.readouterr().out
+    out, printed, _ = demo_quiet
     ptm = load_ptm(out / "ptm.json")
     truth = score_against_ground_truth(ptm, load_ground_truth(DEMO_BAG / "ground_truth.json")).true_labels
     assert truth is not None and len(truth) == len(ptm.landmarks) == 8

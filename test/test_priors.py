@@ -48,7 +48,8 @@ def sequential_log_prob(prior, labels):
 
 @pytest.mark.parametrize("prior", PRIORS, ids=repr)
 def test_sequential_form_multiplies_out_to_the_joint(prior):
-    for labels in enumerate_partitions(7):
+    """Every partition of 6 visits (B_6 = 203): up to 6 places, past the truncated occupancy's 4."""
+    for labels in enumerate_partitions(6):
         if prior.log_prob(labels) == -math.inf:  # truncated occupancy: more places than L_max
             try:  # either the step opening place L_max + 1 has probability 0 or a later step refuses
                 assert sequential_log_prob(prior, labels) == -math.inf

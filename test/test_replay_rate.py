@@ -13,7 +13,6 @@ import json
 import re
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -25,7 +24,6 @@ from ptm_ros.nodes.bag_player import bag_topics
 # the node suite over DDS at ten times real time (about 20 s)
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
-PTM_RUN = [sys.executable, "-m", "ptm_ros.tools.run"]
 RATE = 10.0
 NODES = ("landmark_detector", "topology_filter", "map_publisher")
 #: the filter's counters of visit messages it could not use (ptm.json ``diagnostics``; all must stay 0)
@@ -47,7 +45,7 @@ def logged_dict(log: str, pattern: str) -> dict[str, int]:
     return ast.literal_eval(m.group(1))
 
 
-def test_ten_times_real_time_loses_no_visit(demo_bag, tmp_path, monkeypatch):
+def test_ten_times_real_time_loses_no_visit(demo_bag, demo_run, tmp_path, monkeypatch):
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from std_msgs.msg import String
 
@@ -59,33 +57,22 @@ def test_ten_times_real_time_loses_no_visit(demo_bag, tmp_path, monkeypatch):
     sent = {name: t.count for name, t in bag_topics(demo_bag).items()}
     cmd = [*BRINGUP, "--bag", str(demo_bag), "--rate", f"{RATE:g}", "--params", str(params)]
     cmd += ["--out", str(out), "--no-report"]
-    # ptm-run on the same bag meanwhile, on the other core (the replay keeps about one core busy)
-    run_cmd = [*PTM_RUN, str(demo_bag), "--out", str(tmp_path / "run"), "--params", str(params)]
     with ros_context(monkeypatch) as ros:  # a probe on the suite's domain: what went over DDS
         probe = ros.node("replay_probe")
         visits_seen = Inbox(probe, String, "/landmark_visits", STREAM_QOS)
         diagnostics = Inbox(probe, DiagnosticArray, "/diagnostics", 200)
         ros.spin(probe)
-        ptm_run = subprocess.Popen(
-            [*run_cmd, "--no-report"],
-            env=dds_env(ros.domain_id),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-        )
         try:
             proc = subprocess.run(
                 cmd, env=dds_env(ros.domain_id), capture_output=True, text=True, timeout=240, check=False
             )
-            run_log = ptm_run.communicate(timeout=240)[0].decode(errors="replace")
         finally:
-            ptm_run.kill()
             assert_no_orphans(str(out), str(demo_bag))
         published = [parse_visit_message(m.data) for m in visits_seen.items]
         statuses = [s for m in diagnostics.items for s in m.status]
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-4000:]
-    assert ptm_run.returncode == 0, run_log[-4000:]
-    offline = load_ptm(tmp_path / "run" / "ptm.json")
+    offline = load_ptm(demo_run[1] / "ptm.json")  # ptm-run on another copy of the bag, same parameters
     n = len(offline.landmarks)
     assert n >= 8
 

@@ -67,6 +67,12 @@ def params(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def visits(bag) -> list:
+    """The run's landmark visits under :data:`PARAMS` (what ptm-run and the detector node find)."""
+    return detect_visits(read_run(bag), load_config(None, PARAMS))
+
+
 def comparable(doc: dict) -> dict:
     """A ptm.json document without its timings (the only fields a resumed run may change)."""
     out = dict(doc)
@@ -227,10 +233,9 @@ def test_state_of_another_bag_is_refused(params, partial_state, tmp_path, capsys
     assert "landmark visits" in err and "another bag" in err
 
 
-def test_state_of_other_visits_is_refused(bag, partial_state):
+def test_state_of_other_visits_is_refused(bag, partial_state, visits):
     """Same number of visits but other values: the fingerprint, and the saved visits themselves."""
     config = load_config(None, PARAMS)
-    visits = detect_visits(read_run(bag), config)
     state, meta = load_filter_state(partial_state)
     assert len(check_run_state(state, meta, visits, partial_state)) == 4
     moved = [*visits[:2], replace(visits[2], stamp=visits[2].stamp + 1e-6), *visits[3:]]
@@ -278,10 +283,9 @@ def detector_messages(visits, session: str) -> list[str]:
     return [*(visit_message(v, session) for v in visits), end]
 
 
-def test_ptm_run_resumes_a_state_the_filter_node_saved(bag, params, reference, tmp_path):
+def test_ptm_run_resumes_a_state_the_filter_node_saved(bag, params, reference, visits, tmp_path):
     """A checkpoint of the node (6 of the run's visits, from a detector session) resumed by ``ptm-run``:
     the same ptm.json as the uninterrupted run."""
-    visits = detect_visits(read_run(bag), load_config(None, PARAMS))
     node = node_inbox(tmp_path / "node.npz")
     for text in detector_messages(visits, "detector-1")[:6]:
         node.receive(text)
@@ -293,11 +297,10 @@ def test_ptm_run_resumes_a_state_the_filter_node_saved(bag, params, reference, t
     assert read_ptm(out)["inference"]["n_topologies"] == reference["inference"]["n_topologies"]
 
 
-def test_the_filter_node_resumes_a_state_ptm_run_saved(bag, partial_state, tmp_path):
+def test_the_filter_node_resumes_a_state_ptm_run_saved(partial_state, visits, tmp_path):
     """``ptm-run``'s checkpoint (4 visits) resumed by the node, then the whole run replayed by a new
     detector session (as ``ptm-bringup --bag`` does): the session is adopted, the 4 visits are skipped as
     redelivered, and the map ends where the uninterrupted node's does."""
-    visits = detect_visits(read_run(bag), load_config(None, PARAMS))
     fresh = node_inbox()
     for text in detector_messages(visits, "detector-1"):
         fresh.receive(text)
