@@ -125,13 +125,12 @@ class InferenceConfig(Settings):
         ),
     )
     particles_max: int = setting(
-        0,
+        300,
         ge=0,
         doc=(
             "RBPF, ``optimal`` resampling: the most distinct topologies kept where the posterior is spread, "
             "so that resampling thins at most ``thinned_mass`` of it at random; at or below ``particles`` "
-            "(the default, 0): ``particles`` always. What it buys and costs on the real runs: "
-            "bench/real_seeds.md."
+            "(e.g. 0): ``particles`` always. What it buys and costs on the real runs: bench/real_seeds.md."
         ),
     )
     thinned_mass: float = setting(
