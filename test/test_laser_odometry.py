@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -489,28 +489,17 @@ def test_offset_slope_is_the_offset_error_under_a_slow_drift():
     assert offset_slope(standing, still) == (0.0, 0.0)  # never turned: nothing to learn from
 
 
-def _first_300(delay: float) -> RunInput:
-    """The odometry and the first 300 scans of :func:`_delayed_run`."""
+@functools.cache
+def learned(delay: float) -> tuple[RunInput, OffsetEstimate]:
+    """The odometry and the first 300 scans of :func:`_delayed_run` and what learn_time_offset learns from
+    them (once a test process)."""
     run = _delayed_run(delay)
-    return RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], _points(run)[:300])
-
-
-@pytest.fixture(scope="module")
-def learned() -> Callable[[float], tuple[RunInput, OffsetEstimate]]:
-    """``learned(delay)``: :func:`_first_300` and what learn_time_offset learns from it (once a module)."""
-    cache: dict[float, tuple[RunInput, OffsetEstimate]] = {}
-
-    def get(delay: float) -> tuple[RunInput, OffsetEstimate]:
-        if delay not in cache:
-            data = _first_300(delay)
-            cache[delay] = data, learn_time_offset(data)
-        return cache[delay]
-
-    return get
+    data = RunInput.of(run.odom_stamps, run.odom_poses, run.scan_stamps[:300], _points(run)[:300])
+    return data, learn_time_offset(data)
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.15])
-def test_the_time_offset_is_learned_from_the_run(delay, learned):
+def test_the_time_offset_is_learned_from_the_run(delay):
     """learn_time_offset on the first 300 scans finds the delay of a simulated laser (the regression's
     estimate picks the candidates, their heading corrections choose), and 0 for one on time after a
     single pass."""
@@ -525,7 +514,7 @@ def test_the_time_offset_is_learned_from_the_run(delay, learned):
         assert len(est.scores) == 1 and abs(est.first) < LaserOdometryConfig().learn_step / 2
 
 
-def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate(learned):
+def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate():
     """With workers, the candidates after the first run there (``ptm-run``'s worker processes): the same
     passes, so the same estimate, scores and all."""
     data, alone = learned(0.15)
