@@ -32,7 +32,7 @@ from ros_helpers import (
 
 from ptm_ros.model.ptm import load_ptm
 
-# the node suite over DDS, killed and restarted (15-40 s a test)
+# the node suite over DDS, killed and restarted (1-1.5 min a test)
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 PARAMS = REPO / "config" / "demo.yaml"
@@ -169,7 +169,11 @@ def test_detector_killed_mid_run_filter_keeps_its_map_and_recovers(
     out = tmp_path / "detector"
     params = tmp_path / "params.yaml"  # the demo's parameters, and a short wait for missed messages
     params.write_text(PARAMS.read_text() + "    end_timeout: 2.0\n")
-    args = ["--bag", str(demo_bag), "--rate", "8", "--params", str(params), "--out", str(out)]
+    # Rate 4, not 8: under the suite's load the detector processes the bag at about 3x real time, and the
+    # player, never blocked by its reliable keep-all writers, runs ahead of it. At rate 8 the player had
+    # sent 92 % of the bag when the detector mapped its second visit; the backlog queued for the killed
+    # detector died with it, and the restarted one received nothing (4 runs of 9 under load).
+    args = ["--bag", str(demo_bag), "--rate", "4", "--params", str(params), "--out", str(out)]
     args += ["--no-report", "--respawn", "1"]
     with ros_context(monkeypatch) as ros:  # a probe on the suite's domain
         probe = ros.node("fault_probe")

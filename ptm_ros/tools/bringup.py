@@ -42,12 +42,13 @@ file left by an earlier run in DIR is deleted at the start); a respawned filter 
 continues from that file and takes the visits lost since the last save from the detector's
 transient-local history, so the map ends exactly as without the fault (without ``--autosave`` it
 rebuilds everything from that history). A respawned detector starts a new detector session from the
-bag position it then sees (it never receives what was replayed while it was down), so the filter starts
-a new map of the rest of the run; the player's reliable writers wait for a killed reader until DDS
-declares it gone. After a bag it prints ``ptm-run``'s summary: the most probable topologies, scored
-against the ground truth when there is one. Exit codes: 0 written, 1 a node failed / nothing to write
-/ timeout, 2 bad arguments, parameters, ground truth or bag (also a bag that ends without one landmark
-visit, as ``ptm-run`` refuses it: said as soon as the filter's ensemble of the whole bag is empty).
+bag position it then sees (it never receives what was replayed while it was down, nor what the player
+had sent ahead of it and it had not read yet), so the filter starts a new map of the rest of the run;
+the player's reliable writers wait for a killed reader until DDS declares it gone. After a bag it
+prints ``ptm-run``'s summary: the most probable topologies, scored against the ground truth when there
+is one. Exit codes: 0 written, 1 a node failed / nothing to write / timeout, 2 bad arguments,
+parameters, ground truth or bag (also a bag that ends without one landmark visit, as ``ptm-run`` refuses
+it: said as soon as the filter's ensemble of the whole bag is empty).
 """
 
 from __future__ import annotations
