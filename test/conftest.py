@@ -26,7 +26,7 @@ def pytest_configure(config: pytest.Config) -> None:
     ``make test`` runs them all."""
     config.addinivalue_line(
         "markers",
-        "slow: many seconds (long runs, ptm-run on many bags, the Intel log, bringups): not in make check",
+        "slow: 2 s or more on the 2-core machine (ptm-run, the real logs, bringups): not in make check",
     )
     config.addinivalue_line(
         "markers", "dds: starts rclpy nodes or processes talking over DDS on a ROS domain: not in make check"

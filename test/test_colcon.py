@@ -64,6 +64,7 @@ def workspace(tmp_path_factory) -> Path:
     return ws / "install" / "ptm_ros"
 
 
+@pytest.mark.slow
 def test_colcon_installs_the_executables_where_ros2_run_finds_them(workspace):
     lib = workspace / "lib" / "ptm_ros"
     assert sorted(p.name for p in lib.iterdir()) == sorted(EXECUTABLES)

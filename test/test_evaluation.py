@@ -452,6 +452,7 @@ def drifting_odometry(poses: np.ndarray, heading_drift: float, scale: float) -> 
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_fit_windows_and_residuals_match_a_plain_loop() -> None:
     rng = np.random.default_rng(8)
     true = np.cumsum(rng.normal(scale=1.5, size=(40, 2)), axis=0)

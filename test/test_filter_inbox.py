@@ -63,6 +63,7 @@ def visits(sim_visits):
     return [replace(u, signature=None) for u in sim_visits]
 
 
+@pytest.mark.slow
 def test_bookkeeping_of_gaps_duplicates_rejections_and_restarts(sim_visits, monkeypatch):
     """Visit stream anomalies without session ids."""
     box = inbox()

@@ -116,6 +116,7 @@ def _config(**odometry) -> PtmConfig:
 
 
 @pytest.mark.parametrize(("factor", "low", "high"), [(0.05, 0.01, 0.3), (6.0, 2.0, 16.0)])
+@pytest.mark.slow
 def test_the_session_learns_the_runs_heading_noise_and_replays(factor, low, high):
     visits, registrar = _run(factor)
     session = filter_visits(FilterSession(_config(), registrar=registrar), visits)
@@ -128,6 +129,7 @@ def test_the_session_learns_the_runs_heading_noise_and_replays(factor, low, high
     assert off.heading.scale == 1.0 and HEADING_KEY not in off.inference().details
 
 
+@pytest.mark.slow
 def test_learning_is_the_same_streamed_offline_and_resumed(tmp_path):
     from ptm_ros.inference.persistence import load_filter_state, save_filter_state
 
@@ -172,6 +174,7 @@ def test_the_batch_estimators_use_the_heading_noise_the_filter_learns():
     assert result.log_posteriors[best] != pytest.approx(unlearned.log_posterior(best))
 
 
+@pytest.mark.slow
 def test_a_live_stream_freezes_the_scale_with_the_priors_and_an_offline_run_does_not():
     visits, registrar = _run(0.05, seed=1)
     config = _config()

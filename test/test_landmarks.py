@@ -134,6 +134,7 @@ def test_visits_do_not_depend_on_arrival_order(sim, reference):
         assert ext.diagnostics.skipped == {}
 
 
+@pytest.mark.slow
 def test_patches_built_elsewhere_give_the_same_visits(sim, merged, reference):
     """With ``patches`` (here a thread whose every patch takes a while) the extractor goes on while a
     patch is built and returns each visit once its patch is ready: the same visits, in the same order,
@@ -157,6 +158,7 @@ def test_patches_built_elsewhere_give_the_same_visits(sim, merged, reference):
     assert ext.diagnostics == ref_diagnostics
 
 
+@pytest.mark.slow
 def test_visit_content(sim, raw):
     visits, diagnostics = raw
     stamps = list(sim.odom_stamps)
@@ -197,6 +199,7 @@ def test_laser_odometry_corrects_the_visit_poses(sim, reference, raw):
     assert np.sqrt(np.mean(th_c**2)) < np.sqrt(np.mean(th_r**2))
 
 
+@pytest.mark.slow
 def test_the_motion_gate_keeps_the_visits():
     """At robot rates (odometry 100 Hz, scans 40 Hz) the laser odometry matches only the scans past its
     motion gate (about one in three) and the visits stay those of matching every scan: visits every 2 s
@@ -361,6 +364,7 @@ def test_signature_spread_against_the_panorama_one_place_width_away(sim, merged,
         assert np.all(v.signature_spread > 0.0)
 
 
+@pytest.mark.slow
 def test_visit_json_round_trip(sim, merged):
     visits, _ = run_extractor(None, messages(sim)[3], merged, config=ExtractorConfig(spread_distance=0.9))
     assert any(v.signature_spread is not None for v in visits)

@@ -775,6 +775,7 @@ def evaluate_dataset(
     return counts, np.array(errors).reshape(-1, 4)
 
 
+@pytest.mark.slow
 def test_intel_registrations_are_right_or_invalid(datasets_dir):
     """Intel lab, raw odometry, first 180 m: same-place pairs register to the corrected relative pose
     or are invalid; different places never give a valid match."""

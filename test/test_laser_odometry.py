@@ -356,6 +356,7 @@ def test_bad_config(field, value, match):
         LaserOdometryConfig(**{field: value})
 
 
+@pytest.mark.slow
 def test_apply_corrections_reproduces_the_extractor_poses():
     """Carrying the wheel odometry by the recorded corrections gives back, at every visit stamp, exactly the
     pose the extractor gave the visit (the latest scan strictly before; identity before the first)."""
@@ -453,6 +454,7 @@ def test_the_simulated_stamp_delay_shifts_only_the_scan_stamps():
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.15])
+@pytest.mark.slow
 def test_the_time_offset_is_recovered_from_the_heading_corrections(delay):
     """The laser odometry's heading corrections are smallest (RMS) at the offset that undoes the delay;
     measured on the run's 463 scans: 2.4 mrad at the right offset, 5.5-5.8 mrad 0.15 s off."""
@@ -499,6 +501,7 @@ def learned(delay: float) -> tuple[RunInput, OffsetEstimate]:
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.15])
+@pytest.mark.slow
 def test_the_time_offset_is_learned_from_the_run(delay):
     """learn_time_offset on the first 300 scans finds the delay of a simulated laser (the regression's
     estimate picks the candidates, their heading corrections choose), and 0 for one on time after a
@@ -514,6 +517,7 @@ def test_the_time_offset_is_learned_from_the_run(delay):
         assert len(est.scores) == 1 and abs(est.first) < LaserOdometryConfig().learn_step / 2
 
 
+@pytest.mark.slow
 def test_the_candidate_passes_run_in_the_workers_with_the_same_estimate():
     """With workers, the candidates after the first run there (``ptm-run``'s worker processes): the same
     passes, so the same estimate, scores and all."""
@@ -550,6 +554,7 @@ def test_best_time_offset_keeps_the_stamps_unless_an_offset_is_clearly_better():
         time_offset_scores([0.0, 1.0], np.zeros((2, 3)), [0.5, 0.6], [np.zeros((0, 2))], [0.0])
 
 
+@pytest.mark.slow
 def test_ptm_calibrate_writes_the_offset_into_the_parameters(tmp_path, capsys):
     import json
 
@@ -600,6 +605,7 @@ def corridor_travel(degenerate_ratio: float, seed: int) -> tuple[float, float]:
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.slow
 def test_the_correction_keeps_the_wheel_travel_along_a_corridor(seed):
     """Issue #23: scan matching does not erase travel along a corridor (the direction its walls do not
     constrain keeps the wheel odometry, :func:`ptm_ros.perception.laser.keep_unobserved`), while it still
@@ -642,6 +648,7 @@ def room_then_corridor(
     return lo, poses
 
 
+@pytest.mark.slow
 def test_the_wheel_scale_is_learned_where_the_scans_constrain_every_direction():
     """Issue #23: a wheel odometry that under-reads travel by 5 % (MIT-CSAIL's reads 2.3 % short) is
     scaled along the corridor by what the constrained matches in the room showed, not kept as it reads."""
@@ -657,6 +664,7 @@ def test_the_wheel_scale_is_learned_where_the_scans_constrain_every_direction():
     assert lo_exact.wheel_scale == pytest.approx(1.0, abs=0.01)
 
 
+@pytest.mark.slow
 def test_a_corridor_alone_teaches_no_wheel_scale():
     """Matches that leave a direction to the wheel odometry measure no travel: the scale stays the prior."""
     walls = np.array([[-30.0, -1.0, 30.0, -1.0], [30.0, 1.0, -30.0, 1.0]])

@@ -202,6 +202,7 @@ def test_proposal_ratio_matches_enumeration(model6, name):
 
 
 @pytest.mark.parametrize("name", ["split-merge", "odometry", "appearance", "reassign"])
+@pytest.mark.slow
 def test_proposal_draws_follow_the_enumerated_distribution(model6, name):
     kernel = kernels(model6)[name]
     src = (0, 1, 0, 2, 0, 1)
@@ -302,6 +303,7 @@ def sample_and_check(model, exact, config, sweeps, proposal=None, seed=0):
     ],
     ids=["split-merge", "odometry", "appearance", "reassign", "chained-mixture", "mc3-cold-chain"],
 )
+@pytest.mark.slow
 def test_chain_samples_the_exact_posterior(model5, exact5, config, sweeps):
     tv, expected = sample_and_check(model5, exact5, config, sweeps)
     assert expected <= BOUND / 3

@@ -1110,6 +1110,7 @@ def test_detector_continues_over_a_pause_and_starts_a_session_after_a_teleport()
     ]
 
 
+@pytest.mark.slow
 def test_detector_rejoins_a_scan_stream_whose_first_messages_were_stamped_ahead(sim_bag, tmp_path):
     """The bag's first 11 scans stamped 100 s ahead (confirmed as the stream's start), then the scans on
     the odometry's clock: the stream rejoins the session at once and what the extractor held of the

@@ -189,6 +189,7 @@ while True:
 """
 
 
+@pytest.mark.slow
 def test_kill_9_while_writing_never_leaves_a_broken_file(tmp_path):
     path = tmp_path / "state.npz"
     env = {**os.environ, "PYTHONPATH": str(persistence.__file__).rsplit("/ptm_ros/", 1)[0]}

@@ -294,6 +294,7 @@ def test_cli_reports_errors_with_exit_code(tmp_path, capsys):
     assert "InferenceConfig.method must be one of" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_prints_topologies_and_score(tjunction_bag, tmp_path, capsys):
     params = tmp_path / "p.yaml"
     params.write_text(
@@ -378,6 +379,7 @@ def test_mcmc_from_the_filters_ensemble_reports_how_it_differs(
     assert total_variation({t.labels: t.probability for t in exact.topologies}, dist) < 0.01
 
 
+@pytest.mark.slow
 def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_path):
     """A surprise detector's trace is drawn in the report. MCMC's cold-chain states go to
     ``mcmc_trace.json`` with ``write_trace`` (``ptm-run --trace``), and the report draws their SRQ plot;
@@ -412,6 +414,7 @@ def test_surprise_detector_and_mcmc_figures_in_the_report(tjunction_bag, tmp_pat
     ).read_text()
 
 
+@pytest.mark.slow
 def test_mcmc_without_trace_keeps_the_summary_only(tjunction_bag, tmp_path):
     cfg = load_config(None, {"model": {"use_laser": False}, "inference": {"method": "mcmc"}})
     result = run_offline(tjunction_bag, tmp_path, cfg, write_map=False)

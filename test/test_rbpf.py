@@ -347,6 +347,7 @@ def test_each_update_records_the_ptm_of_the_visits_so_far(odometry_case):
     assert restored.history == flt.history
 
 
+@pytest.mark.slow
 def test_a_learned_area_moves_the_weights_exactly(odometry_case):
     """With ``area_m2`` 0 the filter's A grows with the visits (:func:`ptm_ros.model.odometry.mapped_area`)
     and every particle is reweighted by (A_old / A_new)^places at each step: the full filter still equals
@@ -365,6 +366,7 @@ def test_a_learned_area_moves_the_weights_exactly(odometry_case):
     assert total_variation(final, pw) <= 1e-9
 
 
+@pytest.mark.slow
 def test_the_steps_place_prior_moves_the_weights_exactly(odometry_case):
     """``place_prior`` steps: the steps' density is fitted again at every visit and every particle is
     reweighted by the change of its new places' log densities; the full filter equals exact enumeration
@@ -716,6 +718,7 @@ def test_deterministic_under_a_seed(long_run):
     assert np.array_equal(again.place_positions(labels), flt.place_positions(labels))
 
 
+@pytest.mark.slow
 def test_full_filter_equals_exact_posterior_with_fitness_evidence():
     """Fitness evidence of matches and of failed matches (NoMatch) enters the filter's weights as in the
     batch posterior (PosteriorModel.laser_evidence)."""

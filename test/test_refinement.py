@@ -76,6 +76,7 @@ def test_robust_optimum_keeps_a_consistent_match_and_lets_a_wrong_one_go():
     assert rounds == 0 and np.array_equal(xg, x0) and np.all(wg.factors == 1.0)
 
 
+@pytest.mark.slow
 def test_refinement_cuts_the_trajectory_error_of_a_revisited_run(multi_loop_run):
     run, config, visits, odom, labels, true_poses = multi_loop_run
     registrar = cached(make_registrar(visits, config))
@@ -121,6 +122,7 @@ def test_refinement_cuts_the_trajectory_error_of_a_revisited_run(multi_loop_run)
     assert all(c.slide_axis is None for c in sharp.closures) and len(sharp.closures) < len(res.closures)
 
 
+@pytest.mark.slow
 def test_without_scan_points_it_is_the_smoothing(multi_loop_run):
     run, config, visits, odom, labels, _ = multi_loop_run
     stamps = run.odometry.stamps
@@ -131,6 +133,7 @@ def test_without_scan_points_it_is_the_smoothing(multi_loop_run):
     np.testing.assert_array_equal(res.trajectory, smooth)
 
 
+@pytest.mark.slow
 def test_inputs_are_checked(multi_loop_run):
     run, config, visits, odom, labels, _ = multi_loop_run
     stamps, odo = run.odometry.stamps, config.model.odometry
@@ -146,6 +149,7 @@ def test_inputs_are_checked(multi_loop_run):
         refine_trajectory(stamps, odom, stamps[:2], pts, labels, moved, odo)
 
 
+@pytest.mark.slow
 def test_worker_processes_refine_exactly_as_one(multi_loop_run):
     """The registrations of a round are independent: a pool of worker processes (ptm-run --jobs) gives the
     same refinement, bit for bit, as one after the other."""

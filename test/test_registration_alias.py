@@ -126,6 +126,7 @@ def test_heading_aliases_is_the_max_mixture_decision_on_the_heading_marginal(eps
     assert registration_aliases(truth, visits, cfg, [reg(1.01 * bound), reg(0.0)]).tolist() == [True, False]
 
 
+@pytest.mark.slow
 def test_batch_posterior_explains_the_alias_as_an_outlier():
     visits, true = simulate()
     truth = canonical(ROUTE)
@@ -150,6 +151,7 @@ def test_batch_posterior_explains_the_alias_as_an_outlier():
     assert math.isclose(terms.metric - clean.terms(truth).metric, math.log(eps), abs_tol=1e-9)
 
 
+@pytest.mark.slow
 def test_filter_matches_the_batch_posterior_with_an_alias():
     """All children kept: the filter's two-component predictive (state from the dominant component)
     reproduces the batch max-mixture posterior."""

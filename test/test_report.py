@@ -134,6 +134,7 @@ RBPF_INFERENCE = {
 }
 
 
+@pytest.mark.slow
 def test_the_report_speaks_plainly(tmp_path: Path) -> None:
     """Issue #25: rounded figures (no "ess 13.306258008956153"), the consistent mass explained where it is
     shown, and the visits reconciled with the landmarks the detector declared."""
@@ -377,6 +378,7 @@ def test_surprise_figure_rings_the_maxima_above_the_band_and_marks_where_landmar
     assert "where placed" in artist(ax, "landmarks").get_label()
 
 
+@pytest.mark.slow
 def test_report_with_surprise_trace(tmp_path: Path) -> None:
     trace = step_trace()
     html_path = write_report(tmp_path, loop_ptm(), surprise_trace=trace)
@@ -527,6 +529,7 @@ def test_ptm_json_keeps_a_chain_summary_and_the_trace_file_the_states(tmp_path: 
     assert split_chain_trace(loop_ptm()) == (loop_ptm(), None)  # no chains: unchanged
 
 
+@pytest.mark.slow
 def test_report_shows_the_occupancy_map_and_notes(tmp_path: Path) -> None:
     from ptm_ros.maps.occupancy import build_grid, save_png
 
@@ -571,6 +574,7 @@ def red_pixels(path: Path) -> int:
     return int(np.count_nonzero((rgb[..., 0] > 0.7) & (rgb[..., 1] < 0.3) & (rgb[..., 2] < 0.3)))
 
 
+@pytest.mark.slow
 def test_map_comparison_shows_the_leak_in_red_next_to_the_reference(tmp_path: Path) -> None:
     from ptm_ros.maps.map_quality import ClassGrid, map_quality
 
@@ -640,6 +644,7 @@ def timeline_ptm() -> Ptm:
     return replace(ptm, inference=inference, extra={"greedy": greedy_dict((0, 1, 2, 1, 0, 3, 2, 1), 0.99)})
 
 
+@pytest.mark.slow
 def test_timeline_figure_draws_the_mass_of_the_truth_and_of_the_greedy_answer(tmp_path: Path) -> None:
     """Issue #25: per visit the most probable topology's mass (bars), the truth's and the greedy answer's
     (cut to the visits so far; an unlisted one at the most it can hold), and where greedy went wrong."""

@@ -78,6 +78,7 @@ def argv(runs: dict[str, Path], out: Path, truth: str, detector: str) -> list[ob
 
 
 @pytest.mark.parametrize("detector", ["equidistant", "ground-truth"])
+@pytest.mark.slow
 def test_ptm_run_refuses_another_runs_ground_truth_before_the_work(runs, extractions, tmp_path, detector):
     out = tmp_path / "out"
     code, stdout, err = call(run_cli.main, argv(runs, out, "other", detector))

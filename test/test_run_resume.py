@@ -148,6 +148,7 @@ def partial_state(bag, tmp_path_factory) -> Path:
     return checkpoint.path
 
 
+@pytest.mark.slow
 def test_resume_in_process_gives_the_uninterrupted_ptm(bag, reference, partial_state, tmp_path):
     state = shutil.copy(partial_state, tmp_path / "state.npz")
     notes: list[str] = []
@@ -283,6 +284,7 @@ def detector_messages(visits, session: str) -> list[str]:
     return [*(visit_message(v, session) for v in visits), end]
 
 
+@pytest.mark.slow
 def test_ptm_run_resumes_a_state_the_filter_node_saved(bag, params, reference, visits, tmp_path):
     """A checkpoint of the node (6 of the run's visits, from a detector session) resumed by ``ptm-run``:
     the same ptm.json as the uninterrupted run."""
@@ -297,6 +299,7 @@ def test_ptm_run_resumes_a_state_the_filter_node_saved(bag, params, reference, v
     assert read_ptm(out)["inference"]["n_topologies"] == reference["inference"]["n_topologies"]
 
 
+@pytest.mark.slow
 def test_the_filter_node_resumes_a_state_ptm_run_saved(partial_state, visits, tmp_path):
     """``ptm-run``'s checkpoint (4 visits) resumed by the node, then the whole run replayed by a new
     detector session (as ``ptm-bringup --bag`` does): the session is adopted, the 4 visits are skipped as

@@ -19,6 +19,7 @@ def no_laser() -> PtmConfig:
     return load_config(None, {"model": {"use_laser": False}, "inference": {"particles": 30}})
 
 
+@pytest.mark.slow
 def test_streaming_session_equals_the_offline_rbpf_after_every_visit(sim_visits):
     """The ensemble after visit n is ptm-run's RBPF on visits 0..n, exactly (appearance refit + replay)."""
     config = load_config(None, {"inference": {"particles": 30}})

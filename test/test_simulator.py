@@ -358,6 +358,7 @@ def test_ptm_sim_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "exists already" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_thirty_three_visit_bag_with_panoramas_stays_small(tmp_path: Path) -> None:
     from ptm_ros.tools.sim import main
 

@@ -658,6 +658,7 @@ def match_passages(run: object, stamps: list[float], radius: float = 2.0) -> tup
 
 
 @pytest.mark.parametrize("world", ["aliased-loop", "t-junction", "multi-loop"])
+@pytest.mark.slow
 def test_laser_surprise_finds_the_decision_points_of_simulated_worlds(world: str) -> None:
     sim = pytest.importorskip("ptm_ros.io.simulator")
     worlds = pytest.importorskip("ptm_ros.io.worlds")
