@@ -37,12 +37,15 @@ def sim():
     return simulate(get_world("t-junction"), SimConfig(), np.random.default_rng(9), visits=5)
 
 
+#: The simulated laser the messages' ranges come from (angles and range limits for ``on_scan``).
+LASER = SimConfig().laser
+
+
 def messages(sim):
-    cfg = SimConfig().laser
     odom = [("o", float(t), p) for t, p in zip(sim.odom_stamps, sim.odom_poses, strict=True)]
     scans = [("s", float(t), r) for t, r in zip(sim.scan_stamps, sim.scan_ranges, strict=True)]
     images = [("i", float(t), im) for t, im in zip(sim.image_stamps, sim.images, strict=True)]
-    return odom, scans, images, cfg
+    return odom, scans, images, LASER
 
 
 def run_extractor(streams, cfg, order, spacing=4.0, laser_odometry=None, config=None, patches=None):
@@ -73,7 +76,7 @@ def merged(sim):
 
 def visits_and_counters(sim, merged, **options):
     """The visits of ``merged`` and the extractor's diagnostics (:func:`run_extractor`'s ``options``)."""
-    visits, ext = run_extractor(None, messages(sim)[3], merged, **options)
+    visits, ext = run_extractor(None, LASER, merged, **options)
     return visits, ext.diagnostics
 
 
@@ -139,7 +142,7 @@ def test_patches_built_elsewhere_give_the_same_visits(sim, merged, reference):
     """With ``patches`` (here a thread whose every patch takes a while) the extractor goes on while a
     patch is built and returns each visit once its patch is ready: the same visits, in the same order,
     with the same counters as building them in place."""
-    cfg = messages(sim)[3]
+    cfg = LASER
     reference, ref_diagnostics = reference
     submitted = []
 
@@ -341,7 +344,7 @@ def test_buffers_stay_bounded_on_a_long_run(sim):
 
 @pytest.mark.slow
 def test_signature_spread_against_the_panorama_one_place_width_away(sim, merged, raw):
-    cfg = messages(sim)[3]
+    cfg = LASER
     target = 0.9
     no_lo = LaserOdometryConfig(enabled=False)
     visits, _ = run_extractor(
@@ -366,7 +369,7 @@ def test_signature_spread_against_the_panorama_one_place_width_away(sim, merged,
 
 @pytest.mark.slow
 def test_visit_json_round_trip(sim, merged):
-    visits, _ = run_extractor(None, messages(sim)[3], merged, config=ExtractorConfig(spread_distance=0.9))
+    visits, _ = run_extractor(None, LASER, merged, config=ExtractorConfig(spread_distance=0.9))
     assert any(v.signature_spread is not None for v in visits)
     for v in visits:
         back = visit_from_json(visit_to_json(v))
