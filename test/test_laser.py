@@ -571,6 +571,23 @@ def plain_gauss_newton(start, source, target, cfg, prior_std):
     return current, 0.5 * (cov + cov.T), visited
 
 
+def test_spd_solve_is_scipys_cholesky_solve_bit_for_bit_and_refuses_an_indefinite_matrix():
+    """The Gauss–Newton step's direct LAPACK solve gives scipy's ``cho_solve(cho_factor(...))`` exactly
+    (information matrices of 3 × 3, right-hand sides of one and of three columns)."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+    from ptm_ros.perception.laser import _spd_solve
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        a = rng.normal(size=(3, 7))
+        info = a @ a.T + np.diag(rng.uniform(1e-6, 1e3, size=3))
+        for rhs in (rng.normal(size=3), np.eye(3)):
+            assert np.array_equal(_spd_solve(info, rhs), cho_solve(cho_factor(info), rhs))
+    with pytest.raises(LinAlgError, match="not positive definite"):
+        _spd_solve(np.diag([1.0, -1.0, 1.0]), np.ones(3))
+
+
 @pytest.mark.parametrize(
     ("world", "seed", "spread"),
     [("junction", 0, 0.05), ("junction", 10, 0.05), ("corridor", 10, 0.2), ("room", 3, 0.2)],
