@@ -635,12 +635,15 @@ class SimRun:
 
     def ground_truth(self) -> dict[str, Any]:
         """The ``ptm_ros.ground_truth/1`` document: true poses in the world frame ``map`` at the odometry
-        stamps, every place of the world, the passages, and ``odometry_frame_offset``, the world pose of
-        the odometry frame's origin (``true ≈ offset ⊕ odom``); plus the planned ``route`` and the
-        ``config`` used."""
+        stamps, the odometry published at them (``raw_poses``, as a CARMEN ground truth carries its raw
+        odometry: the check that a ground truth is the run's own compares the bag's odometry with it, so a
+        robot however noisy passes it), every place of the world, the passages, and
+        ``odometry_frame_offset``, the world pose of the odometry frame's origin (``true ≈ offset ⊕ odom``);
+        plus the planned ``route`` and the ``config`` used."""
         truth = GroundTruthTrajectory(
             self.odom_stamps,
             self.true_poses,
+            poses_raw=self.odom_poses,
             frame_id="map",
             places=tuple(Place(p.id, p.x, p.y, p.kind) for p in self.world.places),
             passages=self.passages,
