@@ -31,7 +31,8 @@ interruption; ``--fresh`` starts over). Bags are deleted after their run unless 
 laser odometry), its records kept apart under ``WORK/full-<stem>``. ``--scan-rate HZ`` and
 ``--panorama-spacing M`` simulate other sensors than the simulator's (10 Hz scans, a panorama every metre:
 0.5 Hz at its 0.5 m/s), e.g. 5 Hz and 0.5 m (1 Hz), the rates of a held-out check; their records are kept
-apart under ``WORK/full-scan<HZ>-pano<M>``.
+apart under ``WORK/full-scan<HZ>-pano<M>``. ``--noise 4x-model`` runs a level of :data:`STRESS_LEVELS`,
+outside the default grid: wheel odometry four times noisier than the model assumes.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ import platform
 import shutil
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -76,6 +77,11 @@ NOISE_LEVELS: dict[str, OdometryNoiseConfig] = {
     "twice-model": OdometryNoiseConfig(trans=0.1, rot=0.04, turn=0.1, bias_init=1e-3, bias_walk=2e-4),
     "scale+3%": OdometryNoiseConfig(**{**asdict(_SIM), "scale": 0.03}),
     "drift-5mrad/m": OdometryNoiseConfig(**{**asdict(_SIM), "bias_mean": 0.005}),
+}
+#: Levels beyond the default grid (``--noise`` only): how the posterior fares on a robot far noisier than
+#: the model assumes.
+STRESS_LEVELS: dict[str, OdometryNoiseConfig] = {
+    "4x-model": OdometryNoiseConfig(trans=0.2, rot=0.08, turn=0.2, bias_init=2e-3, bias_walk=4e-4),
 }
 
 
@@ -137,10 +143,16 @@ def grid(
     return out
 
 
+def levels_of(rows: Sequence[Mapping[str, Any]]) -> dict[str, OdometryNoiseConfig]:
+    """The default grid's noise levels and any stress level that ``rows`` ran."""
+    used = {r["noise"] for r in rows}
+    return {**NOISE_LEVELS, **{k: v for k, v in STRESS_LEVELS.items() if k in used}}
+
+
 def sim_config(case: Case, sensors: Sensors | None = None) -> SimConfig:
     """The simulator's configuration of a case: its odometry noise level, and ``sensors`` (or the
     simulator's own scan rate and panorama spacing)."""
-    config = SimConfig(odometry=NOISE_LEVELS[case.noise])
+    config = SimConfig(odometry={**NOISE_LEVELS, **STRESS_LEVELS}[case.noise])
     if sensors is None:
         return config
     laser = replace(config.laser, rate=sensors.scan_rate)
@@ -417,7 +429,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         "params": None if args.params is None else str(args.params),
         "sensors": {"scan_rate_hz": args.scan_rate, "panorama_spacing_m": args.panorama_spacing},
         "wall_s": wall,
-        "noise_levels": {k: asdict(v) for k, v in NOISE_LEVELS.items()},
+        "noise_levels": {k: asdict(v) for k, v in levels_of(rows).items()},
         "definitions": {
             "map_right": "the MAP topology equals the ground-truth topology (true place ids) exactly",
             "ece": "10 equal-width bins of the MAP probability, run-weighted |fraction right - mean p|",
@@ -472,7 +484,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         "Noise levels (`OdometryNoiseConfig`): "
         + "; ".join(
             f"`{k}`: " + ", ".join(f"{f}={x:g}" for f, x in asdict(v).items() if x != 0.0)
-            for k, v in NOISE_LEVELS.items()
+            for k, v in levels_of(rows).items()
         ),
         "",
         *wrong_maps_section(record["wrong_maps_by_world"]),
@@ -514,7 +526,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scan-rate", type=float, default=None, help="simulated scans per second")
     parser.add_argument("--panorama-spacing", type=float, default=None, help="metres between panoramas")
     parser.add_argument(
-        "--noise", nargs="+", default=None, choices=list(NOISE_LEVELS), help="only these levels"
+        "--noise", nargs="+", default=None, choices=[*NOISE_LEVELS, *STRESS_LEVELS], help="only these levels"
     )
     args = parser.parse_args(argv)
     if args.runs is None:
