@@ -685,6 +685,32 @@ def test_separation_update_matches_monte_carlo():
     assert np.all(np.linalg.eigvalsh(c_out[0]) > 0)
 
 
+def test_children_with_few_near_places_are_updated_as_if_alone():
+    """``_separation_update`` runs as many rounds as the child with the most near places; a child with fewer
+    takes part in the first rounds only, and its update (over its own rounds' rows) is the one it gets
+    alone."""
+    odo = OdometryConfig(n_samples=0)
+    rng = np.random.default_rng(3)
+    dim = 3 + 2 * 4  # x_n, p_0 … p_3 (no laser: stride 2)
+    a = rng.normal(size=(dim, dim))
+    cov = 0.02 * a @ a.T + 0.05 * np.eye(dim)
+    near = np.array([1.0, 0.4, 0.0, 1.5, 1.2, 0.8, -1.0, -0.5, 2.0, 1.0, -1.0])  # p_0 … p_3 within D of x_n
+    lone = near.copy()
+    lone[5:] = [30.0, 0.0, -30.0, 0.0, 0.0, 30.0]  # only p_0 near
+    counts, kk = np.array([[2, 1, 3, 1]]), np.array([4])  # a new place: every place has a new pair
+    means, covs = np.stack([lone, near]), np.stack([cov, cov])
+    log_f = _separation_update(
+        means, covs, np.repeat(counts, 2, axis=0), np.repeat(kk, 2), stride=2, config=odo
+    )
+    for c, m in enumerate([lone, near]):
+        m_one, c_one = m[None].copy(), cov[None].copy()
+        alone = _separation_update(m_one, c_one, counts, kk, stride=2, config=odo)[0]
+        assert log_f[c] == pytest.approx(alone, rel=1e-12) and alone < -0.01  # the penalty is at work
+        np.testing.assert_allclose(means[c], m_one[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(covs[c], c_one[0], rtol=0, atol=1e-12)
+    assert not np.allclose(covs[0], covs[1])
+
+
 def test_a_separation_factor_of_one_leaves_the_state_unchanged():
     """A place beyond the penalty radius from every lattice point of the expectation (but not pruned):
     the factor is exactly 1, so the weight and the moment-matched state must not move (the lattice is

@@ -434,9 +434,10 @@ def _separation_update(
         gains[rows, 2 * r : 2 * r + 2] = gain_t
         moves[rows, 2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = s_new - s_q
     moved = np.flatnonzero(np.any(moves != 0.0, axis=(1, 2)))
-    half = 0.5 * (moves[moved] @ gains[moved])
-    for c, h in zip(moved.tolist(), half, strict=True):  # per child: its (D, D) blocks stay in cache
-        upd = gains[c].T @ h  # ½ Σ_r K_r (Σ' - Σ)_r K_rᵀ
+    for c in moved.tolist():  # per child: its (D, D) blocks stay in cache
+        k = 2 * int(n_near[c])  # the rows of its own rounds: the others' rows of gains and moves are 0
+        g = gains[c, :k]
+        upd = g.T @ (0.5 * (moves[c, :k, :k] @ g))  # ½ Σ_r K_r (Σ' - Σ)_r K_rᵀ
         upd += upd.T  # symmetric to the last bit
         cov[c] += upd
     return out
