@@ -23,9 +23,11 @@ the displacement along the first one's heading against ``a``; simulated worlds o
 
 Simulated worlds: room-row and twin-rooms (doors passed both ways) and the aliased ring (passed one
 way), at the simulator's noise and at four times the model's (``bench_calibration``'s ``4x-model``),
-seeds 0–3. Real runs (Intel, ACES, MIT CSAIL), when ``out/bench/real`` holds their bags.
+seeds 0–3. Real runs (Intel, ACES, MIT CSAIL), when ``out/bench/real`` holds their bags, at inference
+seeds 0–2 (the filter's resampling; the visits and ``δ`` hardly depend on it).
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=bench:. .venv/bin/python bench/bench_visit_offset.py [--seeds 4]
+        [--real-seeds 3] [--no-real]
 """
 
 from __future__ import annotations
@@ -115,12 +117,12 @@ def moved(visit: Visit, delta: float) -> Visit:
     return dataclasses.replace(visit, pose=along(visit.pose), odom_pose=along(visit.odom_pose), patch=patch)
 
 
-def filtered(visits: Sequence[Visit]) -> Any:
-    """A filter session at the default parameters over ``visits``."""
+def filtered(visits: Sequence[Visit], seed: int = 0) -> Any:
+    """A filter session at the default parameters (inference ``seed``) over ``visits``."""
     from ptm_ros.config import load_config
     from ptm_ros.session import FilterSession, filter_visits
 
-    session = FilterSession(load_config(), fitted_to=list(visits))
+    session = FilterSession(load_config(overrides={"inference": {"seed": seed}}), fitted_to=list(visits))
     return filter_visits(session, list(visits))
 
 
@@ -155,17 +157,20 @@ def figures(session: Any, truth: Any) -> dict[str, Any]:
     return {**{k: rec[k] for k in keys}, "map_f1": score["map_f1"], "map_precision": score["map_precision"]}
 
 
-def one_run(name: str, bag: Path, truth_file: Path) -> dict[str, Any]:
-    """Both passes over one bag's visits (module docstring)."""
+def one_run(
+    name: str, bag: Path, truth_file: Path, seed: int = 0, visits: list[Visit] | None = None
+) -> dict[str, Any]:
+    """Both passes over one bag's visits (module docstring; ``visits``: detected already), inference
+    ``seed``."""
     from ptm_ros.io.groundtruth import interpolate_pose, load_ground_truth
     from ptm_ros.scoring.evaluation import EvalConfig
     from ptm_ros.tools.evaluate import true_place_ids
 
     truth = load_ground_truth(truth_file)
-    visits = detected(bag)
-    first = filtered(visits)
+    visits = detected(bag) if visits is None else visits
+    first = filtered(visits, seed)
     delta, used = learned_offset(list(first.pairs.values()))
-    second = filtered([moved(v, delta) for v in visits]) if delta else first
+    second = filtered([moved(v, delta) for v in visits], seed) if delta else first
     _, places = true_place_ids(first.to_ptm(), truth, config=EvalConfig())
     true_poses = interpolate_pose(truth, np.array([v.stamp for v in visits]))
     true_delta, true_pairs = true_offset(true_poses, [] if places is None else places.tolist())
@@ -240,6 +245,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=4, help="simulator seeds per world and level")
     parser.add_argument("--work", type=Path, default=REPO / "out" / "visit_offset")
     parser.add_argument("--no-real", action="store_true", help="simulated worlds only")
+    parser.add_argument("--real-seeds", type=int, default=3, help="inference seeds per real run")
     args = parser.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -253,8 +259,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     real = REPO / "out" / "bench" / "real"
     for name, gt in ({} if args.no_real else REAL).items():
         if (real / name).exists() and (SHARED / gt).exists():
-            rows.append(one_run(name, real / name, SHARED / gt))
-            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+            visits = detected(real / name)
+            for seed in range(args.real_seeds):
+                rows.append(one_run(f"{name} seed {seed}", real / name, SHARED / gt, seed, visits))
+                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     write(rows, time.perf_counter() - t0)
     return 0
 
