@@ -143,6 +143,11 @@ def grid(
     return out
 
 
+def noise_level(name: str) -> OdometryNoiseConfig:
+    """The odometry noise of a level of :data:`NOISE_LEVELS` or :data:`STRESS_LEVELS`."""
+    return {**NOISE_LEVELS, **STRESS_LEVELS}[name]
+
+
 def levels_of(rows: Sequence[Mapping[str, Any]]) -> dict[str, OdometryNoiseConfig]:
     """The default grid's noise levels and any stress level that ``rows`` ran."""
     used = {r["noise"] for r in rows}
@@ -152,7 +157,7 @@ def levels_of(rows: Sequence[Mapping[str, Any]]) -> dict[str, OdometryNoiseConfi
 def sim_config(case: Case, sensors: Sensors | None = None) -> SimConfig:
     """The simulator's configuration of a case: its odometry noise level, and ``sensors`` (or the
     simulator's own scan rate and panorama spacing)."""
-    config = SimConfig(odometry={**NOISE_LEVELS, **STRESS_LEVELS}[case.noise])
+    config = SimConfig(odometry=noise_level(case.noise))
     if sensors is None:
         return config
     laser = replace(config.laser, rate=sensors.scan_rate)
@@ -412,6 +417,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
     from ptm_ros.scoring.evaluation import OVERCONFIDENT_MASS
 
     overall, overall_summary = summarize(rows)
+    levels = levels_of(rows)
     by = {
         "family": group(rows, lambda r: r["family"]),
         "family_variant": group(rows, lambda r: f"{r['family']} {r['variant']}"),
@@ -429,7 +435,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         "params": None if args.params is None else str(args.params),
         "sensors": {"scan_rate_hz": args.scan_rate, "panorama_spacing_m": args.panorama_spacing},
         "wall_s": wall,
-        "noise_levels": {k: asdict(v) for k, v in levels_of(rows).items()},
+        "noise_levels": {k: asdict(v) for k, v in levels.items()},
         "definitions": {
             "map_right": "the MAP topology equals the ground-truth topology (true place ids) exactly",
             "ece": "10 equal-width bins of the MAP probability, run-weighted |fraction right - mean p|",
@@ -484,7 +490,7 @@ def write_outputs(rows: Sequence[dict[str, Any]], out: Path, args: argparse.Name
         "Noise levels (`OdometryNoiseConfig`): "
         + "; ".join(
             f"`{k}`: " + ", ".join(f"{f}={x:g}" for f, x in asdict(v).items() if x != 0.0)
-            for k, v in levels_of(rows).items()
+            for k, v in levels.items()
         ),
         "",
         *wrong_maps_section(record["wrong_maps_by_world"]),

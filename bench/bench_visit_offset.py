@@ -46,9 +46,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_calibration import NOISE_LEVELS, STRESS_LEVELS
+from bench_calibration import noise_level
 
-from ptm_ros.model.geometry import RelativePose, compose
+from ptm_ros.model.geometry import RelativePose, between, compose
 from ptm_ros.model.visits import Visit
 
 BENCH = Path(__file__).resolve().parent
@@ -97,11 +97,8 @@ def true_offset(true_poses: np.ndarray, places: Sequence[object]) -> tuple[float
         for j in range(i + 1, len(places)):
             if places[i] is None or places[i] != places[j]:
                 continue
-            x, y, th = true_poses[i]
-            d = true_poses[j][:2] - np.array([x, y])
-            c, s = np.cos(th), np.sin(th)
-            local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
-            pairs.append((float(true_poses[j][2] - th), local))
+            z = between(true_poses[i], true_poses[j])
+            pairs.append((float(z[2]), z[:2]))
     samples = offset_samples(pairs)
     return (float(np.median(samples)) if samples else float("nan")), len(samples)
 
@@ -193,8 +190,8 @@ def simulated(world: str, level: str, seed: int, work: Path) -> Path:
 
     bag = work / f"{world}__{level}__s{seed}"
     if not bag.exists():
-        noise = {**NOISE_LEVELS, **STRESS_LEVELS}[level]
-        write_run(simulate(get_world(world), SimConfig(odometry=noise), np.random.default_rng(seed)), bag)
+        config = SimConfig(odometry=noise_level(level))
+        write_run(simulate(get_world(world), config, np.random.default_rng(seed)), bag)
     return bag
 
 

@@ -820,11 +820,7 @@ def _spd_solve(matrix: FloatArray, rhs: FloatArray) -> FloatArray:
     if info != 0:
         msg = f"{info}-th leading minor not positive definite"
         raise LinAlgError(msg)
-    solution, info = dpotrs(factor, rhs, lower=0)
-    if info != 0:
-        msg = f"illegal value in argument {-info} of potrs"
-        raise ValueError(msg)
-    return np.asarray(solution, dtype=float)
+    return dpotrs(factor, rhs, lower=0)[0]  # its info flags illegal arguments only, not these
 
 
 def _spd_inverse(matrix: FloatArray) -> FloatArray:
