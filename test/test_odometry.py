@@ -55,16 +55,21 @@ def brute_log_f(
         e[:, 2] = wrap_angle(e[:, 2])
         total += stats.norm.logpdf(e[:, 0], 0.0, s_xy) + stats.norm.logpdf(e[:, 1], 0.0, s_xy)
         total += stats.norm.logpdf(e[:, 2], 0.0, s_th)
-    s2 = cfg.sigma_topology**2
+    s2, o2 = cfg.sigma_topology**2, cfg.sigma_offset**2
     for block in blocks(labels):
         pts = X[:, list(block), :2]
         m = len(block)
-        spread = np.sum((pts - pts.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2))
+        y = (pts - pts.mean(axis=1, keepdims=True)).reshape(len(X), -1)  # centred positions (S, 2m)
+        h = np.stack([np.cos(u[list(block), 2]), np.sin(u[list(block), 2])], axis=1)
+        c = (h - h.mean(axis=0)).ravel()  # centred headings: y ~ N(0, σ_T² I + σ_δ² c cᵀ), inverted by
+        # Sherman-Morrison
+        quad = np.sum(y * y, axis=1) / s2 - o2 * (y @ c) ** 2 / (s2 * (s2 + o2 * (c @ c)))
         total += (
             -math.log(place_area(visits, cfg))
             - math.log(m)
             - (m - 1) * math.log(2 * math.pi * s2)
-            - spread / (2 * s2)
+            - 0.5 * math.log1p(o2 * (c @ c) / s2)
+            - quad / 2
         )
     for lp in loops:
         if labels[lp.i] == labels[lp.j]:
@@ -147,9 +152,10 @@ def _mixed_problem() -> tuple[list[Visit], tuple[int, ...], list[RelativePose]]:
     return visits, labels, loops
 
 
-def test_jacobian_matches_finite_differences() -> None:
+@pytest.mark.parametrize("sigma_offset", [0.0, 0.7])
+def test_jacobian_matches_finite_differences(sigma_offset: float) -> None:
     visits, labels, loops = _mixed_problem()
-    cfg = OdometryConfig()
+    cfg = OdometryConfig(sigma_offset=sigma_offset)
     rng = np.random.default_rng(3)
     X = np.array([v.pose for v in visits]) + rng.normal(0, 0.5, (len(visits), 3))
     r, J = metric_residuals(X, labels, visits, cfg, loops)
@@ -226,6 +232,34 @@ def test_place_factor_matches_integral_over_the_place_position() -> None:
     assert merged - odo == pytest.approx(math.log(val / cfg.area_m2), abs=1e-8)
 
 
+def test_place_factor_with_an_offset_along_the_heading_matches_the_integral_over_place_and_offset() -> None:
+    """With ``σ_δ`` (:func:`coincidence_rows`): g_s = (1/A) ∫∫ Π N(x_i; p + δ h_i, σ_T² I) N(δ; 0, σ_δ²) dp
+    dδ, by 3-D quadrature for a place passed east, west and north, its visits spread along their headings."""
+    visits = visits_at([(0.0, 0.0, 0.0), (-0.9, 0.2, math.pi), (0.3, 0.6, math.pi / 2)])
+    cfg = OdometryConfig(sigma_topology=0.3, sigma_offset=0.5, area_m2=50.0, penalty_max=0.0)
+    X = np.array([v.pose for v in visits])
+    s, so = cfg.sigma_topology, cfg.sigma_offset
+    grid = np.linspace(-2.5, 2.5, 251)  # p: spacing σ_T/15
+    deltas = np.linspace(-3.0, 3.0, 241)  # δ: 6 σ_δ each way, spacing σ_δ/20
+    px, py, dd = np.meshgrid(grid, grid, deltas, indexing="ij")
+    dens = np.exp(-(dd**2) / (2 * so * so)) / math.sqrt(2 * math.pi * so * so)
+    for x, y, th in X:
+        cx, cy = px + dd * math.cos(th), py + dd * math.sin(th)
+        dens = dens * np.exp(-((cx - x) ** 2 + (cy - y) ** 2) / (2 * s * s)) / (2 * math.pi * s * s)
+    val = integrate.trapezoid(integrate.trapezoid(integrate.trapezoid(dens, deltas), grid), grid)
+    odo = log_integrand(X[None], (0, 1, 2), visits, cfg)[0] + 3 * math.log(place_area(visits, cfg))
+    merged = log_integrand(X[None], (0, 0, 0), visits, cfg)[0]
+    assert merged - odo == pytest.approx(math.log(val / cfg.area_m2), abs=1e-6)
+    # the offset matters here: the place without it is e^1.5 less likely, one passed one way is unchanged
+    plain = replace(cfg, sigma_offset=0.0)
+    assert merged - log_integrand(X[None], (0, 0, 0), visits, plain)[0] > 1.5
+    same_way = visits_at([(0.0, 0.0, 0.3), (0.2, -0.1, 0.3), (0.1, 0.2, 0.3)])
+    Y = np.array([v.pose for v in same_way])
+    assert log_integrand(Y[None], (0, 0, 0), same_way, cfg)[0] == pytest.approx(
+        log_integrand(Y[None], (0, 0, 0), same_way, plain)[0], abs=1e-12
+    )
+
+
 # ---------------------------------------------------------------------------------------------------------
 # the integral against brute force
 
@@ -294,11 +328,13 @@ def test_two_visits_merged_matches_closed_form_and_grid() -> None:
     visits = visits_at(u)
     cfg = OdometryConfig(n_samples=500)
     res = metric_log_likelihood((0, 0), visits, cfg, rng=np.random.default_rng(1))
-    # closed form: (1/A) N(o_xy; 0, (s_xy² + 2σ_T²) I), the heading integrates to 1
+    # closed form: (1/A) N(o_xy; 0, (s_xy² + 2σ_T²) I + σ_δ² d dᵀ), d = h_1 - h_0 (the heading vectors) in
+    # the frame of visit 0; the heading integrates to 1
     o = relative_odometry(visits)[0]
     var = cfg.a_xy * visits[1].travel + cfg.b_xy + 2 * cfg.sigma_topology**2
+    d = np.array([math.cos(0.5 - 0.3) - 1.0, math.sin(0.5 - 0.3)])
     exact = -math.log(place_area(visits, cfg)) + stats.multivariate_normal(
-        np.zeros(2), var * np.eye(2)
+        np.zeros(2), var * np.eye(2) + cfg.sigma_offset**2 * np.outer(d, d)
     ).logpdf(o[:2])
     assert res.log_laplace == pytest.approx(exact, abs=1e-9)
     assert res.log_likelihood == pytest.approx(exact, abs=1e-9)

@@ -45,6 +45,13 @@ SQUARE = [(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)]
 PRIOR = PriorConfig()  # Dirichlet process, alpha = 1
 
 
+def plain_odometry(**fields: float | str) -> OdometryConfig:
+    """The odometry model the filter's sequential EKF implements: without the visits' offset along their
+    heading (``sigma_offset``, the batch model's, which only the reweighting adds), so that the filter is the
+    exact posterior when it keeps every topology."""
+    return OdometryConfig(sigma_offset=0.0, **fields)  # type: ignore[arg-type]
+
+
 #: Importance samples of the exact reference (eq. 18): the batch model integrates the separation prior over
 #: the poses, as the filter does (its Laplace estimate, n_samples = 0, evaluates it at the optimum only).
 IS_SAMPLES = 2000
@@ -298,7 +305,7 @@ def test_block_log_predictives_equal_the_appearance_module():
 
 #: 15 cm/√m: the loop closures stay uncertain. The cases below were built on the area model (a new place
 #: uniform over A = 1000 m²): with odometry alone the step prior (the default) leaves the square undecided
-ODO = OdometryConfig(n_samples=0, a_xy=0.15**2, area_m2=1000.0, place_prior="area")
+ODO = plain_odometry(n_samples=0, a_xy=0.15**2, area_m2=1000.0, place_prior="area")
 ROUTE6 = [0, 1, 2, 3, 0, 1]
 
 
@@ -433,7 +440,7 @@ def test_filter_matches_enumeration_where_the_separation_prior_matters(seed):
 
 #: Heading noise well above the defaults (20 cm/√rad turned, 6 cm/√m of heading per metre) on a 12 m square:
 #: after a 48 m loop the heading is uncertain by tens of degrees, where the EKF's linearisation errs.
-ODO_HEADING = OdometryConfig(
+ODO_HEADING = plain_odometry(
     n_samples=500, a_xy=0.05**2, a_th=0.2**2, c_th=0.06**2, area_m2=1000.0, place_prior="area"
 )
 SQUARE12 = [(0.0, 0.0), (12.0, 0.0), (12.0, 12.0), (0.0, 12.0)]
@@ -540,7 +547,7 @@ def test_place_positions_match_the_batch_optimum(odometry_case):
 
 # --------------------------------------------------------------------------------------- few particles
 
-ODO8 = OdometryConfig(n_samples=0, a_xy=0.3**2, area_m2=1000.0, place_prior="area")  # 30 cm/√m, 4 m square
+ODO8 = plain_odometry(n_samples=0, a_xy=0.3**2, area_m2=1000.0, place_prior="area")  # 30 cm/√m, 4 m square
 ROUTE8 = [0, 1, 2, 3, 0, 1, 2, 3]
 
 
@@ -597,7 +604,7 @@ def test_aliased_closures_keep_both_hypotheses():
         )
         for i, p in enumerate(poses)
     ]
-    odo = OdometryConfig(n_samples=0)
+    odo = plain_odometry(n_samples=0)
     ex = place_marginal(full_filter(visits[:6], odo).ptm_weights(), 5)
     assert min(ex[0], ex[1]) > 0.2 and abs(ex[0] - ex[1]) < 0.05
     for particles in (3, 10):
@@ -617,7 +624,7 @@ def test_aliased_closures_keep_both_hypotheses():
 @pytest.fixture(scope="module")
 def long_run():
     places, route = grid_route(60)
-    odo = OdometryConfig(n_samples=0)
+    odo = plain_odometry(n_samples=0)
     visits, true = simulate_route(route, places, odo, seed=3)
     reg = truth_registrar(true, route)
     flt = TopologyFilter(RbpfConfig(particles=30), make_prior(PRIOR), odo, registrar=reg, seed=7)
@@ -657,7 +664,7 @@ def test_separation_update_matches_monte_carlo():
     sampling of the same Gaussian: ``x_n`` near place 0 (two visits: ``p_0 = x̄_0 + η``,
     ``η ~ N(0, σ_T²/2 I)`` correlated with ``p_0`` only), place 1 far (pruned), place 2 revisited (no
     pair)."""
-    odo = OdometryConfig(n_samples=0)
+    odo = plain_odometry(n_samples=0)
     rng = np.random.default_rng(5)
     dim = 3 + 2 * 3  # x_n, p_0, p_1, p_2 (no laser: stride 2)
     a = rng.normal(size=(dim, dim))
@@ -689,7 +696,7 @@ def test_children_with_few_near_places_are_updated_as_if_alone():
     """``_separation_update`` runs as many rounds as the child with the most near places; a child with fewer
     takes part in the first rounds only, and its update (over its own rounds' rows) is the one it gets
     alone."""
-    odo = OdometryConfig(n_samples=0)
+    odo = plain_odometry(n_samples=0)
     rng = np.random.default_rng(3)
     dim = 3 + 2 * 4  # x_n, p_0 … p_3 (no laser: stride 2)
     a = rng.normal(size=(dim, dim))
@@ -715,7 +722,7 @@ def test_a_separation_factor_of_one_leaves_the_state_unchanged():
     """A place beyond the penalty radius from every lattice point of the expectation (but not pruned):
     the factor is exactly 1, so the weight and the moment-matched state must not move (the lattice is
     whitened: an unwhitened one shifted the mean and skewed the covariance at every such update)."""
-    odo = OdometryConfig(n_samples=0)
+    odo = plain_odometry(n_samples=0)
     cov = np.diag([0.02, 0.02, 0.02, 0.2, 0.2])  # x_n, p_0 (no laser: stride 2)
     cov[0, 3] = cov[3, 0] = 0.005
     sd = math.sqrt(0.2 + 0.02 - odo.sigma_topology**2 / 3)  # of x̄_0 - x_n along y (the wider axis)
@@ -762,7 +769,7 @@ def test_full_filter_equals_exact_posterior_with_fitness_evidence():
 
 def test_state_dict_round_trip_continues_identically():
     places, route = grid_route(20, seed=1)
-    odo = OdometryConfig(n_samples=0, a_xy=0.1**2)
+    odo = plain_odometry(n_samples=0, a_xy=0.1**2)
     visits, true = simulate_route(route, places, odo, seed=1, signatures=True)
     model = PosteriorModel(visits, ModelConfig(odometry=odo)).appearance
     reg = truth_registrar(true, route, fitness=True)

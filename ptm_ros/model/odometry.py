@@ -31,7 +31,11 @@ the integrand over :math:`X = (x_1, \dots, x_{N-1})` (``d = 3(N-1)`` dimensions)
           = \frac{1}{A\,|s|\,(2\pi\sigma_T^2)^{|s|-1}}
             \exp\Big(-\sum_{i\in s} \frac{\lVert x_i^{xy} - \bar x_s\rVert^2}{2\sigma_T^2}\Big),
 
-  (headings are not constrained by the topology). Unlike the thesis' unnormalised eq. 17, which sums
+  (headings are not constrained by the topology). With ``sigma_offset`` :math:`\sigma_\delta > 0` (the
+  default) each place also has an offset :math:`\delta_s \sim \mathcal N(0, \sigma_\delta^2)` along the
+  visits' headings, integrated out in closed form (:func:`coincidence_rows`): a detector that fires before
+  (or after) a place in the direction of travel puts visits passed in opposite directions up to
+  :math:`2\delta_s` apart (issue #23, ``bench/visit_offset.md``). Unlike the thesis' unnormalised eq. 17, which sums
   :math:`((l_{i1}-l_{i2})/\sigma_T)^2` over ordered pairs and has no normalising constant, this makes
   ``P(O | T)`` a proper density of the odometry, so topologies with different numbers of places compare
   fairly: a merge gains about ``A / (2π · uncertainty area)``, a Bayes factor. With ``place_prior`` steps
@@ -138,6 +142,15 @@ class OdometryConfig(Settings):
     b_th: float = setting(0.01**2, gt=0, doc="heading variance floor per odometry segment [rad²].")
     c_th: float = setting(0.02**2, ge=0, doc="heading variance per metre travelled [rad²/m].")
     sigma_topology: float = setting(0.5, gt=0, doc="σ_T, how far a visit passes from its place [m].")
+    sigma_offset: float = setting(
+        0.5,
+        ge=0,
+        doc=(
+            "σ_δ, the spread of where along its heading the detector puts the visits of one place [m]: each "
+            "place's visits lie ``δ_s`` ahead of it, ``δ_s ~ N(0, σ_δ²)``, so visits of one place passed in "
+            "opposite directions may lie ``2 δ_s`` apart along the path (the batch model only; 0: none)."
+        ),
+    )
     area_m2: float = setting(
         0.0,
         ge=0,
@@ -507,7 +520,7 @@ class _Problem:
     pair_b: NDArray[np.intp]
     pair_z: FloatArray  # (Q, 3)
     pair_w: FloatArray  # (Q, 3, 3) whitening W with W^T W = R^{-1}
-    centering: FloatArray  # (Qt, N): rows of (δ_ij - 1/|s|)/σ_T for visits of multi-visit places
+    centering: FloatArray  # (Qt, 2N): coincidence rows over (x_0, y_0, x_1, ...) (coincidence_rows)
     prior_i: NDArray[np.intp]  # visit pairs of different places, (Pp,)
     prior_j: NDArray[np.intp]
     log_const: float  # log C, the normalising constants of f_G
@@ -565,20 +578,17 @@ def _build_problem(
     pair_z = np.concatenate(z_list)
     pair_w = np.concatenate(w_list)
 
-    # topology coincidence: centring residuals of multi-visit places, plus the g_s constants
+    # topology coincidence: whitened centring residuals of multi-visit places, plus the g_s constants
     m = int(lab_arr.max()) + 1
     sizes = np.bincount(lab_arr, minlength=m)
     sig2 = config.sigma_topology**2
+    centering, log_spread = coincidence_rows(lab_arr, u[:, 2], config.sigma_topology, config.sigma_offset)
     log_const += float(
         np.sum(place_log_priors(visits, config)[new_places(lab_arr)])
         - np.sum(np.log(sizes))
         - np.sum(sizes - 1) * math.log(2.0 * math.pi * sig2)
+        - log_spread
     )
-    in_multi = np.flatnonzero(sizes[lab_arr] > 1)
-    same = lab_arr[in_multi][:, None] == lab_arr[None, :]
-    centering = (
-        (in_multi[:, None] == np.arange(n)[None, :]).astype(float) - same / sizes[lab_arr[in_multi]][:, None]
-    ) / config.sigma_topology
 
     # landmark separation prior over pairs of different places
     ii, jj = np.triu_indices(n, 1)
@@ -605,6 +615,53 @@ def _build_problem(
         g_keep=g_keep,
         h_topo=h_topo,
     )
+
+
+def coincidence_rows(
+    labels: NDArray[np.intp], headings: FloatArray, sigma_topology: float, sigma_offset: float = 0.0
+) -> tuple[FloatArray, float]:
+    r"""The whitened residual rows of the topology coincidence terms ``g_s`` and their extra log-determinant.
+
+    Returns ``C`` ``(Q, 2N)`` over the interleaved positions ``(x_0, y_0, x_1, y_1, …)``, two rows per visit
+    of a multi-visit place, so that :math:`\prod_s g_s \propto \exp(-\tfrac12 \lVert C x\rVert^2)`, and
+    :math:`\tfrac12 \sum_s \log(1 + \sigma_\delta^2 \lVert c_s\rVert^2 / \sigma_T^2)`, to be subtracted from
+    ``log g``.
+
+    A visit ``i`` of place ``s`` lies at :math:`p_s + \delta_s h_i + \epsilon_i`, with ``h_i`` the unit vector
+    of its odometry heading, :math:`\epsilon_i \sim \mathcal N(0, \sigma_T^2 I_2)` and, per place,
+    :math:`\delta_s \sim \mathcal N(0, \sigma_\delta^2)`: a detector that fires a little before (or after)
+    the place in the direction of travel puts visits passed in opposite directions ``2 δ_s`` apart, and
+    visits passed the same way together. Integrating ``p_s`` (uniform) leaves the centred positions
+    :math:`y = P x_s` (``P`` removes the place's mean), Gaussian on the ``2|s| - 2`` dimensions of ``P``'s
+    range with covariance :math:`\sigma_T^2 I + \sigma_\delta^2 c c^\top`, :math:`c = P h` the centred
+    headings. Its whitening is :math:`W = (I - \beta \hat c \hat c^\top) / \sigma_T` with
+    :math:`1 - \beta = (1 + \sigma_\delta^2 \lVert c\rVert^2 / \sigma_T^2)^{-1/2}`, and the determinant
+    adds the returned log term to the ``(2\pi\sigma_T^2)^{|s|-1}`` of the module docstring's ``g_s``.
+    With ``σ_δ = 0``, or a place passed one way only (``c = 0``), ``C`` is the plain centring
+    :math:`(\delta_{ij} - 1/|s|)/\sigma_T` on each axis. The headings are the odometry's (fixed), so the
+    rows stay constant in ``x``.
+    """
+    n = len(labels)
+    sizes = np.bincount(labels)
+    unit = np.stack([np.cos(headings), np.sin(headings)], axis=1).ravel()  # (2N,)
+    blocks, log_spread = [], 0.0
+    for s in np.flatnonzero(sizes > 1):
+        members = np.flatnonzero(labels == s)
+        cols = (2 * members[:, None] + np.arange(2)).ravel()  # (2k,)
+        rows = np.zeros((len(cols), 2 * n))
+        rows[:, cols] = np.eye(len(cols)) - np.kron(np.ones((len(members), len(members))), np.eye(2)) / len(
+            members
+        )
+        c = rows @ unit
+        spread = sigma_offset**2 * float(c @ c) / sigma_topology**2
+        if spread > 0.0:
+            c_hat = c / math.sqrt(float(c @ c))
+            beta = 1.0 - 1.0 / math.sqrt(1.0 + spread)
+            rows -= beta * np.outer(c_hat, c_hat @ rows)
+            log_spread += 0.5 * math.log1p(spread)
+        blocks.append(rows / sigma_topology)
+    centering = np.concatenate(blocks) if blocks else np.zeros((0, 2 * n))
+    return centering, log_spread
 
 
 def _loop_arrays(loops: Sequence[RelativePose], n: int) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
@@ -677,7 +734,7 @@ def _normal_pattern(
     Columns of visit 0 (the fixed gauge) are dropped. The topology residuals are linear with constant
     Jacobian ``C ⊗ I_2`` (on x and y), so their part of ``H`` is the constant ``C^T C`` on both axes.
     """
-    n = centering.shape[1]
+    n = centering.shape[1] // 2
     d = 3 * (n - 1)
     var = np.concatenate(
         [3 * (pair_a - 1)[:, None] + np.arange(3), 3 * (pair_b - 1)[:, None] + np.arange(3)], axis=1
@@ -689,10 +746,9 @@ def _normal_pattern(
     flat = var[:, :, None] * d + var[:, None, :]
     h_keep = np.flatnonzero(both.ravel())
     h_index = flat.ravel()[h_keep]
-    gram = centering.T @ centering  # (N, N)
+    xy = (3 * np.arange(n - 1)[:, None] + np.arange(2)).ravel()  # columns of x_1, y_1, x_2, …
     h_topo = np.zeros((d, d))
-    for k in range(2):
-        h_topo[k::3, k::3] = gram[1:, 1:]
+    h_topo[np.ix_(xy, xy)] = (centering.T @ centering)[2:, 2:]
     return h_index, h_keep, g_index, g_keep, h_topo
 
 
@@ -720,8 +776,8 @@ def _residuals(P: FloatArray, prob: _Problem) -> FloatArray:
     """Whitened residuals ``r(X)`` of ``f_G``, ``(S, m)`` for poses ``P`` ``(S, N, 3)``."""
     e, _, _ = _relative_errors(P, prob)
     r_rel = np.einsum("qij,sqj->sqi", prob.pair_w, e, optimize=True)
-    r_top = prob.centering @ P[..., :2]
-    return np.concatenate([r_rel.reshape(len(P), -1), r_top.reshape(len(P), -1)], axis=1)
+    r_top = P[..., :2].reshape(len(P), -1) @ prob.centering.T
+    return np.concatenate([r_rel.reshape(len(P), -1), r_top], axis=1)
 
 
 def _log_prior(
@@ -780,8 +836,8 @@ def _pair_jacobians(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatArr
     e, tx, ty = _relative_errors(x[None], prob)
     jab = prob.pair_w @ between_derivatives(x, prob.pair_a, prob.pair_b, tx[0], ty[0])
     r_rel = (prob.pair_w @ e[0, :, :, None])[:, :, 0]
-    r_top = prob.centering @ x[:, :2]
-    return np.concatenate([r_rel.ravel(), r_top.ravel()]), jab, r_rel
+    r_top = prob.centering @ x[:, :2].ravel()
+    return np.concatenate([r_rel.ravel(), r_top]), jab, r_rel
 
 
 def _scatter(blocks: FloatArray, prob: _Problem) -> FloatArray:
@@ -827,8 +883,7 @@ def _normal_equations(x: FloatArray, prob: _Problem) -> tuple[FloatArray, FloatA
             prob.g_index, weights=np.einsum("qki,qk->qi", jab, r_rel).ravel()[prob.g_keep], minlength=d
         ),
     )
-    r_top = r[3 * len(prob.pair_a) :].reshape(-1, 2)
-    g_top = prob.centering.T @ r_top  # (N, 2)
+    g_top = (prob.centering.T @ r[3 * len(prob.pair_a) :]).reshape(-1, 2)  # (N, 2)
     grad = grad.reshape(-1, 3)
     grad[:, :2] += g_top[1:]
     return r, info, grad.ravel()
@@ -844,11 +899,11 @@ def _sparse_jacobian(jab: FloatArray, prob: _Problem) -> sp.csr_matrix:
     rows = np.broadcast_to(3 * np.arange(q)[:, None, None] + np.arange(3)[None, :, None], jab.shape)
     cols = np.broadcast_to(var[:, None, :], jab.shape)
     keep = cols >= 0
-    tq, tn = np.nonzero(prob.centering[:, 1:])
-    t_rows = (3 * q + 2 * tq[:, None] + np.arange(2)).ravel()
-    t_cols = (3 * tn[:, None] + np.arange(2)).ravel()  # visit tn+1 -> columns 3*tn + k
-    t_vals = np.repeat(prob.centering[tq, tn + 1], 2)
-    m = 3 * q + 2 * prob.centering.shape[0]
+    tq, tn = np.nonzero(prob.centering[:, 2:])
+    t_rows = 3 * q + tq
+    t_cols = 3 * (tn // 2) + tn % 2  # coordinate k of visit tn // 2 + 1 -> column 3 (tn // 2) + k
+    t_vals = prob.centering[tq, tn + 2]
+    m = 3 * q + prob.centering.shape[0]
     return sp.csr_matrix(
         (
             np.concatenate([jab[keep], t_vals]),
