@@ -66,9 +66,9 @@ def test_place_innovations_match_importance_sampling(sd_heading):
     """Mean and covariance of x_n - x̄_s against weighted samples of the model.
 
     Samples of the odometry chain (headings included), weighted by the coincidence factor of the places
-    (without the visit offset, as in the filter), are draws from the posterior given the labels. With (nearly) fixed headings the model is linear, the
-    posterior mean is the optimum and its covariance H^{-1} exactly; with 0.02 rad of heading noise per
-    segment, the linearisation is within the tolerances.
+    (without the visit offset, as in the filter), are draws from the posterior given the labels. With
+    (nearly) fixed headings the model is linear, the posterior mean is the optimum and its covariance
+    H^{-1} exactly; with 0.02 rad of heading noise per segment, the linearisation is within the tolerances.
     """
     cfg = OdometryConfig(a_th=0.0, c_th=0.0, b_th=sd_heading**2, a_xy=0.1**2, b_xy=0.05**2, sigma_offset=0.0)
     u = [

@@ -35,12 +35,14 @@ the integrand over :math:`X = (x_1, \dots, x_{N-1})` (``d = 3(N-1)`` dimensions)
   default) each place also has an offset :math:`\delta_s \sim \mathcal N(0, \sigma_\delta^2)` along the
   visits' headings, integrated out in closed form (:func:`coincidence_rows`): a detector that fires before
   (or after) a place in the direction of travel puts visits passed in opposite directions up to
-  :math:`2\delta_s` apart (issue #23, ``bench/visit_offset.md``). Unlike the thesis' unnormalised eq. 17, which sums
-  :math:`((l_{i1}-l_{i2})/\sigma_T)^2` over ordered pairs and has no normalising constant, this makes
-  ``P(O | T)`` a proper density of the odometry, so topologies with different numbers of places compare
-  fairly: a merge gains about ``A / (2π · uncertainty area)``, a Bayes factor. With ``place_prior`` steps
-  (the default) the ``1/A`` of a place's first visit is the density of the run's own steps at that visit's
-  step (:func:`place_log_priors`), so a merge gains what a step like the run's others costs;
+  :math:`2\delta_s` apart (issue #23, ``bench/visit_offset.md``).
+
+  Unlike the thesis' unnormalised eq. 17, which sums :math:`((l_{i1}-l_{i2})/\sigma_T)^2` over ordered
+  pairs and has no normalising constant, this makes ``P(O | T)`` a proper density of the odometry, so
+  topologies with different numbers of places compare fairly: a merge gains about
+  ``A / (2π · uncertainty area)``, a Bayes factor. With ``place_prior`` steps (the default) the ``1/A`` of a
+  place's first visit is the density of the run's own steps at that visit's step
+  (:func:`place_log_priors`), so a merge gains what a step like the run's others costs;
 * laser registrations :math:`z_{ij}` (:class:`ptm_ros.model.geometry.RelativePose`, only those that passed
   their fitness test) are Gaussian measurements of :math:`x_i \ominus x_j` when ``i`` and ``j`` are the
   same place, and a uniform outcome over the registration search volume :math:`V_{reg}` (m²·rad)
@@ -647,11 +649,10 @@ def coincidence_rows(
     blocks, log_spread = [], 0.0
     for s in np.flatnonzero(sizes > 1):
         members = np.flatnonzero(labels == s)
-        cols = (2 * members[:, None] + np.arange(2)).ravel()  # (2k,)
-        rows = np.zeros((len(cols), 2 * n))
-        rows[:, cols] = np.eye(len(cols)) - np.kron(np.ones((len(members), len(members))), np.eye(2)) / len(
-            members
-        )
+        k = len(members)
+        cols = (2 * members[:, None] + np.arange(2)).ravel()  # (2k,): x and y of each member
+        rows = np.zeros((2 * k, 2 * n))
+        rows[:, cols] = np.eye(2 * k) - np.tile(np.eye(2), (k, k)) / k  # P: minus the place's mean, per axis
         c = rows @ unit
         spread = sigma_offset**2 * float(c @ c) / sigma_topology**2
         if spread > 0.0:
