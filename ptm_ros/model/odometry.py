@@ -732,8 +732,9 @@ def _normal_pattern(
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], FloatArray]:
     """Where the blocks ``[J_a J_b]^T [J_a J_b]`` ``(Q, 6, 6)`` and gradients ``(Q, 6)`` land in ``H``, ``g``.
 
-    Columns of visit 0 (the fixed gauge) are dropped. The topology residuals are linear with constant
-    Jacobian ``C ⊗ I_2`` (on x and y), so their part of ``H`` is the constant ``C^T C`` on both axes.
+    Columns of visit 0 (the fixed gauge) are dropped. The topology residuals are linear in the positions
+    with the constant Jacobian ``C`` of :func:`coincidence_rows`, so their part of ``H`` is the constant
+    ``C^T C`` on the x and y columns.
     """
     n = centering.shape[1] // 2
     d = 3 * (n - 1)
