@@ -645,23 +645,21 @@ def coincidence_rows(
     """
     n = len(labels)
     sizes = np.bincount(labels)
-    unit = np.stack([np.cos(headings), np.sin(headings)], axis=1).ravel()  # (2N,)
-    blocks, log_spread = [], 0.0
-    for s in np.flatnonzero(sizes > 1):
-        members = np.flatnonzero(labels == s)
-        k = len(members)
-        cols = (2 * members[:, None] + np.arange(2)).ravel()  # (2k,): x and y of each member
-        rows = np.zeros((2 * k, 2 * n))
-        rows[:, cols] = np.eye(2 * k) - np.tile(np.eye(2), (k, k)) / k  # P: minus the place's mean, per axis
-        c = rows @ unit
-        spread = sigma_offset**2 * float(c @ c) / sigma_topology**2
-        if spread > 0.0:
-            c_hat = c / math.sqrt(float(c @ c))
-            beta = 1.0 - 1.0 / math.sqrt(1.0 + spread)
-            rows -= beta * np.outer(c_hat, c_hat @ rows)
-            log_spread += 0.5 * math.log1p(spread)
-        blocks.append(rows / sigma_topology)
-    centering = np.concatenate(blocks) if blocks else np.zeros((0, 2 * n))
+    in_multi = np.flatnonzero(sizes[labels] > 1)
+    same = labels[in_multi][:, None] == labels[None, :]
+    plain = (in_multi[:, None] == np.arange(n)[None, :]) - same / sizes[labels[in_multi]][:, None]
+    centering = np.kron(plain, np.eye(2))  # P per axis; rows and columns (x_i, y_i) interleaved
+    place = np.repeat(labels[in_multi], 2)  # the place of each row
+    c = centering @ np.stack([np.cos(headings), np.sin(headings)], axis=1).ravel()  # centred headings
+    norm2 = np.bincount(place, weights=c * c, minlength=len(sizes))  # |c_s|² per place
+    spread = sigma_offset**2 * norm2 / sigma_topology**2
+    beta = 1.0 - 1.0 / np.sqrt(1.0 + spread)
+    c_hat = np.divide(c, np.sqrt(norm2[place]), out=np.zeros_like(c), where=norm2[place] > 0.0)
+    proj = np.zeros((len(sizes), 2 * n))
+    np.add.at(proj, place, c_hat[:, None] * centering)  # ĉ_sᵀ P_s per place
+    centering -= (beta[place] * c_hat)[:, None] * proj[place]
+    log_spread = 0.5 * float(np.sum(np.log1p(spread)))  # 0 for places passed one way and single visits
+    centering /= sigma_topology
     return centering, log_spread
 
 
