@@ -10,16 +10,23 @@ A particle is a topology of the visits so far (a canonical label sequence ``L^n`
 Rao-Blackwellized, an analytic Gaussian over the continuous part of the state given that topology
 (eq. 33–34, 40–41). The metric model is exactly the batch model of :mod:`ptm_ros.model.odometry` (odometry
 Gaussians, places as points ``p_s`` uniform over an area ``A`` with every visit within ``σ_T`` of its
-place, laser :class:`~ptm_ros.model.geometry.RelativePose` factors between consecutive visits of a place, the
-cubic separation prior), so that with enough particles the filter reproduces :func:`exact_posterior
+place once the place's offset ``δ_s`` along the visit's heading is taken off, laser
+:class:`~ptm_ros.model.geometry.RelativePose` factors between consecutive visits of a place, the cubic
+separation prior), so that with enough particles the filter reproduces :func:`exact_posterior
 <ptm_ros.model.posterior.exact_posterior>`.
 
 State per particle
 ------------------
-:math:`\xi = [x_n;\ p_0, x_{last(0)};\ \dots;\ p_{M-1}, x_{last(M-1)}]`: the pose of the current visit
-(3), and per place its point (2) and the pose of its latest visit (3, kept only when a registrar is
-given, for the laser factor). Older visit poses are marginalised out. ``ξ ~ N(μ, P)`` is the Laplace
-(Gaussian) projection of eq. 40–41, maintained by an extended Kalman filter. Given the labels the state
+:math:`\xi = [x_n;\ q_0, δ_0, x_{last(0)};\ \dots;\ q_{M-1}, δ_{M-1}, x_{last(M-1)}]`: the pose of the
+current visit (3), and per place its point (2), its offset (1, only with ``odometry.sigma_offset`` > 0)
+and the pose of its latest visit (3, kept only when a registrar is given, for the laser factor). Older
+visit poses are marginalised out. A visit ``i`` of place ``s`` lies at :math:`p_s + δ_s h_i + ε_i`
+(``h_i`` the unit vector of its odometry heading, :func:`~ptm_ros.model.odometry.coincidence_rows`); the
+state holds :math:`q_s = p_s + δ_s \bar h_s` (``h̄_s``: the mean heading vector of the place's visits so
+far), the point the place's visits centre on, so that the separation prior below reads it as it read
+``p_s`` without the offset; a revisit moves ``h̄_s`` and, by a linear change of variables, ``q_s``.
+``ξ ~ N(μ, P)`` is the Laplace (Gaussian) projection of eq. 40–41, maintained by an extended Kalman
+filter. Given the labels the state
 is deterministic, so particles with equal labels would be identical: the particle set holds *distinct*
 topologies with log weights, never duplicates.
 
@@ -38,12 +45,12 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
        \log \tilde w_k = \log w + \log p(L_n = k \mid L^{n-1}) + \log p(o_{n-1} \mid k) - \Delta c_k
                          + \log p(a_n \mid k),
 
-   * revisit, the coincidence ``x_n^{xy} - p_k = v``, ``v ~ N(0, σ_T² I)`` observed as 0 — the exact
-     Gaussian integral of eq. 47–48 under the predicted state:
-     :math:`p(o \mid k) = N(0;\ \hat x_n^{xy} - \hat p_k,\ S_k)`,
-     :math:`S_k = \mathrm{cov}(x_n^{xy} - p_k) + σ_T^2 I`;
-   * new place: :math:`p(o \mid M) = \int \frac1A N(x_n^{xy}; p, σ_T^2 I)\,dp = 1/A` and
-     :math:`p_M \sim N(x_n^{xy}, σ_T^2 I)` enters the state;
+   * revisit, the coincidence ``x_n^{xy} - t_k = v``, ``v ~ N(0, σ_T² I)`` observed as 0, with
+     :math:`t_k = q_k + δ_k (h_n - \bar h_k)` (``q_k`` without the offset) — the exact Gaussian integral
+     of eq. 47–48 under the predicted state: :math:`p(o \mid k) = N(0;\ \hat x_n^{xy} - \hat t_k,\ S_k)`,
+     :math:`S_k = \mathrm{cov}(x_n^{xy} - t_k) + σ_T^2 I`;
+   * new place: :math:`p(o \mid M) = \int \frac1A N(x_n^{xy}; p + δ h_n, σ_T^2 I)\,dp = 1/A` and
+     :math:`q_M \sim N(x_n^{xy}, σ_T^2 I)` and :math:`δ_M \sim N(0, σ_δ^2)` enter the state;
    * separation prior (eq. 15–16), for selection only (:func:`_separation_proxy`): per near place
      ``s``, ``-log E[exp(-|s| c(‖x̄_s - x_n^{xy}‖))]`` on 64 lattice points under the child's Gaussian
      after the coincidence (revisit) or as predicted (new place), summed over the places; replaced after
@@ -70,7 +77,9 @@ One step (visit ``n``, odometry :math:`o = u_{n-1} \ominus u_n`, covariance ``Σ
    Gaussian after the factors above (the selection proxy divided out), and the state is replaced by the
    moment-matched Gaussian of the tilted density. **Approximation**: past poses are marginalised, so the
    visits of place ``s`` are taken at their mean :math:`\bar x_s` (exactly Gaussian in the state: the
-   model's :math:`p_s \mid X \sim N(\bar x_s, σ_T^2/|s|\, I)`); and the state stays Gaussian.
+   model's :math:`q_s \mid δ_s, X \sim N(\bar x_s, σ_T^2/|s|\, I)`); and the state stays Gaussian. With
+   the offset, visits of one place passed in opposite directions lie up to ``2 δ_s`` from each other, and
+   the mean errs more (``test_the_filter_follows_the_visit_offset_with_the_separation_prior``).
    This is the chain rule of the batch integral, which integrates the penalty over the poses
    (importance sampling, eq. 18: what ``ptm-run --method exact`` computes). Evaluating the penalty at
    the means instead (the Laplace estimate's ``c`` at ``X*``; this filter before issue #23) charges a
@@ -198,7 +207,7 @@ Prefetch = Callable[[list[tuple[int, int]]], None]
 
 
 #: Schema tag of :meth:`TopologyFilter.state_dict`.
-STATE_SCHEMA = "ptm_ros.rbpf/2"
+STATE_SCHEMA = "ptm_ros.rbpf/3"
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _INITIAL_CAPACITY = 4  # place slots allocated at first; grown with slack when a child needs more
@@ -278,9 +287,10 @@ class _Particles:
     """The particle set: distinct topologies, normalised log weights and Gaussian states (padded).
 
     ``mean`` ``(P, D)`` and ``cov`` ``(P, D, D)`` with ``D = 3 + stride * cap``; place ``k`` occupies
-    columns ``3 + stride*k + (0, 1)`` (``p_k``) and, with ``stride = 5``, ``+ (2, 3, 4)`` (``x_last(k)``).
-    Slots ``k ≥ n_places`` are zero. ``counts``/``last`` ``(P, cap)``: visits of each place and the index
-    of its latest visit (0 / -1 when unused).
+    columns ``3 + stride*k + (0, 1)`` (``q_k``), with the visit offset ``+ 2`` (``δ_k``), and with a
+    registrar the next three (``x_last(k)``): :class:`_Layout`. Slots ``k ≥ n_places`` are zero.
+    ``counts``/``last`` ``(P, cap)``: visits of each place and the index of its latest visit (0 / -1 when
+    unused); ``headings`` ``(P, cap, 2)``: the sum of the unit odometry headings of each place's visits.
     """
 
     labels: tuple[Labels, ...]
@@ -293,6 +303,28 @@ class _Particles:
     blocks: tuple[tuple[tuple[int, ...], ...], ...] | None  # per particle, per place (appearance only)
     penalty: FloatArray  # (P,) separation penalty charged so far [nats] (_separation_update)
     metric: FloatArray  # (P,) sequential metric log evidence, separation prior included (reweighting)
+    headings: FloatArray  # (P, cap, 2) sum of the unit headings of each place's visits (the visit offset)
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where a place's variables sit among its ``stride`` columns: ``q`` at 0–1, ``δ`` at ``delta`` (with
+    the visit offset), ``x_last`` at ``x_last`` .. ``x_last + 2`` (with a registrar)."""
+
+    offset: bool
+    laser: bool
+
+    @property
+    def delta(self) -> int:
+        return 2
+
+    @property
+    def x_last(self) -> int:
+        return 2 + int(self.offset)
+
+    @property
+    def stride(self) -> int:
+        return self.x_last + (3 if self.laser else 0)
 
 
 def _place_cols(stride: int, places: ArrayLike, offset: int, width: int) -> IntArray:
@@ -307,6 +339,30 @@ def _duplicate(mean: FloatArray, cov: FloatArray, src: IntArray, dst: IntArray) 
     mean[rows, dst] = mean[:, src]
     cov[rows, dst, :] = cov[:, src, :]
     cov[rows, :, dst] = cov[:, :, src].transpose(0, 2, 1)
+
+
+def _shear(mean: FloatArray, cov: FloatArray, dst: IntArray, src: IntArray, a: FloatArray) -> None:
+    """In place, per particle ``r``: the variables ``dst[r]`` ``(R, q)`` gain ``a[r]`` ``(R, q)`` times the
+    variable ``src[r]`` ``(R,)``, a linear change of variables ``ξ := T ξ``, ``P := T P Tᵀ``."""
+    rows = np.arange(len(dst))
+    mean[rows[:, None], dst] += a * mean[rows, src][:, None]
+    cov[rows[:, None], dst, :] += a[:, :, None] * cov[rows, src, :][:, None, :]
+    cov[rows[:, None], :, dst] += a[:, :, None] * cov[rows, :, src][:, None, :]
+
+
+def _unit(angle: float) -> FloatArray:
+    """The unit vector of a heading."""
+    return np.array([math.cos(angle), math.sin(angle)])
+
+
+@dataclass(frozen=True, eq=False)
+class _Lever:
+    """The visit offset's lever on a revisit of place ``k`` by visit ``n``: ``g_k = h_n - h̄_k``
+    ``(P, cap, 2)`` (``h̄_k``: the mean unit heading of the place's visits so far) and the columns of
+    ``δ_k`` ``(cap,)``."""
+
+    cols: IntArray
+    g: FloatArray
 
 
 def _downdate(cov: FloatArray, W: FloatArray) -> None:
@@ -371,10 +427,11 @@ def _separation_update(
     of visit ``n`` (a revisited place has no new pair with ``n``).
 
     The pairs ``(i, n)``, ``i`` of another place ``s``, are taken with every visit of ``s`` at the mean
-    of its visits, ``x̄_s``. Under the model ``p_s | X ~ N(x̄_s, σ_T²/|s| I)`` independently of the rest,
-    so ``δ_s = x̄_s - x_n^{xy} = p_s - x_n^{xy} - η_s`` is Gaussian with the mean of ``p_s - x_n^{xy}``, its
-    covariance minus ``σ_T²/|s| I``, and ``cov(ξ, δ_s) = cov(ξ, p_s - x_n^{xy}) - σ_T²/|s|`` on the rows
-    of ``p_s`` (the only state variable correlated with ``η_s``). Each place's factor
+    of its visits, ``x̄_s``. Under the model ``q_s | δ_s, X ~ N(x̄_s, σ_T²/|s| I)`` independently of the
+    rest (``q_s = p_s + δ_s h̄_s``, the state's place columns; ``p_s`` without the offset), so
+    ``δ_s = x̄_s - x_n^{xy} = q_s - x_n^{xy} - η_s`` is Gaussian with the mean of ``q_s - x_n^{xy}``, its
+    covariance minus ``σ_T²/|s| I``, and ``cov(ξ, δ_s) = cov(ξ, q_s - x_n^{xy}) - σ_T²/|s|`` on the rows
+    of ``q_s`` (the only state variable correlated with ``η_s``). Each place's factor
     ``g(δ) = exp(-|s| c(‖δ‖))`` is integrated over ``N(δ; m, Σ)`` on the :data:`_Z` points (pairs more
     than :data:`_PENALTY_PRUNE_SD` standard deviations beyond the radius contribute 0), giving the weight
     factor ``E[g]`` and the tilted moments ``m', Σ'``; as ``ξ | δ`` is unchanged by a factor of ``δ``, the
@@ -498,6 +555,8 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
     x_pred: FloatArray,
     pxx: FloatArray,
     cxp: FloatArray,
+    cxt: FloatArray,
+    lever: _Lever | None,
     S: FloatArray,
     d: FloatArray,
     stride: int,
@@ -510,16 +569,18 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
     ``(P, cap)`` and ``(P,)``.
 
     The expectation of :func:`_separation_update` (without its state update, on :data:`_Z_PROXY`),
-    under each child's Gaussian after the coincidence: for a revisit of ``k``, with ``e_s = p_s - x_n``,
-    ``h_k = x_n - p_k`` (predicted mean ``d``, covariance ``S`` with ``σ_T² I``) and
-    ``C = cov(e_s, h_k)``, ``e_s | h_k = 0 ~ N(ê_s - C S^{-1} d, cov(e_s) - C S^{-1} Cᵀ)``; a new place
-    leaves ``x_n`` as predicted. ``cov``: the parents' covariances; ``pxx``, ``cxp`` ``(P, cap, 2, 2)``:
-    the predicted ``cov(x_n^{xy})`` and ``cov(x_n^{xy}, p_k)``. Only the pairs ``(k, s)`` whose place is
-    near ``x_n``'s updated mean (within the pruning distance of :func:`_separation_update` by the prior
-    spread of ``e_s``, ``p_s`` taken at its prior mean) are integrated: ``O(P · cap)`` work plus the near
-    pairs, not ``O(P · cap²)`` 2×2 algebra; and only for the children ``worth_rev`` ``(P, cap)`` /
-    ``worth_new`` ``(P,)`` within :data:`_PROXY_NATS` of the heaviest (the weight is corrected after
-    selection anyway, so the proxy only has to be good where selection is decided).
+    under each child's Gaussian after the coincidence: for a revisit of ``k``, with ``e_s = q_s - x_n``,
+    ``h_k = x_n - t_k`` (predicted mean ``d``, covariance ``S`` with ``σ_T² I``; ``t_k = q_k + δ_k g_k`` with
+    the visit offset's ``lever``, else ``q_k``) and ``C = cov(e_s, h_k)``,
+    ``e_s | h_k = 0 ~ N(ê_s - C S^{-1} d, cov(e_s) - C S^{-1} Cᵀ)``; a new place leaves ``x_n`` as
+    predicted. ``cov``: the parents' covariances; ``pxx``, ``cxp``, ``cxt`` ``(P, cap, 2, 2)``: the
+    predicted ``cov(x_n^{xy})``, ``cov(x_n^{xy}, q_k)`` and ``cov(x_n^{xy}, t_k)``. Only the pairs
+    ``(k, s)`` whose place is near ``x_n``'s updated mean (within the pruning distance of
+    :func:`_separation_update` by the prior spread of ``e_s``, ``q_s`` taken at its prior mean) are
+    integrated: ``O(P · cap)`` work plus the near pairs, not ``O(P · cap²)`` 2×2 algebra; and only for
+    the children ``worth_rev`` ``(P, cap)`` / ``worth_new`` ``(P,)`` within :data:`_PROXY_NATS` of the
+    heaviest (the weight is corrected after selection anyway, so the proxy only has to be good where
+    selection is decided).
     """
     n_part, cap = counts.shape
     pc = _place_cols(stride, np.arange(cap), 0, 2)  # (cap, 2)
@@ -544,7 +605,7 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
         np.add.at(proxy_new, pi, -_log_expectation(e_mean[pi, si], c, counts[pi, si], config))
     # revisits: x_n moved by the coincidence with p_k (its updated mean, p_s at its prior mean, to select)
     y = np.linalg.solve(S, d[..., None])[..., 0]  # S^{-1} d: (P, k, 2)
-    x_upd = x_pred[:, None, :2] - np.einsum("pkab,pkb->pka", px[:, 0][:, None] - cxp, y)  # (P, k, 2)
+    x_upd = x_pred[:, None, :2] - np.einsum("pkab,pkb->pka", px[:, 0][:, None] - cxt, y)  # (P, k, 2)
     gap = p_hat[:, None, :, :] - x_upd[:, :, None, :]  # (P, k, s, 2)
     near = (
         used[:, None, :]
@@ -554,8 +615,11 @@ def _separation_proxy(  # noqa: PLR0917 (the step's intermediate arrays, positio
     )
     pi, ki, si = np.nonzero(near)
     if len(pi):
-        cpp_sk = cov[pi[:, None, None], pc[si][:, :, None], pc[ki][:, None, :]]  # cov(p_s, p_k): (Q, 2, 2)
-        C = cpx[pi, si] - cpp_sk - px[pi, 0] + cxp[pi, ki]  # cov(e_s, h_k)
+        cpt_sk = cov[pi[:, None, None], pc[si][:, :, None], pc[ki][:, None, :]]  # cov(q_s, t_k): (Q, 2, 2)
+        if lever is not None:
+            c_sd = cov[pi[:, None], pc[si], lever.cols[ki][:, None]]  # cov(q_s, δ_k): (Q, 2)
+            cpt_sk += c_sd[:, :, None] * lever.g[pi, ki][:, None, :]
+        C = cpx[pi, si] - cpt_sk - px[pi, 0] + cxt[pi, ki]  # cov(e_s, h_k)
         gain = np.linalg.solve(S[pi, ki], C.swapaxes(-1, -2)).swapaxes(-1, -2)  # C S^{-1}
         m = e_mean[pi, si] - np.einsum("qab,qb->qa", gain, d[pi, ki])
         c = e_cov[pi, si] - gain @ C.swapaxes(-1, -2)
@@ -646,7 +710,8 @@ class TopologyFilter:
         self.appearance = appearance
         self.registrar = registrar
         self.prefetch = prefetch
-        self._stride = 5 if registrar is not None else 2
+        self._layout = _Layout(offset=odometry.sigma_offset > 0.0, laser=registrar is not None)
+        self._stride = self._layout.stride
         self._seed = int(seed)
         self._rng = np.random.default_rng(seed)
         self._visits: list[Visit] = []
@@ -834,8 +899,13 @@ class TopologyFilter:
         mean[0, :3] = u0
         mean[0, 3:5] = u0[:2]
         cov[0, 3:5, 3:5] = self.odometry.sigma_topology**2 * np.eye(2)
-        if self._stride == 5:
-            mean[0, 5:8] = u0
+        lay = self._layout
+        if lay.offset:
+            cov[0, 3 + lay.delta, 3 + lay.delta] = self.odometry.sigma_offset**2
+        if lay.laser:
+            mean[0, 3 + lay.x_last : 6 + lay.x_last] = u0
+        headings = np.zeros((1, cap, 2))
+        headings[0, 0] = _unit(u0[2])
         counts = np.zeros((1, cap), dtype=np.intp)
         last = np.full((1, cap), -1, dtype=np.intp)
         counts[0, 0], last[0, 0] = 1, 0
@@ -857,6 +927,7 @@ class TopologyFilter:
             blocks=(((0,),),) if self.appearance is not None else None,
             penalty=np.zeros(1),
             metric=np.array([first]),
+            headings=headings,
         )
         return particles, increment
 
@@ -894,10 +965,27 @@ class TopologyFilter:
         p_hat = st.mean[:, pcols]  # (P, cap, 2)
         cxp = B[:, :2][:, :, pcols].transpose(0, 2, 1, 3)  # cov(x^xy, p_k): (P, cap, 2, 2)
         cpp = st.cov[:, pcols[:, :, None], pcols[:, None, :]]
-        cxd = pxx[:, None, :2, :2] - cxp  # cov(x^xy, x^xy - p_k)
-        S = cxd - cxp.swapaxes(-1, -2) + cpp
+        # the revisit's target t_k = q_k + δ_k g_k (the visit offset, g_k = h_n - h̄_k): mean, cov(x^xy, t_k)
+        lay = self._layout
+        h_n = _unit(float(visits[n].pose[2]))
+        lever: _Lever | None = None
+        t_hat, cxt, ctt = p_hat, cxp, cpp
+        if lay.offset:
+            lever = _Lever(
+                cols=_place_cols(stride, np.arange(cap), lay.delta, 1)[:, 0],
+                g=h_n - st.headings / np.maximum(st.counts, 1)[..., None],
+            )
+            dcol, g = lever.cols, lever.g
+            cxd = B[:, :2][:, :, dcol].transpose(0, 2, 1)  # cov(x^xy, δ_k): (P, cap, 2)
+            cqd = st.cov[:, pcols, dcol[:, None]]  # cov(q_k, δ_k): (P, cap, 2)
+            gg = g[..., :, None] * g[..., None, :]
+            t_hat = p_hat + st.mean[:, dcol][..., None] * g
+            cxt = cxp + cxd[..., :, None] * g[..., None, :]
+            cqd_g = cqd[..., :, None] * g[..., None, :]
+            ctt = cpp + cqd_g + cqd_g.swapaxes(-1, -2) + st.cov[:, dcol, dcol][..., None, None] * gg
+        S = pxx[:, None, :2, :2] - cxt - cxt.swapaxes(-1, -2) + ctt
         S = 0.5 * (S + S.swapaxes(-1, -2)) + sig2 * np.eye(2)
-        d = x_pred[:, None, :2] - p_hat
+        d = x_pred[:, None, :2] - t_hat
         a_, b_, d_ = _chol2(S)
         y = _solve_chol2(a_, b_, d_, d[..., None])[..., 0]  # L^{-1} d
         ll_rev = -_LOG_2PI - np.log(a_ * d_) - 0.5 * np.sum(y * y, axis=-1)
@@ -927,6 +1015,8 @@ class TopologyFilter:
                 x_pred,
                 pxx,
                 cxp,
+                cxt,
+                lever,
                 S,
                 d,
                 stride,
@@ -998,14 +1088,21 @@ class TopologyFilter:
         cov[:, :3, :dim] = Bp
         cov[:, :dim, :3] = Bp.transpose(0, 2, 1)
 
-        # revisits: the coincidence x^xy - p_k = 0 with noise σ_T² I
+        # revisits: the coincidence x^xy - q_k - δ_k g_k = 0 with noise σ_T² I
         rv = slice(0, n_rev)
         pk = _place_cols(stride, kk[rv], 0, 2)  # (R, 2)
         rows = np.arange(n_rev)[:, None]
         hp = cov[rv, 0:2, :] - cov[rows, pk, :]  # H P: (R, 2, D)
-        s_c = hp[:, :, 0:2] - np.take_along_axis(hp, pk[:, None, :], axis=2) + sig2 * np.eye(2)
-        s_c = 0.5 * (s_c + s_c.swapaxes(-1, -2))
-        innov = mean[rv, 0:2] - mean[rows, pk]  # predicted x^xy - p_k
+        innov = mean[rv, 0:2] - mean[rows, pk]  # predicted x^xy - t_k
+        if lever is not None:
+            dk = lever.cols[kk[rv]]  # (R,)
+            g_r = lever.g[par[rv], kk[rv]]  # (R, 2)
+            hp -= g_r[:, :, None] * cov[rows[:, 0], dk, :][:, None, :]
+            innov -= mean[rows[:, 0], dk][:, None] * g_r
+        s_c = hp[:, :, 0:2] - np.take_along_axis(hp, pk[:, None, :], axis=2)  # H P Hᵀ
+        if lever is not None:
+            s_c -= hp[rows[:, 0], :, dk][:, :, None] * g_r[:, None, :]
+        s_c = 0.5 * (s_c + s_c.swapaxes(-1, -2)) + sig2 * np.eye(2)
         a_, b_, d_ = _chol2(s_c)
         W = _solve_chol2(a_, b_, d_, hp)  # L^{-1} H P
         v = _solve_chol2(a_, b_, d_, innov[:, :, None])[..., 0]
@@ -1015,7 +1112,7 @@ class TopologyFilter:
         # after the coincidence; both low-rank downdates of the covariance are then applied in one pass
         laser_ll = np.zeros(n_child)
         if n_z:
-            lc = _place_cols(stride, kk[:n_z], 2, 3)  # (Z, 3) columns of x_last(k)
+            lc = _place_cols(stride, kk[:n_z], lay.x_last, 3)  # (Z, 3) columns of x_last(k)
             sub = np.concatenate([lc, np.broadcast_to(np.arange(3), (n_z, 3))], axis=1)  # x_last(k), x_n
             w1 = W[:n_z]
             rows6 = cov[np.arange(n_z)[:, None], sub, :]
@@ -1036,17 +1133,23 @@ class TopologyFilter:
             mean[:n_z] += np.einsum("zki,zk->zi", w2, v2)
             _downdate(cov[:n_z], np.concatenate([w1, w2], axis=1))
         _downdate(cov[n_z:n_rev], W[n_z:])
+        if lever is not None:  # the revisited place's mean heading h̄_k moves by g_k / (|k| + 1): so does q_k
+            _shear(mean[rv], cov[rv], pk, dk, g_r / (st.counts[par[rv], kk[rv]] + 1.0)[:, None])
 
-        # x_last(k) := x_n for revisits; p_M and x_last(M) for new places
+        # x_last(k) := x_n for revisits; q_M (and δ_M) and x_last(M) for new places
         if n_child > n_rev:
             nw = slice(n_rev, n_child)
             _duplicate(mean[nw], cov[nw], np.arange(2), _place_cols(stride, kk[nw], 0, 2))
             cols = _place_cols(stride, kk[nw], 0, 2)
-            cov[np.arange(n_child - n_rev)[:, None] + n_rev, cols, cols] += sig2
-        if stride == 5:
-            _duplicate(mean, cov, np.arange(3), _place_cols(stride, kk, 2, 3))
-            headings = 3 + stride * np.arange(new_cap) + 4
-            mean[:, headings] = wrap_angle(mean[:, headings])
+            new_rows = np.arange(n_child - n_rev)[:, None] + n_rev
+            cov[new_rows, cols, cols] += sig2
+            if lay.offset:
+                dcols = _place_cols(stride, kk[nw], lay.delta, 1)
+                cov[new_rows, dcols, dcols] = cfg.sigma_offset**2
+        if lay.laser:
+            _duplicate(mean, cov, np.arange(3), _place_cols(stride, kk, lay.x_last, 3))
+            angles = 3 + stride * np.arange(new_cap) + lay.x_last + 2
+            mean[:, angles] = wrap_angle(mean[:, angles])
         mean[:, 2] = wrap_angle(mean[:, 2])
 
         # bookkeeping, the separation prior of the new pairs (i, n), and the weights
@@ -1057,9 +1160,12 @@ class TopologyFilter:
         ar = np.arange(n_child)
         counts[ar, kk] += 1
         last[ar, kk] = n
+        headings = np.zeros((n_child, new_cap, 2))
+        headings[:, :cap] = st.headings[par]
+        headings[ar, kk] += h_n
         log_sep = _separation_update(mean, cov, st.counts[par], kk, stride=stride, config=cfg)
-        if stride == 5:
-            mean[:, headings] = wrap_angle(mean[:, headings])
+        if lay.laser:
+            mean[:, angles] = wrap_angle(mean[:, angles])
         mean[:, 2] = wrap_angle(mean[:, 2])
         penalty = st.penalty[par] - log_sep
         lw = sel_lw + laser_ll + fitness + proxy + log_sep  # the proxy (selection only) was in sel_lw
@@ -1085,6 +1191,7 @@ class TopologyFilter:
             blocks=blocks,
             penalty=penalty,
             metric=metric,
+            headings=headings,
         )
         return particles, increment
 
@@ -1156,6 +1263,7 @@ class TopologyFilter:
                 n_places=st.n_places.copy(),
                 penalty=st.penalty.copy(),
                 metric=st.metric.copy(),
+                headings=st.headings.copy(),
             )
         return out
 
@@ -1181,7 +1289,10 @@ class TopologyFilter:
             raise ModelError(msg)
         flt = cls(config, prior, odometry, appearance=appearance, registrar=registrar, prefetch=prefetch)
         if int(state["stride"]) != flt._stride:
-            msg = "the filter state was saved with a different laser setting (registrar given or not)"
+            msg = (
+                "the filter state was saved with a different laser setting (registrar given or not) or visit"
+                " offset (odometry.sigma_offset zero or not)"
+            )
             raise ModelError(msg)
         flt._rng.bit_generator.state = state["rng"]
         flt._log_evidence = float(state["log_evidence"])
@@ -1205,6 +1316,7 @@ class TopologyFilter:
                 blocks=blocks,
                 penalty=np.asarray(state["penalty"], dtype=float).copy(),
                 metric=np.asarray(state["metric"], dtype=float).copy(),
+                headings=np.asarray(state["headings"], dtype=float).copy(),
             )
             if len(flt._visits) != len(labels[0]):
                 msg = f"state holds {len(flt._visits)} visits but topologies of {len(labels[0])}"

@@ -18,9 +18,9 @@ resampling factors, :math:`w_i = \hat\pi(L_i) R_i`. Since :math:`\hat\pi` and th
 
 is an importance-sampling estimate of the batch posterior over topologies, with the filter as the
 proposal: the filter chooses *which* topologies to keep, the batch model says *how much* each is worth.
-The batch model is also the richer one: it integrates each place's offset along the visits' headings
-(``odometry.sigma_offset``, :func:`ptm_ros.model.odometry.coincidence_rows`), which the filter's sequential
-place innovations leave out, so :math:`m(L) - \hat m(L)` carries that term too.
+Both carry each place's offset along the visits' headings (``odometry.sigma_offset``,
+:func:`ptm_ros.model.odometry.coincidence_rows`); the batch model also integrates the separation prior
+over every visit, where the filter takes a place's visits at their mean.
 With every topology kept it is the batch posterior exactly (``ptm-run --method exact``). The prior
 (eq. 39) and the appearance predictives (eq. 46) are the batch model's chain rule already and cancel.
 Resampling keeps using the sequential weights: the reweighting changes the PTM, not the particles.

@@ -150,7 +150,7 @@ class OdometryConfig(Settings):
         doc=(
             "σ_δ, the spread of where along its heading the detector puts the visits of one place [m]: each "
             "place's visits lie ``δ_s`` ahead of it, ``δ_s ~ N(0, σ_δ²)``, so visits of one place passed in "
-            "opposite directions may lie ``2 δ_s`` apart along the path (the batch model only; 0: none)."
+            "opposite directions may lie ``2 δ_s`` apart along the path (0: none)."
         ),
     )
     area_m2: float = setting(
