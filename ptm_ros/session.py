@@ -27,6 +27,10 @@ learns the same scale at the same visits as an offline run, and ends with the sa
 stream freezes the scale with the priors beyond ``refit_max_visits`` visits, an offline run never (as
 ``ptm-bringup``'s stream, ``refit_max_visits`` 0).
 
+Visit offset. With ``model.odometry.learn_offset``, the spread ``sigma_offset`` of where along its heading
+the detector puts a visit is learned the same way (:mod:`ptm_ros.model.visit_offset`, lattice steps of
+0.125 m, a replay when the estimate has moved :data:`OFFSET_HYSTERESIS` steps).
+
 Checkpoints. :meth:`FilterSession.state_dict` holds the visits with their measurements, the registration
 cache and its counters, the appearance priors in use, and the particle filter's own
 :meth:`~ptm_ros.inference.rbpf.TopologyFilter.state_dict`. A session restored from it continues exactly where
@@ -89,6 +93,7 @@ from ptm_ros.model.ptm import (
     timeline_list,
 )
 from ptm_ros.model.translation_noise import TRANSLATION_KEY, translation_residuals, translation_scale
+from ptm_ros.model.visit_offset import OffsetSpread, offset_spread
 from ptm_ros.model.visits import Visit
 from ptm_ros.perception.laser import PatchRegistrar, WorkerPool
 from ptm_ros.reporting.doubts import doubts_dict, find_doubts
@@ -107,6 +112,11 @@ DOUBTS_KEY = "doubts"
 #: ``ptm.inference`` key of the learned heading-noise scale
 # (:class:`ptm_ros.model.heading_noise.NoiseScale`).
 HEADING_KEY = "heading_noise"
+#: ``ptm.inference`` key of the learned visit offset (:class:`ptm_ros.model.visit_offset.OffsetSpread`).
+OFFSET_KEY = "visit_offset"
+#: The learned visit offset moves (and the filter replays) only when the estimate is this many lattice steps
+#: (:data:`ptm_ros.model.visit_offset.STEP_M`) from the value in use.
+OFFSET_HYSTERESIS = 2
 #: The learned heading-noise scale moves (and the filter replays) only when the estimate is this many
 #: lattice steps (factors √2) away from the one in use, so that it does not flip between neighbours.
 HEADING_HYSTERESIS = 2
@@ -210,6 +220,7 @@ class FilterSession:
         self.replays = 0
         self.wall_s = 0.0
         self._heading = UNLEARNED
+        self._offset = OffsetSpread.prior(config.model.odometry.sigma_offset)
         inner = registrar
         own = None
         if inner is None and config.model.use_laser:
@@ -294,7 +305,7 @@ class FilterSession:
         return state
 
     def _advance(self, visit: Visit) -> FilterState:
-        return self._learn_heading(self._advance_appearance(visit))
+        return self._learn_offset(self._learn_heading(self._advance_appearance(visit)))
 
     def _frozen(self) -> bool:
         """Whether the learned parts (appearance priors, heading noise) are frozen: beyond
@@ -336,14 +347,38 @@ class FilterSession:
         self._heading = learned
         return self._rebuild(self._filter.appearance)
 
+    def _learn_offset(self, state: FilterState) -> FilterState:
+        """Re-estimate the visit offset's spread from the registrations so far (module docstring) and replay
+        the filter with it when it moved by :data:`OFFSET_HYSTERESIS` steps or more."""
+        cfg = self.config.model.odometry
+        live_frozen = self._run is None and self._frozen()
+        if not cfg.learn_offset or self._filter is None or live_frozen:
+            return state
+        valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+        if len(valid) == self._offset.registrations:
+            return state
+        learned = offset_spread(valid, cfg.sigma_offset)
+        if abs(learned.step - self._offset.step) < OFFSET_HYSTERESIS:  # the value stays; its report moves
+            self._offset = replace(self._offset, samples=learned.samples, registrations=learned.registrations)
+            return state
+        self._offset = learned
+        return self._rebuild(self._filter.appearance)
+
+    @property
+    def offset(self) -> OffsetSpread:
+        """The visit offset's spread in use (the configured value until one is learned)."""
+        return self._offset
+
     @property
     def heading(self) -> NoiseScale:
         """The heading-noise scale in use (:data:`UNLEARNED` until one is learned)."""
         return self._heading
 
     def odometry_config(self) -> OdometryConfig:
-        """The odometry model in use: the configured one with the learned heading-noise scale."""
-        return scaled_heading_noise(self.config.model.odometry, self._heading.scale)
+        """The odometry model in use: the configured one with the learned heading-noise scale and visit
+        offset."""
+        odometry = scaled_heading_noise(self.config.model.odometry, self._heading.scale)
+        return replace(odometry, sigma_offset=self._offset.sigma) if odometry.learn_offset else odometry
 
     def _new_filter(self, appearance: AppearanceModel | None) -> TopologyFilter:
         inf = self.config.inference
@@ -381,6 +416,7 @@ class FilterSession:
         self.replays = 0
         self.wall_s = 0.0
         self._heading = UNLEARNED
+        self._offset = OffsetSpread.prior(self.config.model.odometry.sigma_offset)
         self.registrations.clear()
         self._start_greedy()
 
@@ -398,6 +434,7 @@ class FilterSession:
             "replays": self.replays,
             "wall_s": self.wall_s,
             "heading": self._heading.as_dict(),
+            "offset": self._offset.as_dict(),
             "filter": None if flt is None else flt.state_dict(),
         }
 
@@ -423,6 +460,9 @@ class FilterSession:
             self.wall_s = float(state["wall_s"])
             heading = state.get("heading")  # absent in states saved before it was learned
             self._heading = UNLEARNED if heading is None else NoiseScale.from_dict(heading)
+            offset = state.get("offset")  # absent in states saved before it was learned
+            if offset is not None:
+                self._offset = OffsetSpread.from_dict(offset)
             if state["filter"] is not None:
                 self._filter = self._restore_filter(
                     state["filter"], appearance_from_state(state["appearance"])
@@ -477,6 +517,7 @@ class FilterSession:
             self.config,
             greedy=self.greedy,
             **({HEADING_KEY: self._heading.as_dict()} if self.config.model.odometry.learn_heading else {}),
+            **({OFFSET_KEY: self._offset.as_dict()} if self.config.model.odometry.learn_offset else {}),
             **({} if self._registrar is None else {TRANSLATION_KEY: self.translation_noise().as_dict()}),
             **({} if self._run is not None else {"replays": self.replays}),
         )
@@ -681,8 +722,8 @@ def _infer_batch(
     sweeps: Callable[[int, int], None] | None,
 ) -> Inference:
     """:func:`infer` for the batch estimators, ``exact`` and ``mcmc``: the batch model with the heading
-    noise the particle filter learns on the same visits (:func:`_filter_pass`, when MCMC starts from the
-    filter's ensemble or ``model.odometry.learn_heading`` is on)."""
+    noise and visit offset the particle filter learns on the same visits (:func:`_filter_pass`, when MCMC
+    starts from the filter's ensemble or ``model.odometry.learn_heading`` / ``learn_offset`` is on)."""
     from ptm_ros.inference.mcmc import starts_from_filter
 
     inf = config.inference
@@ -693,14 +734,17 @@ def _infer_batch(
         )
         raise ConfigError(msg)
     starts = inf.method == "mcmc" and starts_from_filter(inf.mcmc, len(visits))
-    learn = config.model.odometry.learn_heading and registrar is not None and config.model.use_laser
+    odometry = config.model.odometry
+    learning = odometry.learn_heading or odometry.learn_offset
+    learn = learning and registrar is not None and config.model.use_laser
     session = _filter_pass(visits, config, registrar, progress) if starts or learn else None
     model_config = config.model
     heading: dict[str, Any] = {}
     if session is not None and learn:
         model_config = replace(config.model, odometry=session.odometry_config())
         heading = {
-            HEADING_KEY: session.heading.as_dict(),
+            **({HEADING_KEY: session.heading.as_dict()} if odometry.learn_heading else {}),
+            **({OFFSET_KEY: session.offset.as_dict()} if odometry.learn_offset else {}),
             TRANSLATION_KEY: session.translation_noise().as_dict(),
         }
     model = PosteriorModel(visits, model_config, registrar=registrar, seed=inf.seed)

@@ -150,7 +150,15 @@ class OdometryConfig(Settings):
         doc=(
             "σ_δ, the spread of where along its heading the detector puts the visits of one place [m]: each "
             "place's visits lie ``δ_s`` ahead of it, ``δ_s ~ N(0, σ_δ²)``, so visits of one place passed in "
-            "opposite directions may lie ``2 δ_s`` apart along the path (0: none)."
+            "opposite directions may lie ``2 δ_s`` apart along the path (0: none). With ``learn_offset`` the "
+            "prior guess."
+        ),
+    )
+    learn_offset: bool = setting(
+        True,
+        doc=(
+            "learn ``sigma_offset`` from the run's laser registrations (:mod:`ptm_ros.model.visit_offset`) "
+            "while the filter runs; off: the value as given."
         ),
     )
     area_m2: float = setting(
