@@ -328,14 +328,22 @@ class FilterSession:
         are the same, or the priors are frozen and appearance is neither switched on nor off."""
         return same_model(new, old) or (self._frozen() and (new is None) == (old is None))
 
+    def _learning_frozen(self) -> bool:
+        """Whether the learned noise parameters stay as they are: a live stream beyond ``refit_max_visits``
+        (offline, as a never-frozen stream: ``ptm-bringup``)."""
+        return self._run is None and self._frozen()
+
+    def _valid_registrations(self) -> list[RelativePose]:
+        """The valid registrations so far, what the heading noise and the visit offset are learned from."""
+        return [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+
     def _learn_heading(self, state: FilterState) -> FilterState:
         """Re-estimate the heading-noise scale from the registrations so far (module docstring) and replay
         the filter with it when it moved by :data:`HEADING_HYSTERESIS` steps or more."""
         cfg = self.config.model.odometry
-        live_frozen = self._run is None and self._frozen()  # offline, as a never-frozen stream (ptm-bringup)
-        if not cfg.learn_heading or self._filter is None or live_frozen:
+        if not cfg.learn_heading or self._filter is None or self._learning_frozen():
             return state
-        valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+        valid = self._valid_registrations()
         if len(valid) == self._heading.registrations:
             return state
         residuals = heading_residuals(self._visits, valid, cfg)
@@ -351,10 +359,9 @@ class FilterSession:
         """Re-estimate the visit offset's spread from the registrations so far (module docstring) and replay
         the filter with it when it moved by :data:`OFFSET_HYSTERESIS` steps or more."""
         cfg = self.config.model.odometry
-        live_frozen = self._run is None and self._frozen()
-        if not cfg.learn_offset or self._filter is None or live_frozen:
+        if not cfg.learn_offset or self._filter is None or self._learning_frozen():
             return state
-        valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+        valid = self._valid_registrations()
         if len(valid) == self._offset.registrations:
             return state
         learned = offset_spread(valid, cfg.sigma_offset)
@@ -526,7 +533,7 @@ class FilterSession:
         """The translation-noise scale the valid registrations so far suggest at the heading scale in use
         (:func:`ptm_ros.model.translation_noise.translation_scale`): a check of the odometry model, not
         used by the filter."""
-        valid = [z for z in self._pairs.values() if isinstance(z, RelativePose)]
+        valid = self._valid_registrations()
         cfg = self.config.model.odometry
         return translation_scale(translation_residuals(self._visits, valid, cfg), self._heading.scale, cfg)
 
