@@ -13,7 +13,15 @@ from scipy.special import logsumexp
 
 from ptm_ros.errors import ConfigError, ModelError, RegistrationError
 from ptm_ros.inference.predictive import batch_log_predictive, block_log_predictives
-from ptm_ros.inference.rbpf import FilterState, RbpfConfig, TopologyFilter, _separation_update, run_filter
+from ptm_ros.inference.rbpf import (
+    FilterState,
+    RbpfConfig,
+    TopologyFilter,
+    _add_gram,
+    _separation_update,
+    _signed_factors,
+    run_filter,
+)
 from ptm_ros.inference.resampling import optimal_resample, particle_count, thinned_mass, top_resample
 from ptm_ros.io.synthetic import grid_route, odometry_visits, simulate_route, true_poses, truth_registrar
 from ptm_ros.model.appearance import (
@@ -738,6 +746,36 @@ def test_separation_update_matches_monte_carlo():
     np.testing.assert_allclose(m_out[0], mu, atol=0.01)
     np.testing.assert_allclose(c_out[0], c_mc, atol=0.01)
     assert np.all(np.linalg.eigvalsh(c_out[0]) > 0)
+
+
+def test_the_separation_update_is_one_exactly_symmetric_gemm():
+    """``_signed_factors`` splits ``gᵀ M g`` (``M`` block-diagonal, symmetric indefinite 2×2 blocks) into
+    ``aᵀ b`` with ``b = ±a`` row by row, and ``_add_gram`` adds it to a symmetric covariance in place, which
+    stays symmetric to the last bit."""
+    rng = np.random.default_rng(7)
+    n_child, n_round, dim = 5, 3, 40
+    gains = rng.normal(size=(n_child, 2 * n_round, dim))
+    moves = np.zeros((n_child, 2 * n_round, 2 * n_round))
+    for r in range(n_round):
+        block = rng.normal(size=(n_child, 2, 2))
+        moves[:, 2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = block + block.swapaxes(-1, -2)  # indefinite
+    spread = np.ones((n_child, n_round))
+    child, a, b = _signed_factors(gains, moves, spread)
+    np.testing.assert_array_equal(child, np.repeat(np.arange(n_child), 2 * n_round))
+    want = gains.swapaxes(-1, -2) @ moves @ gains
+    base = rng.normal(size=(dim, dim))
+    for c in range(n_child):
+        rows = child == c
+        np.testing.assert_allclose(a[rows].T @ b[rows], want[c], rtol=0, atol=1e-10)
+        cov = base @ base.T
+        before = cov.copy()
+        _add_gram(cov, a[rows], b[rows])
+        np.testing.assert_allclose(cov, before + want[c], rtol=0, atol=1e-10)
+        assert np.array_equal(cov, cov.T)
+    small = moves.copy()
+    small[:, :2, :2] *= 1e-12  # the first round's move is negligible against tr Σ = 1: its rows are left out
+    child, a, _ = _signed_factors(gains, small, spread)
+    np.testing.assert_array_equal(child, np.repeat(np.arange(n_child), 2 * n_round - 2))
 
 
 def test_children_with_few_near_places_are_updated_as_if_alone():

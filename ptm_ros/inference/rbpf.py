@@ -365,18 +365,26 @@ class _Lever:
     g: FloatArray
 
 
-def _downdate(cov: FloatArray, W: FloatArray) -> None:
-    """In place ``cov[r] -= W[r]ᵀ W[r]`` for ``cov`` ``(C, D, D)`` (C-contiguous) and ``W`` ``(C, k, D)``.
+def _add_gram(cov: FloatArray, a: FloatArray, b: FloatArray) -> None:
+    """In place ``cov += aᵀ b`` for a C-contiguous ``(D, D)`` ``cov`` and ``a``, ``b`` ``(k, D)`` whose
+    ``aᵀ b`` is symmetric term by term (row ``r`` of ``b`` is ``±`` row ``r`` of ``a``).
 
-    One BLAS ``gemm`` per matrix with ``β = 1`` writes straight into the covariance: no ``(C, D, D)``
-    temporary, which saves a third of the memory traffic of a filter step. ``cov[r].T`` is the same
-    symmetric matrix in Fortran order, as ``gemm`` wants it.
+    One BLAS ``gemm`` with ``β = 1`` writes straight into the covariance, without a ``(D, D)`` temporary:
+    ``cov.T`` is ``cov`` in Fortran order, as ``gemm`` wants it, and ``gemm`` adds ``bᵀ a`` to it, which is
+    ``aᵀ b`` transposed. Element ``(i, j)`` sums the products ``a_ri b_rj`` and element ``(j, i)`` the same
+    products in the same order, so a symmetric ``cov`` stays symmetric to the last bit.
     """
+    target = cov.T
+    out = dgemm(1.0, a, b, 1.0, target, trans_a=1, overwrite_c=1)
+    if not np.shares_memory(out, target):  # BLAS had to copy: write the result back
+        cov[...] = out.T
+
+
+def _downdate(cov: FloatArray, W: FloatArray) -> None:
+    """In place ``cov[r] -= W[r]ᵀ W[r]`` for ``cov`` ``(C, D, D)`` (C-contiguous) and ``W`` ``(C, k, D)``
+    (:func:`_add_gram`: no ``(C, D, D)`` temporary, a third less memory traffic in a filter step)."""
     for r in range(len(W)):
-        target = cov[r].T
-        out = dgemm(-1.0, W[r], W[r], 1.0, target, trans_a=1, overwrite_c=1)
-        if not np.shares_memory(out, target):  # BLAS had to copy: write the result back
-            cov[r] = out.T
+        _add_gram(cov[r], W[r], -W[r])
 
 
 def _cubic(dist: FloatArray, config: OdometryConfig) -> FloatArray:
@@ -413,6 +421,9 @@ def _penalty_points(count: int = _PENALTY_POINTS) -> FloatArray:
 
 
 _Z = _penalty_points()
+#: How far the farthest of :data:`_Z` lies from 0 (with a margin for rounding): a Gaussian's lattice points
+#: lie within this many ``√λ_max`` of its mean.
+_Z_REACH = float(np.max(np.hypot(_Z[0], _Z[1]))) * (1.0 + 1e-9)
 
 
 def _separation_update(
@@ -439,7 +450,9 @@ def _separation_update(
     (the law of total variance: positive semi-definite). The near places of a child are taken one after
     the other, each under the state updated by the previous ones, so that correlated pairs (a split
     place whose next visits are split too) are not charged twice; the rank-2 covariance updates are
-    summed and written once.
+    summed and written once (:func:`_signed_factors`). A pair whose penalty is below
+    :data:`_NEGLIGIBLE_PENALTY` on every lattice point is left out, as are the negligible directions of
+    the moves (:data:`_NEGLIGIBLE_MOVE`).
     """
     n_child = len(mean)
     out = np.zeros(n_child)
@@ -464,6 +477,7 @@ def _separation_update(
     # updates are kept as factors (Kᵀ stacked, Σ' - Σ block-diagonal) and the (D, D) matrices written once.
     gains = np.zeros((n_child, 2 * n_round, mean.shape[1]))
     moves = np.zeros((n_child, 2 * n_round, 2 * n_round))
+    spread = np.zeros((n_child, n_round))  # tr Σ of each round, the scale of a negligible move
     for r in range(n_round):
         rows = np.flatnonzero(n_near > r)
         places = order[rows, r]
@@ -481,6 +495,12 @@ def _separation_update(
         c_q[ar, np.arange(2), cols] -= excess[rows, places][:, None]
         s_q = c_q[ar, :, cols].transpose(0, 2, 1) - c_q[:, :, :2]  # cov(δ): (R, 2, 2)
         s_q = 0.5 * (s_q + s_q.swapaxes(-1, -2))
+        # the factor's largest penalty over the lattice points, at the nearest of them: below
+        # _NEGLIGIBLE_PENALTY (0 when every point lies beyond the radius) the pair moves nothing
+        reach = _Z_REACH * np.sqrt(np.maximum(_max_eig2(s_q), 0.0))
+        nearest = np.maximum(np.hypot(m_q[:, 0], m_q[:, 1]) - reach, 0.0)
+        hit = counts[rows, places] * _cubic(nearest, config) >= _NEGLIGIBLE_PENALTY
+        rows, places, m_q, c_q, s_q = rows[hit], places[hit], m_q[hit], c_q[hit], s_q[hit]
         log_e, shift, s_new = _tilted_moments(m_q, s_q, counts[rows, places], config, _Z)
         out[rows] += log_e
         det = s_q[:, 0, 0] * s_q[:, 1, 1] - s_q[:, 0, 1] * s_q[:, 1, 0]
@@ -490,14 +510,43 @@ def _separation_update(
         mean[rows] += np.einsum("rk,rkd->rd", shift, gain_t)
         gains[rows, 2 * r : 2 * r + 2] = gain_t
         moves[rows, 2 * r : 2 * r + 2, 2 * r : 2 * r + 2] = s_new - s_q
-    moved = np.flatnonzero(np.any(moves != 0.0, axis=(1, 2)))
-    for c in moved.tolist():  # per child: its (D, D) blocks stay in cache
-        k = 2 * int(n_near[c])  # the rows of its own rounds: the others' rows of gains and moves are 0
-        g = gains[c, :k]
-        upd = g.T @ (0.5 * (moves[c, :k, :k] @ g))  # ½ Σ_r K_r (Σ' - Σ)_r K_rᵀ
-        upd += upd.T  # symmetric to the last bit
-        cov[c] += upd
+        spread[rows, r] = s_q[:, 0, 0] + s_q[:, 1, 1]
+    child, a, b = _signed_factors(gains, moves, spread)
+    starts = np.flatnonzero(np.diff(child, prepend=-1))  # each child's first row
+    ends = np.append(starts[1:], len(child)) if len(child) else starts
+    for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
+        _add_gram(cov[child[lo]], a[lo:hi], b[lo:hi])  # Σ_r K_r (Σ' - Σ)_r K_rᵀ
     return out
+
+
+#: A pair whose separation penalty is below this on every lattice point [nats] is left out of the update:
+#: its factor is 1 to within as much (and its moments move by less).
+_NEGLIGIBLE_PENALTY = 1e-9
+#: An eigenvalue of a round's covariance move ``Σ' - Σ`` below this share of ``tr Σ`` is left out of the
+#: state's update. The factor of one place tilts ``δ`` mostly along one direction, so that the other
+#: eigenvalue is often rounding (~1e-16): most of the rank of the update on a large map.
+_NEGLIGIBLE_MOVE = 1e-9
+
+
+def _signed_factors(
+    gains: FloatArray, moves: FloatArray, spread: FloatArray
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """The update ``gᵀ M g`` of every child as ``aᵀ b`` over its rows, for the stacked gains ``g``
+    ``(C, 2R, D)`` and the block-diagonal ``M`` ``(C, 2R, 2R)`` (symmetric 2×2 blocks ``Σ' - Σ``, one per
+    round, whose ``tr Σ`` is ``spread`` ``(C, R)``): each block ``V diag(λ) Vᵀ`` gives rows
+    ``a = |λ|^½ vᵀ g`` and ``b = sign(λ) a`` (``v`` a column of ``V``), so that :func:`_add_gram` adds an
+    exactly symmetric update with one ``gemm``. Only the rows whose ``|λ|`` exceeds
+    :data:`_NEGLIGIBLE_MOVE` ``tr Σ`` are kept: ``(K,)`` their child (ascending), ``a``, ``b`` ``(K, D)``."""
+    n_round = spread.shape[1]
+    idx = 2 * np.arange(n_round)[:, None] + np.arange(2)  # (R, 2)
+    lam, vec = np.linalg.eigh(
+        moves[:, idx[:, :, None], idx[:, None, :]]
+    )  # per block: (C, R, 2), (C, R, 2, 2)
+    ci, ri, ji = np.nonzero(np.abs(lam) > _NEGLIGIBLE_MOVE * spread[..., None])
+    lam_k = lam[ci, ri, ji]
+    v = vec[ci, ri, :, ji] * np.sqrt(np.abs(lam_k))[:, None]  # (K, 2)
+    a = v[:, 0, None] * gains[ci, 2 * ri] + v[:, 1, None] * gains[ci, 2 * ri + 1]
+    return ci, a, a * np.sign(lam_k)[:, None]
 
 
 def _log_expectation(m: FloatArray, S: FloatArray, count: IntArray, config: OdometryConfig) -> FloatArray:
