@@ -79,6 +79,7 @@ COMPONENTS = (
     "bench_odometry.py",
     "bench_posterior.py",
     "bench_rbpf.py",
+    "bench_filter.py",
     "bench_mcmc.py",
     "bench_surprise.py",
     "bench_nodes.py",
