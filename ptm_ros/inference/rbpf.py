@@ -370,9 +370,10 @@ def _add_gram(cov: FloatArray, a: FloatArray, b: FloatArray) -> None:
     ``aᵀ b`` is symmetric term by term (row ``r`` of ``b`` is ``±`` row ``r`` of ``a``).
 
     One BLAS ``gemm`` with ``β = 1`` writes straight into the covariance, without a ``(D, D)`` temporary:
-    ``cov.T`` is ``cov`` in Fortran order, as ``gemm`` wants it, and ``gemm`` adds ``bᵀ a`` to it, which is
-    ``aᵀ b`` transposed. Element ``(i, j)`` sums the products ``a_ri b_rj`` and element ``(j, i)`` the same
-    products in the same order, so a symmetric ``cov`` stays symmetric to the last bit.
+    ``cov.T`` is ``cov``'s memory in Fortran order, as ``gemm`` wants it, and ``gemm`` adds ``aᵀ b`` to
+    ``cov.T``, i.e. ``bᵀ a`` to ``cov``, the same matrix. Element ``(i, j)`` sums the products
+    ``a_ri b_rj`` and element ``(j, i)`` the same products in the same order, so a symmetric ``cov`` stays
+    symmetric to the last bit.
     """
     target = cov.T
     out = dgemm(1.0, a, b, 1.0, target, trans_a=1, overwrite_c=1)
@@ -539,9 +540,8 @@ def _signed_factors(
     :data:`_NEGLIGIBLE_MOVE` ``tr Σ`` are kept: ``(K,)`` their child (ascending), ``a``, ``b`` ``(K, D)``."""
     n_round = spread.shape[1]
     idx = 2 * np.arange(n_round)[:, None] + np.arange(2)  # (R, 2)
-    lam, vec = np.linalg.eigh(
-        moves[:, idx[:, :, None], idx[:, None, :]]
-    )  # per block: (C, R, 2), (C, R, 2, 2)
+    blocks = moves[:, idx[:, :, None], idx[:, None, :]]  # (C, R, 2, 2)
+    lam, vec = np.linalg.eigh(blocks)  # (C, R, 2), (C, R, 2, 2)
     ci, ri, ji = np.nonzero(np.abs(lam) > _NEGLIGIBLE_MOVE * spread[..., None])
     lam_k = lam[ci, ri, ji]
     v = vec[ci, ri, :, ji] * np.sqrt(np.abs(lam_k))[:, None]  # (K, 2)
