@@ -41,27 +41,28 @@ from ptm_ros.session import FilterSession, filter_visits
 from ptm_ros.tools.pipeline import detect_visits, run_extractor, run_sensors
 
 BENCH = Path(__file__).resolve().parent
-Cached = tuple[list[Visit], dict[tuple[int, int], Registration]]
+Pairs = dict[tuple[int, int], Registration]
 
 
-def cached_inputs(bag: Path, config: PtmConfig, path: Path) -> Cached:
-    """The run's visits and the registrations a filter session asks for, made once and pickled to ``path``."""
+def cached_inputs(bag: Path, path: Path) -> tuple[PtmConfig, list[Visit], Pairs]:
+    """The run's configuration (the defaults for its sensors), visits, and the registrations a filter session
+    asks for: made once and pickled to ``path`` (the bag is read only then)."""
     if path.is_file():
         with path.open("rb") as f:
-            return pickle.load(f)  # the bench's own cache
+            sensors, visits, pairs = pickle.load(f)  # the bench's own cache
+        return with_detector_kind(PtmConfig(), **sensors), visits, pairs
     run = read_run(bag)
+    sensors = run_sensors(run)
+    config = with_detector_kind(PtmConfig(), **sensors)
     visits = detect_visits(run, config, extractor=run_extractor(run, config))
-    session = filter_visits(FilterSession(config, fitted_to=visits), visits)
-    out: Cached = (visits, dict(session.pairs))
+    pairs = dict(filter_visits(FilterSession(config, fitted_to=visits), visits).pairs)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("wb") as f:
-        pickle.dump(out, f)
-    return out
+        pickle.dump((sensors, visits, pairs), f)
+    return config, visits, pairs
 
 
-def one_pass(
-    config: PtmConfig, visits: list[Visit], pairs: dict[tuple[int, int], Registration]
-) -> dict[str, Any]:
+def one_pass(config: PtmConfig, visits: list[Visit], pairs: Pairs) -> dict[str, Any]:
     """One filter pass over ``visits`` with the cached registrations: CPU time, update times, digest."""
     t0 = time.process_time()
     session = FilterSession(config, fitted_to=visits, registrar=lambda i, j: pairs[(i, j)])
@@ -113,8 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name, kind, bag, _ in prepare_runs(BENCH.parent / "out" / "bench", args.only):
         if kind != "real":
             continue
-        config = with_detector_kind(PtmConfig(), **run_sensors(read_run(bag)))
-        visits, pairs = cached_inputs(bag, config, args.work / f"{name}.pkl")
+        config, visits, pairs = cached_inputs(bag, args.work / f"{name}.pkl")
         passes = [one_pass(config, visits, pairs) for _ in range(args.repeats)]
         cpu = [p["cpu_s"] for p in passes]
         best = passes[cpu.index(min(cpu))]

@@ -337,14 +337,21 @@ class FilterSession:
         """The valid registrations so far, what the heading noise and the visit offset are learned from."""
         return [z for z in self._pairs.values() if isinstance(z, RelativePose)]
 
+    def _to_learn_from(self, enabled: bool, seen: int) -> list[RelativePose] | None:
+        """The valid registrations so far when a learned parameter is to be estimated again: its learning
+        ``enabled``, a filter to replay, not frozen, and other registrations than the ``seen`` it was last
+        estimated from; else None."""
+        if not enabled or self._filter is None or self._learning_frozen():
+            return None
+        valid = self._valid_registrations()
+        return None if len(valid) == seen else valid
+
     def _learn_heading(self, state: FilterState) -> FilterState:
         """Re-estimate the heading-noise scale from the registrations so far (module docstring) and replay
         the filter with it when it moved by :data:`HEADING_HYSTERESIS` steps or more."""
         cfg = self.config.model.odometry
-        if not cfg.learn_heading or self._filter is None or self._learning_frozen():
-            return state
-        valid = self._valid_registrations()
-        if len(valid) == self._heading.registrations:
+        valid = self._to_learn_from(cfg.learn_heading, self._heading.registrations)
+        if valid is None or self._filter is None:
             return state
         residuals = heading_residuals(self._visits, valid, cfg)
         learned = heading_scale(residuals, cfg.heading_prior_sd)
@@ -359,10 +366,8 @@ class FilterSession:
         """Re-estimate the visit offset's spread from the registrations so far (module docstring) and replay
         the filter with it when it moved by :data:`OFFSET_HYSTERESIS` steps or more."""
         cfg = self.config.model.odometry
-        if not cfg.learn_offset or self._filter is None or self._learning_frozen():
-            return state
-        valid = self._valid_registrations()
-        if len(valid) == self._offset.registrations:
+        valid = self._to_learn_from(cfg.learn_offset, self._offset.registrations)
+        if valid is None or self._filter is None:
             return state
         learned = offset_spread(valid, cfg.sigma_offset)
         if abs(learned.step - self._offset.step) < OFFSET_HYSTERESIS:  # the value stays; its report moves
